@@ -1,0 +1,146 @@
+"""Action spaces in DeepRacer's `model_metadata.json` form.
+
+A discrete space is a list of ``{"steering_angle": deg, "speed": m/s}``
+entries; a continuous space gives ``{"steering_angle": {"low", "high"},
+"speed": {"low", "high"}}`` bounds. Units are DeepRacer's: degrees (+ left)
+and metres per second.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+from gymnasium import spaces
+
+MAX_STEER_DEG = 30.0
+SPEED_RANGE = (0.1, 4.0)
+DEFAULT_STEERING = (-30.0, -15.0, 0.0, 15.0, 30.0)
+DEFAULT_SPEEDS = (0.5, 1.0)
+
+
+class ActionSpaceError(ValueError):
+    """A model_metadata action space is malformed; the message names the file and field."""
+
+
+class ActionSpace:
+    """A DeepRacer action space: maps policy outputs to (steering deg, speed m/s)."""
+
+    def __init__(self, metadata: dict, source: str = "<dict>"):
+        self.source = source
+        raw = metadata.get("action_space")
+        if raw is None:
+            raise ActionSpaceError(f"{source}: field 'action_space' is missing")
+        implied = "continuous" if isinstance(raw, dict) else "discrete"
+        self.kind = str(metadata.get("action_space_type", implied)).lower()
+        if self.kind == "discrete":
+            self.actions = self._parse_discrete(raw, source)
+            self.space = spaces.Discrete(len(self.actions))
+        elif self.kind == "continuous":
+            self.low, self.high = self._parse_continuous(raw, source)
+            self.space = spaces.Box(low=np.array(self.low, np.float32), high=np.array(self.high, np.float32))
+        else:
+            raise ActionSpaceError(f"{source}: field 'action_space_type' is {self.kind!r}, "
+                                   "expected 'discrete' or 'continuous'")
+
+    @staticmethod
+    def _check_command(steer, speed, where: str) -> tuple[float, float]:
+        try:
+            steer, speed = float(steer), float(speed)
+        except (TypeError, ValueError):
+            raise ActionSpaceError(f"{where}: steering_angle and speed must be numbers") from None
+        if not (math.isfinite(steer) and math.isfinite(speed)):
+            raise ActionSpaceError(f"{where}: steering_angle and speed must be finite")
+        if abs(steer) > MAX_STEER_DEG:
+            raise ActionSpaceError(f"{where}: steering_angle {steer} outside [-30, 30] degrees")
+        if not SPEED_RANGE[0] <= speed <= SPEED_RANGE[1]:
+            raise ActionSpaceError(f"{where}: speed {speed} outside [{SPEED_RANGE[0]}, {SPEED_RANGE[1]}] m/s")
+        return steer, speed
+
+    def _parse_discrete(self, raw, source) -> list[tuple[float, float]]:
+        if not isinstance(raw, list) or not raw:
+            raise ActionSpaceError(f"{source}: field 'action_space' must be a non-empty list for a discrete space")
+        actions = []
+        for k, entry in enumerate(raw):
+            where = f"{source}: action_space[{k}]"
+            if not isinstance(entry, dict) or "steering_angle" not in entry or "speed" not in entry:
+                raise ActionSpaceError(f"{where}: needs 'steering_angle' and 'speed'")
+            if "index" in entry and entry["index"] != k:
+                raise ActionSpaceError(f"{where}: 'index' is {entry['index']}, expected {k}")
+            actions.append(self._check_command(entry["steering_angle"], entry["speed"], where))
+        return actions
+
+    def _parse_continuous(self, raw, source):
+        try:
+            steer, speed = raw["steering_angle"], raw["speed"]
+            low = self._check_command(steer["low"], speed["low"], f"{source}: action_space low")
+            high = self._check_command(steer["high"], speed["high"], f"{source}: action_space high")
+        except (KeyError, TypeError):
+            raise ActionSpaceError(f"{source}: continuous 'action_space' needs steering_angle and speed "
+                                   "with 'low' and 'high'") from None
+        if low[0] > high[0] or low[1] > high[1]:
+            raise ActionSpaceError(f"{source}: action_space low is above high")
+        return low, high
+
+    @property
+    def discrete(self) -> bool:
+        return self.kind == "discrete"
+
+    def command(self, action) -> tuple[float, float]:
+        """(steering degrees, speed m/s) for a policy action (index or [steer, speed])."""
+        if self.discrete:
+            return self.actions[int(action)]
+        steer, speed = np.asarray(action, dtype=np.float64).reshape(2)
+        return (min(max(float(steer), self.low[0]), self.high[0]),
+                min(max(float(speed), self.low[1]), self.high[1]))
+
+    def nearest(self, steer_deg: float, speed: float):
+        """The action closest to a wanted command (how scripted drivers drive any space)."""
+        if not self.discrete:
+            return np.array(self.command([steer_deg, speed]), dtype=np.float32)
+        table = np.array(self.actions)
+        cost = ((table[:, 0] - steer_deg) / 30.0) ** 2 + ((table[:, 1] - speed) / 2.0) ** 2
+        return int(np.argmin(cost))
+
+    def label(self, action) -> str:
+        """The sim-trace `action` column: the index, or `[steer speed]` for continuous."""
+        if self.discrete:
+            return str(int(action))
+        steer, speed = self.command(action)
+        return f"[{steer} {speed}]"
+
+    def to_metadata(self) -> dict:
+        """The `action_space` and `action_space_type` fields of model_metadata.json."""
+        if self.discrete:
+            raw = [{"steering_angle": s, "speed": v, "index": k} for k, (s, v) in enumerate(self.actions)]
+        else:
+            raw = {"steering_angle": {"low": self.low[0], "high": self.high[0]},
+                   "speed": {"low": self.low[1], "high": self.high[1]}}
+        return {"action_space": raw, "action_space_type": self.kind}
+
+
+def default_metadata() -> dict:
+    """The default 10-action space: steering {-30,-15,0,15,30} x speed {0.5,1.0}."""
+    raw = [{"steering_angle": s, "speed": v} for v in DEFAULT_SPEEDS for s in DEFAULT_STEERING]
+    return {"action_space": raw, "action_space_type": "discrete"}
+
+
+def load_action_space(spec) -> ActionSpace:
+    """An ActionSpace from None (default), a model_metadata dict, or a path to model_metadata.json."""
+    if spec is None:
+        return ActionSpace(default_metadata(), "<default action space>")
+    if isinstance(spec, ActionSpace):
+        return spec
+    if isinstance(spec, dict):
+        return ActionSpace(spec, "<action_space dict>")
+    path = Path(spec)
+    try:
+        metadata = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ActionSpaceError(f"{path}: no such file") from None
+    except json.JSONDecodeError as exc:
+        raise ActionSpaceError(f"{path}: not valid JSON ({exc})") from None
+    if not isinstance(metadata, dict):
+        raise ActionSpaceError(f"{path}: expected a JSON object")
+    return ActionSpace(metadata, str(path))

@@ -1,0 +1,75 @@
+"""Scripted drivers: pure pursuit on the track's centre line (or a lane).
+
+They use privileged state (the car's true pose and the track), so they are
+the demo, the test driver, the expert for imitation, and the league's bots:
+``follow@1.5`` keeps the centre line at 1.5 m/s, ``lanes@1.0`` changes lane
+every few seconds at 1.0 m/s.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+
+from .car import CarSpec
+from .tracks import Track
+
+BOT_KINDS = ("follow", "lanes")
+_BOT_PATTERN = re.compile(r"^(?:bot:)?(?P<kind>[a-z]+)@(?P<speed>[0-9]*\.?[0-9]+)$")
+
+
+@dataclasses.dataclass
+class PurePursuit:
+    """Steers toward a point `lookahead` metres ahead on a path parallel to the centre line."""
+
+    speed: float = 1.0  # m/s
+    lookahead: float = 0.45  # metres (grows with speed)
+    lateral: float = 0.0  # target offset from the centre line, + left
+
+    def command(self, track: Track, spec: CarSpec, pose, segment_hint=None) -> tuple[float, float]:
+        """(steering degrees, speed m/s) for a car whose body centre is at `pose` (x, y, yaw)."""
+        x, y, yaw = pose
+        rear_x = x - spec.wheelbase / 2 * math.cos(yaw)
+        rear_y = y - spec.wheelbase / 2 * math.sin(yaw)
+        proj = track.project(x, y, segment_hint)
+        lookahead = self.lookahead + 0.25 * self.speed
+        tx, ty, _ = track.point_at(proj.s + lookahead, self.lateral)
+        alpha = math.atan2(ty - rear_y, tx - rear_x) - yaw
+        distance = math.hypot(tx - rear_x, ty - rear_y)
+        steer = math.atan2(2.0 * spec.wheelbase * math.sin(alpha), distance)
+        steer = max(-spec.max_steer, min(spec.max_steer, steer))
+        return math.degrees(steer), self.speed
+
+
+@dataclasses.dataclass
+class Bot:
+    """A named scripted car: `follow` (centre line) or `lanes` (alternating lanes)."""
+
+    kind: str
+    speed: float
+    lane_period: float = 4.0  # seconds between lane changes (lanes bot)
+
+    @property
+    def name(self) -> str:
+        return f"bot:{self.kind}@{self.speed:g}"
+
+    def command(self, track: Track, spec: CarSpec, pose, sim_time: float, segment_hint=None):
+        """(steering degrees, speed m/s) at race time `sim_time`."""
+        lateral = 0.0
+        if self.kind == "lanes":
+            lane = int(sim_time // self.lane_period) % 2
+            proj = track.project(pose[0], pose[1], segment_hint)
+            lateral = (proj.left_width if lane == 0 else -proj.right_width) / 2
+        return PurePursuit(speed=self.speed, lateral=lateral).command(track, spec, pose, segment_hint)
+
+
+def parse_bot(text: str) -> Bot:
+    """Parse `bot:follow@1.5` / `lanes@1.0` into a Bot; ValueError with the accepted form otherwise."""
+    match = _BOT_PATTERN.match(text.strip())
+    if not match or match["kind"] not in BOT_KINDS:
+        raise ValueError(f"bot {text!r}: expected bot:KIND@SPEED with KIND one of {', '.join(BOT_KINDS)}, "
+                         "e.g. bot:follow@1.5")
+    speed = float(match["speed"])
+    if not 0.1 <= speed <= 4.0:
+        raise ValueError(f"bot {text!r}: speed {speed} outside 0.1-4.0 m/s")
+    return Bot(kind=match["kind"], speed=speed)

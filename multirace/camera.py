@@ -1,0 +1,109 @@
+"""The front camera: its mounting, its optics, and the renderer interface.
+
+A renderer turns the world's current state into one car's camera image:
+``renderer.render(world, car_index) -> uint8 (H, W, C)``. Two implement it:
+`pybullet_renderer.PyBulletRenderer` (TinyRenderer, the reference) and
+`fast_renderer.FastRenderer` (a perspective warp of the flat track, the default).
+
+Camera frame convention (OpenCV): x right, y down, z forward.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+NEAR_PLANE = 0.01
+FAR_PLANE = 60.0
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraSpec:
+    """Image size and mounting of the front camera."""
+
+    height: int = 120
+    width: int = 160
+    grayscale: bool = True
+    hfov: float = 1.13  # rad, horizontal field of view
+    forward: float = 0.165  # m ahead of the body centre (at the front bumper)
+    mount_height: float = 0.14  # m above the ground
+    pitch: float = math.radians(15.0)  # tilted down
+
+    @property
+    def channels(self) -> int:
+        return 1 if self.grayscale else 3
+
+    @property
+    def focal(self) -> float:
+        """Focal length in pixels (square pixels)."""
+        return (self.width / 2) / math.tan(self.hfov / 2)
+
+    @property
+    def vfov(self) -> float:
+        """Vertical field of view, radians."""
+        return 2 * math.atan((self.height / 2) / self.focal)
+
+    def intrinsics(self) -> np.ndarray:
+        """3x3 pinhole matrix K with the principal point at the image centre."""
+        f = self.focal
+        return np.array([[f, 0.0, self.width / 2], [0.0, f, self.height / 2], [0.0, 0.0, 1.0]])
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraPose:
+    """Where a camera is and how it is turned (world frame)."""
+
+    eye: np.ndarray  # (3,) position
+    rotation: np.ndarray  # (3, 3) rows: camera x (right), y (down), z (forward) in world axes
+
+    @property
+    def forward(self) -> np.ndarray:
+        return self.rotation[2]
+
+    @property
+    def down(self) -> np.ndarray:
+        return self.rotation[1]
+
+
+def camera_pose(spec: CameraSpec, car_pose, jitter=(0.0, 0.0, 0.0)) -> CameraPose:
+    """Pose of the camera on a car at (x, y, yaw); `jitter` adds (yaw, pitch, height) offsets."""
+    x, y, yaw = car_pose
+    d_yaw, d_pitch, d_height = jitter
+    cam_yaw = yaw + d_yaw
+    pitch = spec.pitch + d_pitch
+    eye = np.array([x + spec.forward * math.cos(yaw), y + spec.forward * math.sin(yaw),
+                    spec.mount_height + d_height])
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cy, sy = math.cos(cam_yaw), math.sin(cam_yaw)
+    forward = np.array([cp * cy, cp * sy, -sp])
+    right = np.array([sy, -cy, 0.0])
+    down = np.cross(forward, right)
+    return CameraPose(eye=eye, rotation=np.stack([right, down, forward]))
+
+
+class Renderer:
+    """Interface: draws one car's camera image from the world's state."""
+
+    def __init__(self, spec: CameraSpec):
+        self.spec = spec
+
+    def render(self, world, car: int, pose: CameraPose) -> np.ndarray:
+        """uint8 image (H, W, C) seen from `pose` by car `car` (which is not drawn)."""
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Release what the renderer holds."""
+
+
+def make_renderer(name: str, spec: CameraSpec, texture) -> Renderer:
+    """Build the renderer called `name` ("fast" or "pybullet")."""
+    if name == "pybullet":
+        from .pybullet_renderer import PyBulletRenderer
+
+        return PyBulletRenderer(spec, texture)
+    if name == "fast":
+        from .fast_renderer import FastRenderer
+
+        return FastRenderer(spec, texture)
+    raise ValueError(f"renderer: unknown renderer {name!r}; choose 'fast' or 'pybullet'")

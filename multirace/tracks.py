@@ -1,0 +1,298 @@
+"""Track geometry for DeepRacer `.npy` waypoint files.
+
+A DeepRacer track file is a float64 array of shape (N, 6) whose rows are
+``[center_x, center_y, inner_x, inner_y, outer_x, outer_y]`` in metres; closed
+loops repeat the first row as the last. This module loads and validates such
+files, and answers the geometric questions the simulator asks every step:
+where a point projects on the centre line (arc length, lateral offset, the
+waypoints around it, local width), whether a wheel is on the road, where the
+start grid and the lanes are.
+
+Conventions: arc length ``s`` runs from waypoint 0 in the driving direction;
+lateral offset is positive to the LEFT of the driving direction. Widths are
+measured from the borders, not assumed symmetric around the centre line.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+
+TRACKS_DIR = Path(__file__).resolve().parent.parent / "tracks"
+MIN_POINTS = 4
+
+
+class TrackError(ValueError):
+    """A track file is missing or malformed; the message names the file."""
+
+
+def list_tracks() -> list[str]:
+    """Names of the bundled tracks."""
+    return sorted(p.stem for p in TRACKS_DIR.glob("*.npy"))
+
+
+def resolve_track_path(track: str | Path) -> Path:
+    """Turn a bundled track name or a path into an existing file path."""
+    candidate = Path(track)
+    if candidate.suffix == ".npy" or candidate.exists():
+        if not candidate.exists():
+            raise TrackError(f"track file {candidate}: no such file")
+        return candidate
+    bundled = TRACKS_DIR / f"{track}.npy"
+    if bundled.exists():
+        return bundled
+    raise TrackError(
+        f"track {track!r}: not a bundled track name nor a file; "
+        f"bundled tracks: {', '.join(list_tracks())}"
+    )
+
+
+def load_track(track: str | Path, reverse: bool = False) -> "Track":
+    """Load a bundled track by name, or any DeepRacer `.npy` file by path."""
+    path = resolve_track_path(track)
+    try:
+        rows = np.load(path, allow_pickle=False)
+    except Exception as exc:  # numpy raises several types for bad files
+        raise TrackError(f"track file {path}: cannot be read as a .npy array ({exc})") from exc
+    return Track(rows, name=path.stem, source=str(path), reverse=reverse)
+
+
+def _segments_cross(a0, a1, b0, b1) -> bool:
+    """Proper intersection of segments a0-a1 and b0-b1 (touching ends excluded)."""
+
+    def orient(p, q, r):
+        return (q[0] - p[0]) * (r[1] - p[1]) - (q[1] - p[1]) * (r[0] - p[0])
+
+    d1, d2 = orient(b0, b1, a0), orient(b0, b1, a1)
+    d3, d4 = orient(a0, a1, b0), orient(a0, a1, b1)
+    return d1 * d2 < 0 and d3 * d4 < 0
+
+
+def find_self_intersection(loop: np.ndarray) -> tuple[int, int] | None:
+    """First pair of non-adjacent crossing segments of a closed polyline, or None."""
+    pts = loop if np.allclose(loop[0], loop[-1]) else np.vstack([loop, loop[:1]])
+    n = len(pts) - 1
+    a0, a1 = pts[:-1], pts[1:]
+    lo, hi = np.minimum(a0, a1), np.maximum(a0, a1)
+    for i in range(n):
+        # bounding-box prefilter, then the exact test on the few candidates
+        overlap = np.all((lo <= hi[i]) & (hi >= lo[i]), axis=1)
+        for j in np.nonzero(overlap)[0]:
+            if j <= i + 1 or (i == 0 and j == n - 1):
+                continue
+            if _segments_cross(a0[i], a1[i], a0[j], a1[j]):
+                return i, int(j)
+    return None
+
+
+@dataclasses.dataclass
+class Projection:
+    """Where a point lies relative to the track's centre line."""
+
+    s: float  # arc length of the foot point from waypoint 0, metres
+    lateral: float  # signed offset, + left of the driving direction, metres
+    segment: int  # index i of the centre-line segment (waypoints i, i+1)
+    heading: float  # track direction at the foot point, radians
+    left_width: float  # road extent to the left of the centre line, metres
+    right_width: float  # road extent to the right of the centre line, metres
+
+    @property
+    def width(self) -> float:
+        return self.left_width + self.right_width
+
+
+class Track:
+    """A closed DeepRacer track with its geometry precomputed."""
+
+    def __init__(self, rows: np.ndarray, name: str = "track", source: str = "<array>", reverse: bool = False):
+        self.name = name
+        self.source = source
+        self.reverse = bool(reverse)
+        rows = self._validate(np.asarray(rows), source)
+        if self.reverse:
+            rows = rows[::-1].copy()
+        self.rows = rows
+        self.center = rows[:, 0:2].copy()
+        self.inner = rows[:, 2:4].copy()
+        self.outer = rows[:, 4:6].copy()
+        # DeepRacer's `waypoints` param: the centre line as listed in the file.
+        self.waypoints = [(float(x), float(y)) for x, y in self.center]
+
+        seg = np.diff(self.center, axis=0)
+        seg_len = np.linalg.norm(seg, axis=1)
+        self.seg_start = self.center[:-1]
+        self.seg_vec = seg
+        self.seg_len = seg_len
+        self.seg_len2 = np.maximum(seg_len**2, 1e-12)
+        self.cum_s = np.concatenate([[0.0], np.cumsum(seg_len)])
+        self.length = float(self.cum_s[-1])
+        # unit direction per segment; zero-length segments borrow the next one
+        direction = seg / np.maximum(seg_len, 1e-9)[:, None]
+        for i in np.nonzero(seg_len < 1e-9)[0][::-1]:
+            direction[i] = direction[(i + 1) % len(direction)]
+        self.seg_dir = direction
+        self.seg_heading = np.arctan2(direction[:, 1], direction[:, 0])
+        normal = np.stack([-direction[:, 1], direction[:, 0]], axis=1)  # left normal
+
+        # Signed extent of the road to each side, at every waypoint, using the
+        # incoming/outgoing segment normal (averaged) at that waypoint.
+        wp_normal = np.empty_like(self.center)
+        wp_normal[:-1] = normal
+        wp_normal[-1] = normal[0]
+        wp_normal[1:-1] = normal[:-1] + normal[1:]
+        wp_normal[0] = wp_normal[-1] = normal[0] + normal[-1]
+        wp_normal /= np.maximum(np.linalg.norm(wp_normal, axis=1), 1e-9)[:, None]
+        inner_off = np.einsum("ij,ij->i", self.inner - self.center, wp_normal)
+        outer_off = np.einsum("ij,ij->i", self.outer - self.center, wp_normal)
+        self.left_width = np.maximum(inner_off, outer_off)
+        self.right_width = -np.minimum(inner_off, outer_off)
+        self.width = np.linalg.norm(self.inner - self.outer, axis=1)
+        if np.any(self.left_width + self.right_width < 0.05):
+            bad = int(np.argmin(self.left_width + self.right_width))
+            raise TrackError(f"track file {source}: zero width at waypoint {bad}")
+        self.median_width = float(np.median(self.width))
+        # Which physical side is "inner": +1 if inner is to the left (a CCW loop).
+        self.inner_side = 1.0 if np.median(inner_off) > 0 else -1.0
+        xy = np.vstack([self.inner, self.outer])
+        self.bounds = (xy.min(axis=0), xy.max(axis=0))
+
+    # ------------------------------------------------------------------ load
+    @staticmethod
+    def _validate(rows: np.ndarray, source: str) -> np.ndarray:
+        if rows.ndim != 2 or rows.shape[1] != 6:
+            raise TrackError(
+                f"track file {source}: wrong shape {rows.shape}, expected (N, 6) rows of "
+                "[center_x, center_y, inner_x, inner_y, outer_x, outer_y]"
+            )
+        if not np.issubdtype(rows.dtype, np.number):
+            raise TrackError(f"track file {source}: dtype {rows.dtype} is not numeric")
+        rows = rows.astype(np.float64)
+        if not np.all(np.isfinite(rows)):
+            bad = int(np.argwhere(~np.isfinite(rows))[0][0])
+            raise TrackError(f"track file {source}: NaN or infinite value in row {bad}")
+        if not np.allclose(rows[0], rows[-1]):
+            rows = np.vstack([rows, rows[:1]])
+        distinct = len(np.unique(rows[:-1, 0:2].round(6), axis=0))
+        if distinct < MIN_POINTS:
+            raise TrackError(f"track file {source}: {distinct} distinct points, need at least {MIN_POINTS}")
+        widths = np.linalg.norm(rows[:, 2:4] - rows[:, 4:6], axis=1)
+        if np.any(widths < 0.05):
+            raise TrackError(f"track file {source}: zero width at waypoint {int(np.argmin(widths))}")
+        for label, cols in (("inner", slice(2, 4)), ("outer", slice(4, 6))):
+            crossing = find_self_intersection(rows[:, cols])
+            if crossing is not None:
+                raise TrackError(
+                    f"track file {source}: self-intersecting {label} border "
+                    f"(segments {crossing[0]} and {crossing[1]} cross)"
+                )
+        return rows
+
+    # ------------------------------------------------------------ geometry
+    def point_at(self, s: float, lateral: float = 0.0) -> tuple[float, float, float]:
+        """World (x, y, heading) at arc length `s` and lateral offset (+ left)."""
+        s = s % self.length
+        i = int(np.searchsorted(self.cum_s, s, side="right") - 1)
+        i = min(max(i, 0), len(self.seg_len) - 1)
+        t = (s - self.cum_s[i]) / max(self.seg_len[i], 1e-9)
+        x, y = self.seg_start[i] + t * self.seg_vec[i]
+        heading = float(self.seg_heading[i])
+        x -= lateral * math.sin(heading)
+        y += lateral * math.cos(heading)
+        return float(x), float(y), heading
+
+    def project(self, x: float, y: float, hint: int | None = None) -> Projection:
+        """Project a world point on the centre line.
+
+        With `hint` (the segment found last time) only nearby segments are
+        searched, which is what makes per-step projection cheap; the search
+        falls back to the whole track when the local answer looks wrong.
+        """
+        n = len(self.seg_len)
+        if hint is not None:
+            idx = (np.arange(hint - 6, hint + 10)) % n
+            i, t, d2 = self._nearest(x, y, idx)
+            if not (i == idx[0] or i == idx[-1]) and d2 < 4.0:
+                return self._projection(x, y, i, t)
+        i, t, _ = self._nearest(x, y, None)
+        return self._projection(x, y, i, t)
+
+    def _nearest(self, x, y, idx):
+        start = self.seg_start if idx is None else self.seg_start[idx]
+        vec = self.seg_vec if idx is None else self.seg_vec[idx]
+        len2 = self.seg_len2 if idx is None else self.seg_len2[idx]
+        dx = x - start[:, 0]
+        dy = y - start[:, 1]
+        t = np.clip((dx * vec[:, 0] + dy * vec[:, 1]) / len2, 0.0, 1.0)
+        ex = dx - t * vec[:, 0]
+        ey = dy - t * vec[:, 1]
+        d2 = ex * ex + ey * ey
+        k = int(np.argmin(d2))
+        seg = k if idx is None else int(idx[k])
+        return seg, float(t[k]), float(d2[k])
+
+    def _projection(self, x, y, i, t) -> Projection:
+        fx = self.seg_start[i, 0] + t * self.seg_vec[i, 0]
+        fy = self.seg_start[i, 1] + t * self.seg_vec[i, 1]
+        dx, dy = self.seg_dir[i]
+        lateral = (x - fx) * -dy + (y - fy) * dx
+        dist = math.hypot(x - fx, y - fy)
+        lateral = math.copysign(dist, lateral)
+        left = self.left_width[i] + t * (self.left_width[i + 1] - self.left_width[i])
+        right = self.right_width[i] + t * (self.right_width[i + 1] - self.right_width[i])
+        return Projection(
+            s=float(self.cum_s[i] + t * self.seg_len[i]),
+            lateral=lateral,
+            segment=i,
+            heading=float(self.seg_heading[i]),
+            left_width=float(left),
+            right_width=float(right),
+        )
+
+    def closest_waypoints(self, proj: Projection) -> tuple[int, int]:
+        """DeepRacer's `closest_waypoints`: indices of the waypoints behind and ahead."""
+        return proj.segment, proj.segment + 1
+
+    def closest_waypoint(self, proj: Projection) -> int:
+        """The nearer of the two waypoints around the foot point (sim-trace column)."""
+        i = proj.segment
+        t = (proj.s - self.cum_s[i]) / max(self.seg_len[i], 1e-9)
+        return i if t < 0.5 else i + 1
+
+    def on_track(self, proj: Projection, margin: float = 0.0) -> bool:
+        """Is a point with this projection on the road (borders included)?"""
+        return -proj.right_width - margin <= proj.lateral <= proj.left_width + margin
+
+    def points_on_track(self, points: np.ndarray, hint: int | None = None) -> np.ndarray:
+        """On-road test for several points (e.g. the four wheels)."""
+        return np.array([self.on_track(self.project(px, py, hint)) for px, py in points])
+
+    def lane_offset(self, lane: int, s: float = 0.0) -> float:
+        """Lateral offset of a lane centre: lane 0 is the inner half, lane 1 the outer."""
+        proj = self.project(*self.point_at(s)[:2])
+        left, right = proj.left_width, proj.right_width
+        inner_is_left = self.inner_side > 0
+        want_left = (lane == 0) == inner_is_left
+        return left / 2 if want_left else -right / 2
+
+    def start_grid(self, num_cars: int, spacing: float = 0.75, lanes: bool = True) -> list[tuple[float, float]]:
+        """(s, lateral) start slots: car k is `k * spacing` behind the line, lanes alternating.
+
+        With one car (or `lanes=False`) cars start on the centre line.
+        """
+        slots = []
+        for k in range(num_cars):
+            s = (-k * spacing) % self.length
+            lateral = self.lane_offset(k % 2, s) if (lanes and num_cars > 1) else 0.0
+            slots.append((s, lateral))
+        return slots
+
+    def wrap_ds(self, ds: float) -> float:
+        """Wrap an arc-length difference into [-L/2, L/2)."""
+        half = self.length / 2
+        return (ds + half) % self.length - half
+
+    def __repr__(self) -> str:
+        rev = ", reverse" if self.reverse else ""
+        return f"Track({self.name!r}{rev}, length={self.length:.2f} m, {len(self.center)} waypoints)"
