@@ -261,7 +261,7 @@ class RaceEnv(ParallelEnv):
             wx, wy = fx * cos_y - left * sin_y, fx * sin_y + left * cos_y
             lateral = proj.lateral + wx * nx + wy * ny
             wheels_on += -proj.right_width <= lateral <= proj.left_width
-        return {"x": px, "y": py, "yaw": yaw, "proj": proj, "wheels_on": wheels_on}
+        return {"x": float(px), "y": float(py), "yaw": float(yaw), "proj": proj, "wheels_on": wheels_on}
 
     def _apply_contacts(self, contacts) -> list[set]:
         """Record contacts; penalise a striker in head-to-head. Returns who each car touched."""
@@ -345,6 +345,11 @@ class RaceEnv(ParallelEnv):
         self.races[i].distance += track.wrap_ds(geo["proj"].s - self._s[i])
         self._s[i] = geo["proj"].s
         self._geometry[i] = geo
+
+    def forfeit(self, i: int, reason: str) -> None:
+        """End car i's run now (its agent failed); the race goes on for the others."""
+        if self.races[i].racing:
+            self._end_run(i, "forfeit", reason)
 
     def _end_run(self, i: int, status: str, reason: str, clock: float | None = None) -> None:
         race = self.races[i]

@@ -114,7 +114,7 @@ def make_rules(race: str = "time_trial", laps: int = 3, obstacles: int | None = 
         raise ValueError(f"race: unknown format {race!r}; choose one of {', '.join(FORMATS)}")
     if int(laps) < 1:
         raise ValueError(f"laps: must be at least 1, got {laps}")
-    defaults: dict = {"name": race, "laps": int(laps)}
+    defaults: dict = {"name": race, "laps": int(laps), "obstacles": 0}
     if race == "reset_rule":
         defaults.update(max_resets=3, time_limit=240.0, off_track_penalty=0.0)
     elif race == "object_avoidance":
