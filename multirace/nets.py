@@ -1,0 +1,129 @@
+"""Camera policy networks, selectable by DeepRacer-style network name.
+
+Every network takes camera images as DeepRacer gives them, uint8 (H, W, C)
+(a batch is (B, H, W, C)), scales them to [0, 1] and outputs one row per image:
+
+- discrete action space: one logit per action;
+- continuous action space: 4 numbers, ``[mean_steer, mean_speed, log_std_steer,
+  log_std_speed]``, the means in DeepRacer units (degrees, m/s) as the env's Box
+  action space uses them.
+
+``net(obs)`` gives those outputs; with ``value_head=True`` the module also has
+``net.value(obs)`` (B,) and ``net.forward_all(obs) -> (outputs, value)`` sharing
+one trunk pass (for PPO). Networks (``NETWORKS``):
+
+- ``DEEP_CONVOLUTIONAL_NETWORK_SHALLOW``: DeepRacer's shallow net, conv 32 8x8
+  stride 4, conv 64 4x4/2, conv 64 3x3/1, fully connected 512 (about 5.8 M
+  parameters, 23 MB, at 120x160).
+- ``MULTIRACE_SMALL_CNN`` (our default): a 2x average pool, conv 16 5x5/2,
+  conv 32 3x3/2, conv 32 3x3/2, conv 64 3x3/1, fully connected 128 (about 0.2 M
+  parameters, under 1 MB at 120x160).
+
+A network is fully determined by (name, image shape, number of outputs,
+value head), which is what an agent file's metadata records; weights are
+loaded into it as plain tensors.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+SMALL = "MULTIRACE_SMALL_CNN"
+SHALLOW = "DEEP_CONVOLUTIONAL_NETWORK_SHALLOW"
+DEFAULT_NETWORK = SMALL
+CONTINUOUS_OUTPUTS = 4  # mean steer, mean speed, log-std steer, log-std speed
+
+
+def _shallow_trunk(channels: int) -> tuple[nn.Module, int]:
+    trunk = nn.Sequential(
+        nn.Conv2d(channels, 32, 8, stride=4), nn.ReLU(),
+        nn.Conv2d(32, 64, 4, stride=2), nn.ReLU(),
+        nn.Conv2d(64, 64, 3, stride=1), nn.ReLU(),
+        nn.Flatten(),
+    )
+    return trunk, 512
+
+
+def _small_trunk(channels: int) -> tuple[nn.Module, int]:
+    trunk = nn.Sequential(
+        nn.AvgPool2d(2),
+        nn.Conv2d(channels, 16, 5, stride=2), nn.ReLU(),
+        nn.Conv2d(16, 32, 3, stride=2), nn.ReLU(),
+        nn.Conv2d(32, 32, 3, stride=2), nn.ReLU(),
+        nn.Conv2d(32, 64, 3, stride=1), nn.ReLU(),
+        nn.Flatten(),
+    )
+    return trunk, 128
+
+
+NETWORKS = {SHALLOW: _shallow_trunk, SMALL: _small_trunk}
+
+
+class CameraNet(nn.Module):
+    """A camera CNN: convolutional trunk, one hidden fully connected layer, output (and value) head."""
+
+    def __init__(self, network: str = DEFAULT_NETWORK, image_shape=(120, 160, 1), num_outputs: int = 10,
+                 value_head: bool = False):
+        super().__init__()
+        if network not in NETWORKS:
+            raise ValueError(f"neural_network: unknown network {network!r}; known: {', '.join(NETWORKS)}")
+        height, width, channels = (int(v) for v in image_shape)
+        if min(height, width) < 32 or channels not in (1, 3):
+            raise ValueError(f"image shape {image_shape}: need at least 32x32 pixels and 1 or 3 channels")
+        if int(num_outputs) < 1:
+            raise ValueError(f"num_outputs: must be positive, got {num_outputs}")
+        self.network = network
+        self.image_shape = (height, width, channels)
+        self.num_outputs = int(num_outputs)
+        self.conv, hidden = NETWORKS[network](channels)
+        with torch.no_grad():
+            flat = self.conv(torch.zeros(1, channels, height, width)).shape[1]
+        self.fc = nn.Sequential(nn.Linear(flat, hidden), nn.ReLU())
+        self.head = nn.Linear(hidden, self.num_outputs)
+        self.value_head = nn.Linear(hidden, 1) if value_head else None
+
+    @property
+    def has_value(self) -> bool:
+        return self.value_head is not None
+
+    def features(self, obs) -> torch.Tensor:
+        """The hidden features of uint8 images (B, H, W, C) or one image (H, W, C)."""
+        x = torch.as_tensor(obs)
+        if x.dim() == 3:
+            x = x.unsqueeze(0)
+        x = x.permute(0, 3, 1, 2).float() / 255.0
+        return self.fc(self.conv(x))
+
+    def forward(self, obs) -> torch.Tensor:
+        """Action logits (discrete) or [mean steer, mean speed, log-std steer, log-std speed]."""
+        return self.head(self.features(obs))
+
+    def value(self, obs) -> torch.Tensor:
+        """State value estimate, shape (B,)."""
+        if self.value_head is None:
+            raise RuntimeError("this network was built without a value head")
+        return self.value_head(self.features(obs)).squeeze(-1)
+
+    def forward_all(self, obs) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(outputs, value or None) from one pass through the trunk."""
+        h = self.features(obs)
+        value = self.value_head(h).squeeze(-1) if self.value_head is not None else None
+        return self.head(h), value
+
+
+def num_outputs_for(action_space) -> int:
+    """Output size a net needs for an `actions.ActionSpace`."""
+    return len(action_space.actions) if action_space.discrete else CONTINUOUS_OUTPUTS
+
+
+def build_net(network: str = DEFAULT_NETWORK, image_shape=(120, 160, 1), action_space=None,
+              value_head: bool = False) -> CameraNet:
+    """A freshly initialised net for an action space (default: the 10-action DeepRacer space)."""
+    from .actions import load_action_space
+
+    space = load_action_space(action_space)
+    return CameraNet(network, image_shape, num_outputs_for(space), value_head=value_head)
+
+
+def parameter_count(net: nn.Module) -> int:
+    return sum(p.numel() for p in net.parameters())
