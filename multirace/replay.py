@@ -1,0 +1,430 @@
+"""Race replays: record a race to a rerun `.rrd` file, and read one back.
+
+`ReplayRecorder(path)` is a race recorder (`run_race(..., recorders=[...])`):
+it writes, headless (no viewer needed), with rerun-sdk 0.41:
+
+- ``race/info`` (static): track, format, laps, seed and the cars (id, name, colour)
+  as a JSON `TextDocument`; ``race/result`` (static) the result record at the end;
+- ``world/track/{center,inner,outer}`` (static): the track lines as `LineStrips3D`;
+  ``world/obstacles`` (static): the boxes as `Boxes3D`;
+- ``world/cars/car_<i>``: a `Boxes3D` in the car's `CAR_COLOURS` colour (static)
+  moved by a `Transform3D` every step (body centre, yaw about z) while the car
+  races, and once more on the step its run ends;
+- ``cameras/car_<i>``: the car's camera image as JPEG (`EncodedImage`), every
+  `image_every`-th step;
+- ``plots/{speed,progress,reward,rank}/car_<i>``: `Scalars` per step
+  (speed is the drive train's actual speed in m/s, progress the lap progress
+  in % as in DeepRacer's params);
+- ``events/car_<i>``: `TextLog` entries (lap with lap time, off_track, reset,
+  collision with whom, penalty, crash, finish / forfeit / out of resets / time
+  up) plus the machine-readable fields `kind`, `car`, `clock` as `AnyValues`.
+
+Time lines: ``race_time`` (simulated race time, a duration in seconds) and
+``step`` (the env's step number). A blueprint with the 3D view, the camera
+images, the plots and the event log is sent with the recording, so
+``rerun race.rrd`` opens on a useful screen.
+
+Per-step data is buffered and sent in columns (`send_columns`) every
+`flush_every` steps, which keeps the recording cost low.
+
+`replay_summary(path)` reads a file back with rerun's own reader
+(`rerun.chunk.RrdReader`) and returns what it holds: cars, steps, duration,
+laps, events, image counts and each car's pose per step.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .world import CAR_COLOURS, OBSTACLE_SIZE
+
+APPLICATION_ID = "multirace"
+DEFAULT_IMAGE_EVERY = 2  # 7.5 Hz camera frames: a 4-car 4-minute race stays well under 50 MB
+SCALARS = ("speed", "progress", "reward", "rank")
+END_TEXT = {
+    "finished": "finished",
+    "forfeit": "forfeit",
+    "out_of_resets": "out of resets",
+    "timed_out": "time up",
+    "not_finished": "did not finish",
+}
+
+
+def _rr():
+    import rerun as rr
+
+    return rr
+
+
+def car_id(i: int) -> str:
+    """Entity name of car slot i (car names like `bot:follow@1.5` are not path-safe)."""
+    return f"car_{i}"
+
+
+class ReplayRecorder:
+    """Records a race to a rerun `.rrd` file (see the module docstring for its layout).
+
+    `image_every`: record each car's camera every k-th step (0 or None: no images).
+    """
+
+    def __init__(self, path, image_every: int | None = DEFAULT_IMAGE_EVERY, jpeg_quality: int = 75,
+                 flush_every: int = 150, application_id: str = APPLICATION_ID):
+        self.path = Path(path)
+        self.image_every = int(image_every or 0)
+        self.jpeg_quality = int(jpeg_quality)
+        self.flush_every = max(1, int(flush_every))
+        self.application_id = application_id
+        self.rec = None
+
+    # --------------------------------------------------------------- recorder
+    def start(self, env) -> None:
+        rr = _rr()
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.rec = rec = rr.RecordingStream(self.application_id, make_default=False, make_thread_default=False)
+        rec.save(str(self.path))
+        self.n = n = env.total_cars if hasattr(env, "total_cars") else len(env.races)
+        self.ids = [car_id(i) for i in range(n)]
+        self._prev = [self._race_state(race) for race in env.races]
+        self._ended = [not race.racing for race in env.races]
+        self._buffer_reset()
+        info = {
+            "track": env.track.name, "reverse": bool(env.track.reverse), "track_length": env.track.length,
+            "format": env.rules.name, "laps": env.rules.laps, "dt": env.dt,
+            "cars": [{"id": self.ids[i], "name": env.car_names[i], "colour": list(CAR_COLOURS[i % len(CAR_COLOURS)])}
+                     for i in range(n)],
+        }
+        rec.log("race/info", rr.TextDocument(json.dumps(info, indent=1)), static=True)
+        self._log_track(env)
+        spec = env.car_spec
+        self._z = spec.height / 2
+        for i in range(n):
+            rec.log(f"world/cars/{self.ids[i]}",
+                    rr.Boxes3D(half_sizes=[[spec.length / 2, spec.width / 2, spec.height / 2]],
+                               colors=[CAR_COLOURS[i % len(CAR_COLOURS)]], labels=[env.car_names[i]],
+                               fill_mode="solid"), static=True)
+        rec.send_blueprint(self._blueprint(n), make_active=True, make_default=True)
+        # the grid at step 0
+        self._record_step(env, None, {}, None)
+
+    def step(self, env, observations, rewards, infos) -> None:
+        self._record_step(env, observations, rewards, infos)
+        if len(self._buf_steps) >= self.flush_every:
+            self._flush()
+
+    def finish(self, env, result) -> None:
+        rr = _rr()
+        self._flush()
+        if result is not None:
+            self.rec.log("race/result", rr.TextDocument(json.dumps(result, indent=1)), static=True)
+        self.close()
+
+    def close(self) -> None:
+        if self.rec is not None:
+            self.rec.flush()
+            self.rec.disconnect()
+            self.rec = None
+
+    # --------------------------------------------------------------- helpers
+    @staticmethod
+    def _race_state(race) -> dict:
+        return {"laps": race.laps, "resets": race.resets, "penalties": race.penalties,
+                "penalty_time": race.penalty_time, "collisions": len(race.collisions), "status": race.status}
+
+    def _log_track(self, env) -> None:
+        rr, rec, track = _rr(), self.rec, env.track
+        for name, xy, colour, radius in (("center", track.center, (235, 190, 40), 0.01),
+                                         ("inner", track.inner, (240, 240, 240), 0.025),
+                                         ("outer", track.outer, (240, 240, 240), 0.025)):
+            pts = np.column_stack([xy, np.zeros(len(xy))]).astype(np.float32)
+            rec.log(f"world/track/{name}", rr.LineStrips3D([pts], colors=[colour], radii=[radius]), static=True)
+        poses = np.asarray(env.world.obstacle_poses, dtype=np.float64).reshape(-1, 3)
+        if len(poses):
+            lx, ly, lz = OBSTACLE_SIZE
+            rec.log("world/obstacles", rr.Boxes3D(
+                centers=[[x, y, lz / 2] for x, y, _ in poses],
+                half_sizes=[[lx / 2, ly / 2, lz / 2]] * len(poses),
+                quaternions=[rr.Quaternion(xyzw=[0, 0, math.sin(yaw / 2), math.cos(yaw / 2)]) for *_, yaw in poses],
+                colors=[(250, 250, 250)] * len(poses), fill_mode="solid"), static=True)
+
+    def _blueprint(self, n: int):
+        import rerun.blueprint as rrb
+
+        cams = [rrb.Spatial2DView(origin=f"cameras/{self.ids[i]}", name=self.ids[i]) for i in range(n)]
+        plots = [rrb.TimeSeriesView(origin=f"plots/{name}", name=name) for name in SCALARS]
+        return rrb.Blueprint(
+            rrb.Horizontal(
+                rrb.Vertical(rrb.Spatial3DView(origin="world", name="race"),
+                             rrb.TextLogView(origin="events", name="events"), row_shares=[3, 1]),
+                rrb.Vertical(rrb.Grid(*cams, name="cameras") if self.image_every else rrb.TextDocumentView(
+                    origin="race/info"), rrb.Tabs(*plots, name="plots"), row_shares=[1, 1]),
+                column_shares=[3, 2]),
+            rrb.TimePanel(timeline="race_time"),
+            collapse_panels=True,
+        )
+
+    def _buffer_reset(self) -> None:
+        self._buf_steps, self._buf_times = [], []
+        self._buf_pose = [[] for _ in range(self.n)]  # (row index, x, y, yaw)
+        self._buf_scalar = [{k: [] for k in SCALARS} for _ in range(self.n)]  # (row index, value)
+        self._buf_img = [[] for _ in range(self.n)]  # (row index, jpeg bytes)
+
+    def _record_step(self, env, observations, rewards, infos) -> None:
+        rr, rec = _rr(), self.rec
+        row = len(self._buf_steps)
+        step, sim_time = int(env.steps), float(env.sim_time)
+        self._buf_steps.append(step)
+        self._buf_times.append(sim_time)
+        take_image = bool(self.image_every) and observations is not None and step % self.image_every == 0
+        poses = env.world.poses
+        rec.set_time("step", sequence=step)
+        rec.set_time("race_time", duration=sim_time)
+        for i, race in enumerate(env.races):
+            just_ended = not race.racing and not self._ended[i]
+            if race.racing or just_ended or step == 0:
+                x, y, yaw = (float(v) for v in poses[i])
+                self._buf_pose[i].append((row, x, y, yaw))
+                agent = env.possible_agents[i] if i < len(env.possible_agents) else None
+                info = infos.get(agent) if infos and agent else None
+                scal = self._buf_scalar[i]
+                scal["speed"].append((row, float(env.world.drive_speed[i])))
+                if info is not None:
+                    scal["progress"].append((row, float(info["progress"])))
+                    scal["rank"].append((row, float(info["rank"])))
+                if rewards and agent in rewards:
+                    scal["reward"].append((row, float(rewards[agent])))
+                if take_image and agent in observations and (race.racing or just_ended):
+                    image = np.asarray(observations[agent])
+                    if image.ndim == 3 and image.shape[2] == 1:
+                        image = image[..., 0]
+                    elif image.ndim == 3:
+                        image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+                    ok, jpg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
+                    if ok:
+                        self._buf_img[i].append((row, jpg.tobytes()))
+            if infos is not None:
+                self._log_events(env, i, race, infos)
+            if just_ended:
+                self._ended[i] = True
+
+    def _log_events(self, env, i: int, race, infos) -> None:
+        """Text log entries for what changed in car i's race state this step."""
+        rr, rec = _rr(), self.rec
+        prev, now = self._prev[i], self._race_state(race)
+        agent = env.possible_agents[i] if i < len(env.possible_agents) else None
+        info = infos.get(agent) if agent else None
+        step_events = list(info["events"]) if info is not None else []
+        name = env.car_names[i]
+        clock = race.clock(env.sim_time) if race.racing else race.finish_time
+        entries = []  # (kind, level, text)
+        for k in range(prev["laps"], now["laps"]):
+            lap_time = race.lap_times[k]
+            entries.append(("lap", "INFO", f"{name}: lap {k + 1} in {lap_time:.3f} s"))
+        if "off_track" in step_events or (now["resets"] > prev["resets"] and "crashed" not in step_events):
+            entries.append(("off_track", "WARN", f"{name}: off track"))
+        if "crashed" in step_events:
+            entries.append(("crashed", "WARN", f"{name}: crashed into a box"))
+        for c in race.collisions[prev["collisions"]:]:
+            who = "ran into" if c["caused"] else "was hit by"
+            entries.append(("collision", "WARN", f"{name}: collision, {who} {c['with']}"))
+        if now["resets"] > prev["resets"]:
+            entries.append(("reset", "INFO", f"{name}: reset ({now['resets']} so far)"))
+        if now["penalties"] > prev["penalties"]:
+            added = now["penalty_time"] - prev["penalty_time"]
+            entries.append(("penalty", "WARN", f"{name}: penalty +{added:g} s ({now['penalties']} so far)"))
+        if now["status"] != prev["status"] and now["status"] != "racing":
+            text = END_TEXT.get(now["status"], now["status"])
+            reason = f" ({race.reason})" if race.reason else ""
+            level = "INFO" if now["status"] == "finished" else "WARN"
+            entries.append((now["status"], level, f"{name}: {text} at {race.finish_time:.3f} s{reason}"))
+        for kind, level, text in entries:
+            rec.log(f"events/{self.ids[i]}", rr.TextLog(text, level=level),
+                    rr.AnyValues(kind=kind, car=self.ids[i], clock=float(clock if clock is not None else 0.0)))
+        self._prev[i] = now
+
+    def _flush(self) -> None:
+        if not self._buf_steps:
+            return
+        rr, rec = _rr(), self.rec
+        steps = np.asarray(self._buf_steps, dtype=np.int64)
+        times = np.asarray(self._buf_times, dtype=np.float64)
+
+        def index(rows):
+            rows = np.asarray(rows, dtype=np.int64)
+            return [rr.TimeColumn("step", sequence=steps[rows]), rr.TimeColumn("race_time", duration=times[rows])]
+
+        for i, cid in enumerate(self.ids):
+            poses = self._buf_pose[i]
+            if poses:
+                arr = np.asarray(poses, dtype=np.float64)
+                z = np.full(len(arr), self._z)
+                rec.send_columns(f"world/cars/{cid}", indexes=index(arr[:, 0]), columns=rr.Transform3D.columns(
+                    translation=np.column_stack([arr[:, 1], arr[:, 2], z]),
+                    rotation_axis_angle=[rr.RotationAxisAngle(axis=[0, 0, 1], radians=float(a)) for a in arr[:, 3]]))
+            for name, values in self._buf_scalar[i].items():
+                if values:
+                    arr = np.asarray(values, dtype=np.float64)
+                    rec.send_columns(f"plots/{name}/{cid}", indexes=index(arr[:, 0]),
+                                     columns=rr.Scalars.columns(scalars=arr[:, 1]))
+            images = self._buf_img[i]
+            if images:
+                rec.send_columns(f"cameras/{cid}", indexes=index([r for r, _ in images]),
+                                 columns=rr.EncodedImage.columns(blob=[b for _, b in images],
+                                                                 media_type=["image/jpeg"] * len(images)))
+        self._buffer_reset()
+
+
+# ------------------------------------------------------------------ reading back
+def _column(batch, name):
+    idx = batch.schema.get_field_index(name)
+    return None if idx < 0 else batch.column(idx)
+
+
+def _first(values):
+    """The first item of each row's component batch (rows are lists)."""
+    return [None if v is None or len(v) == 0 else v[0] for v in values]
+
+
+def read_chunks(path) -> dict:
+    """Every chunk's record batch in an .rrd, grouped by entity path (leading '/' removed)."""
+    from rerun.chunk import RrdReader
+
+    by_entity: dict[str, list] = {}
+    for chunk in RrdReader(str(path)).stream():
+        by_entity.setdefault(chunk.entity_path.lstrip("/"), []).append(chunk.to_record_batch())
+    return by_entity
+
+
+def _index(batch, name):
+    import pyarrow as pa
+
+    col = _column(batch, name)
+    if col is None:
+        return None
+    if pa.types.is_duration(col.type):
+        return np.asarray(col.cast(pa.int64()).to_numpy(zero_copy_only=False), dtype=np.float64) * 1e-9
+    return np.asarray(col.to_numpy(zero_copy_only=False))
+
+
+def replay_summary(path, poses: bool = True) -> dict:
+    """What a replay holds, read back with rerun's own reader.
+
+    Returns {"track", "format", "laps", "cars": [{"id", "name", "laps", "lap_times", "images",
+    "pose_steps", "status"}], "steps", "duration", "events": [{"step", "race_time", "car", "name",
+    "kind", "clock", "text"}], "result"} and, with `poses`, "poses": {car id: array (k, 4) of
+    step, x, y, yaw} sorted by step.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"replay {path}: no such file")
+    chunks = read_chunks(path)
+    info = _static_text(chunks, "race/info")
+    if info is None:
+        raise ValueError(f"replay {path}: not a multirace replay (no race/info)")
+    info = json.loads(info)
+    result_text = _static_text(chunks, "race/result")
+    result = json.loads(result_text) if result_text else None
+    names = {c["id"]: c["name"] for c in info["cars"]}
+    all_steps: set[int] = set()
+    max_time = 0.0
+    pose_rows: dict[str, dict[int, tuple]] = {c["id"]: {} for c in info["cars"]}
+    image_counts = {c["id"]: 0 for c in info["cars"]}
+    events = []
+    for entity, batches in chunks.items():
+        parts = entity.split("/")
+        for batch in batches:
+            steps = _index(batch, "step")
+            times = _index(batch, "race_time")
+            if steps is None:
+                continue
+            all_steps.update(int(s) for s in steps)
+            if times is not None and len(times):
+                max_time = max(max_time, float(times.max()))
+            if parts[:2] == ["world", "cars"] and len(parts) == 3:
+                trans = _column(batch, "Transform3D:translation")
+                rot = _column(batch, "Transform3D:rotation_axis_angle")
+                if trans is None:
+                    continue
+                for s, t, r in zip(steps, _first(trans.to_pylist()), _first(rot.to_pylist())):
+                    if t is None:
+                        continue
+                    yaw = r["angle"] * (1.0 if r["axis"][2] >= 0 else -1.0)
+                    pose_rows[parts[2]][int(s)] = (float(t[0]), float(t[1]), float(yaw))
+            elif parts[0] == "cameras" and len(parts) == 2:
+                blob = _column(batch, "EncodedImage:blob")
+                if blob is not None:
+                    image_counts[parts[1]] = image_counts.get(parts[1], 0) + sum(
+                        1 for b in blob.to_pylist() if b)
+            elif parts[0] == "events" and len(parts) == 2:
+                texts = _first(_column(batch, "TextLog:text").to_pylist())
+                kinds = _first(_column(batch, "kind").to_pylist()) if _column(batch, "kind") is not None \
+                    else [None] * len(texts)
+                clocks = _first(_column(batch, "clock").to_pylist()) if _column(batch, "clock") is not None \
+                    else [None] * len(texts)
+                for s, t, text, kind, clock in zip(steps, times, texts, kinds, clocks):
+                    events.append({"step": int(s), "race_time": round(float(t), 6), "car": parts[1],
+                                   "name": names.get(parts[1], parts[1]), "kind": kind, "clock": clock,
+                                   "text": text})
+    events.sort(key=lambda e: (e["step"], e["car"]))
+    cars = []
+    for c in info["cars"]:
+        laps = [e for e in events if e["car"] == c["id"] and e["kind"] == "lap"]
+        ends = [e["kind"] for e in events if e["car"] == c["id"] and e["kind"] in END_TEXT]
+        lap_times = [float(e["text"].rsplit(" in ", 1)[1].split()[0]) for e in laps]
+        cars.append({"id": c["id"], "name": c["name"], "laps": len(laps), "lap_times": lap_times,
+                     "images": image_counts.get(c["id"], 0), "pose_steps": len(pose_rows[c["id"]]),
+                     "status": ends[-1] if ends else "racing"})
+    summary = {
+        "file": str(path), "size_mb": round(path.stat().st_size / 1e6, 3),
+        "track": info["track"], "reverse": info["reverse"], "format": info["format"], "laps": info["laps"],
+        "cars": cars, "steps": (max(all_steps) if all_steps else 0), "duration": round(max_time, 4),
+        "events": events, "result": result,
+    }
+    if poses:
+        summary["poses"] = {cid: np.array([(s, *p) for s, p in sorted(rows.items())], dtype=np.float64).reshape(-1, 4)
+                            for cid, rows in pose_rows.items()}
+    return summary
+
+
+def _static_text(chunks: dict, entity: str) -> str | None:
+    for batch in chunks.get(entity, []):
+        col = _column(batch, "TextDocument:text")
+        if col is not None:
+            values = [v for v in _first(col.to_pylist()) if v is not None]
+            if values:
+                return values[-1]
+    return None
+
+
+def format_summary(summary: dict) -> str:
+    """A short human-readable text of a replay summary."""
+    lines = [f"{summary['file']} ({summary['size_mb']:.2f} MB): {summary['format']} on {summary['track']}"
+             f"{' (reverse)' if summary['reverse'] else ''}, {summary['laps']} laps, "
+             f"{summary['steps']} steps, {summary['duration']:.2f} s"]
+    for c in summary["cars"]:
+        laps = ", ".join(f"{t:.2f}" for t in c["lap_times"]) or "-"
+        lines.append(f"  {c['id']} {c['name']}: {c['laps']} laps ({laps}), {c['status']}, "
+                     f"{c['pose_steps']} poses, {c['images']} images")
+    lines.append(f"  {len(summary['events'])} events:")
+    for e in summary["events"]:
+        lines.append(f"    {e['race_time']:8.3f} s  step {e['step']:5d}  {e['text']}")
+    return "\n".join(lines)
+
+
+def open_viewer(path) -> int:
+    """Open the rerun viewer on a replay, or say how when it is not available."""
+    import shutil
+    import subprocess
+
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"replay {path}: no such file")
+    exe = shutil.which("rerun")
+    if exe is None:
+        print(f"The rerun viewer is not available here. Install it with `pip install rerun-sdk==0.41.*` and run "
+              f"`rerun {path}`, or print the contents with `multirace replay {path} --summary`.")
+        return 1
+    return subprocess.call([exe, str(path)])
