@@ -1,0 +1,183 @@
+"""DeepRacer sim-trace CSV logs, so the community's log-analysis tools work on our runs.
+
+The file has exactly DeepRacer's sim-trace columns (`SIMTRACE_COLUMNS`), with
+DeepRacer's units and meanings (see ../shared/formats/README.md):
+
+``X, Y``             the reward params `x, y` (DeepRacer's reported point), metres
+``yaw``              the params `heading`, degrees
+``steer, throttle``  the commanded action, params `steering_angle` (deg) and `speed` (m/s)
+``action``           the action index for a discrete space, else ``[steer throttle]``
+``progress``         params `progress`, 0-100 % of the current lap (100 on a lap_complete row)
+``closest_waypoint`` the nearer of params `closest_waypoints`
+``tstamp``           simulated time, seconds
+``episode_status``   prepare (first step), in_progress, off_track, crashed,
+                     lap_complete, time_up, park (run ended otherwise: forfeit,
+                     step limit)
+``pause_duration``   penalty seconds added on that step
+
+No extra column is written: deepracer-utils reads these files positionally
+(`pd.read_csv(names=[...], header=0)`), so any added column would shift its
+columns. Instead, in a race log every car's run is one *episode*: the
+``episode`` column is the car's slot (car_0 -> 0, car_1 -> 1, ...), so
+deepracer-utils' per-episode analysis gives per-car analysis. One row per car
+per step while the car races (and on the step its run ends, with done=True).
+
+`SimTraceRecorder(path)` is a race recorder for `run_race(recorders=[...])`;
+`SimTraceWriter` writes rows from a training loop, one `write_step(info, ...)`
+per car and step, with `info` the env's info dict of that car (the 27 reward
+params plus race keys). Only cars with infos (learning cars) are logged.
+"""
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+
+SIMTRACE_COLUMNS = ("episode", "steps", "X", "Y", "yaw", "steer", "throttle", "action", "reward", "done",
+                    "all_wheels_on_track", "progress", "closest_waypoint", "track_len", "tstamp",
+                    "episode_status", "pause_duration")
+EPISODE_STATUSES = ("prepare", "in_progress", "off_track", "crashed", "reversed", "immobilized",
+                    "lap_complete", "time_up", "pause", "park")
+
+
+def episode_status(info: dict) -> str:
+    """DeepRacer's `episode_status` of one step from the env's info dict."""
+    events = info.get("events", ())
+    status = info.get("status", "racing")
+    if "off_track" in events:
+        return "off_track"
+    if "crashed" in events:
+        return "crashed"
+    if "lap_complete" in events or status == "finished":
+        return "lap_complete"
+    if status == "timed_out":
+        return "time_up"
+    if status == "out_of_resets":
+        return "off_track"
+    if status in ("forfeit", "not_finished"):
+        return "park"
+    if int(info.get("steps", 0)) <= 1:
+        return "prepare"
+    return "in_progress"
+
+
+def closest_waypoint(info: dict) -> int:
+    """The nearer of the two waypoints around the car (DeepRacer's sim-trace `closest_waypoint`)."""
+    prev_i, next_i = (int(v) for v in info["closest_waypoints"])
+    waypoints = info["waypoints"]
+    x, y = info["x"], info["y"]
+    d_prev = math.hypot(waypoints[prev_i][0] - x, waypoints[prev_i][1] - y)
+    d_next = math.hypot(waypoints[next_i][0] - x, waypoints[next_i][1] - y)
+    return prev_i if d_prev <= d_next else next_i
+
+
+def simtrace_row(info: dict, *, episode: int, reward: float, action=None, done: bool = False,
+                 pause_duration: float = 0.0) -> list:
+    """One sim-trace row (values in `SIMTRACE_COLUMNS` order) from a car's info dict of one step.
+
+    `action`: the discrete action index, or None for a continuous command (written `[steer speed]`).
+    """
+    steer, speed = float(info["steering_angle"]), float(info["speed"])
+    if isinstance(action, (int, np.integer)) and not isinstance(action, bool):
+        action_text = str(int(action))
+    else:
+        action_text = f"[{steer:.4f} {speed:.4f}]"
+    status = episode_status(info)
+    # DeepRacer logs progress 100 on the step that completes the lap
+    progress = 100.0 if status == "lap_complete" else float(info["progress"])
+    return [int(episode), float(info["steps"]), float(info["x"]), float(info["y"]), float(info["heading"]),
+            steer, speed, action_text, float(reward), bool(done), bool(info["all_wheels_on_track"]),
+            progress, closest_waypoint(info), float(info["track_length"]),
+            round(float(info["sim_time"]), 6), status, float(pause_duration)]
+
+
+class SimTraceWriter:
+    """Writes a sim-trace CSV row by row (usable from training loops).
+
+    ``with SimTraceWriter("0-iteration.csv") as log: log.write_step(info, reward=r, episode=e)``
+    """
+
+    def __init__(self, path):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = open(self.path, "w", newline="")
+        self._csv = csv.writer(self._file)
+        self._csv.writerow(SIMTRACE_COLUMNS)
+        self._penalty: dict = {}  # episode -> penalty_time seen so far
+        self.rows = 0
+
+    def write_step(self, info: dict, *, reward: float, episode: int, action=None, done: bool | None = None) -> None:
+        """Log one step of one car. `done` defaults to "the car's run is over" (info status)."""
+        penalty = float(info.get("penalty_time", 0.0))
+        pause = max(penalty - self._penalty.get(episode, 0.0), 0.0)
+        self._penalty[episode] = penalty
+        if done is None:
+            done = info.get("status", "racing") != "racing"
+        self._csv.writerow(simtrace_row(info, episode=episode, reward=reward, action=action, done=done,
+                                        pause_duration=round(pause, 6)))
+        self.rows += 1
+
+    def new_episode(self, episode: int) -> None:
+        """Forget penalty bookkeeping for an episode number that is reused (a new env episode)."""
+        self._penalty.pop(episode, None)
+
+    def flush(self) -> None:
+        self._file.flush()
+
+    def close(self) -> None:
+        if not self._file.closed:
+            self._file.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+class SimTraceRecorder:
+    """Race recorder writing a DeepRacer sim-trace CSV: one row per car per step, episode = car slot."""
+
+    def __init__(self, path):
+        self.path = Path(path)
+        self.writer: SimTraceWriter | None = None
+
+    def start(self, env) -> None:
+        self.writer = SimTraceWriter(self.path)
+        self._ended = [not race.racing for race in env.races]
+
+    def step(self, env, observations, rewards, infos) -> None:
+        for i, agent in enumerate(env.possible_agents):
+            if self._ended[i] or agent not in infos:
+                continue
+            racing = env.races[i].racing
+            self.writer.write_step(infos[agent], reward=float(rewards.get(agent, 0.0)), episode=i,
+                                   done=not racing)
+            if not racing:
+                self._ended[i] = True
+
+    def finish(self, env, result) -> None:
+        if self.writer is not None:
+            self.writer.close()
+
+
+def read_simtrace(path) -> list[dict]:
+    """Rows of a sim-trace CSV as dicts with numbers and booleans parsed (no pandas needed)."""
+    rows = []
+    with open(path, newline="") as f:
+        for raw in csv.DictReader(f):
+            row = dict(raw)
+            for key in ("steps", "X", "Y", "yaw", "steer", "throttle", "reward", "progress", "track_len",
+                        "tstamp", "pause_duration"):
+                if key in row and row[key] not in (None, ""):
+                    row[key] = float(row[key])
+            for key in ("episode", "closest_waypoint"):
+                if key in row and row[key] not in (None, ""):
+                    row[key] = int(float(row[key]))
+            for key in ("done", "all_wheels_on_track"):
+                if key in row:
+                    row[key] = str(row[key]).strip() == "True"
+            rows.append(row)
+    return rows
