@@ -39,10 +39,85 @@ def cmd_race(args) -> int:
     controllers = [make_controller(spec) for spec in args.entrants]
     config = RaceConfig(track=args.track, reverse=args.reverse, race=args.format, laps=args.laps,
                         seed=args.seed, obstacles=args.obstacles, max_steps=args.max_steps)
-    result = run_race(controllers, config)
+    recorders = []
+    if getattr(args, "replay", None):
+        from .replay import ReplayRecorder
+
+        recorders.append(ReplayRecorder(args.replay))
+    if getattr(args, "simtrace", None):
+        from .simtrace import SimTraceRecorder
+
+        recorders.append(SimTraceRecorder(args.simtrace))
+    result = run_race(controllers, config, recorders=recorders)
     print_result(result, Console(width=120))
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=2))
+    return 0
+
+
+def cmd_replay(args) -> int:
+    from .replay import format_summary, open_viewer, replay_summary
+
+    if not args.summary:
+        return open_viewer(args.file)
+    summary = replay_summary(args.file, poses=False)
+    print(format_summary(summary))
+    if args.json:
+        Path(args.json).write_text(json.dumps(summary, indent=2))
+    return 0
+
+
+def cmd_plot(args) -> int:
+    from .plot import plot_simtrace
+
+    out = plot_simtrace(args.trace, args.out, track=args.track)
+    print(f"wrote {out}")
+    return 0
+
+
+def cmd_agent_inspect(args) -> int:
+    from .agentfile import inspect_agent
+
+    info = inspect_agent(args.file)
+    if args.json:
+        print(json.dumps(info, indent=2))
+        return 0 if info["valid"] else 1
+    console = Console(width=120)
+    console.print(f"[bold]{info['file']}[/bold]  ({info['size_bytes']} bytes)")
+    console.print(f"sha256      {info['sha256']}")
+    if info["valid"]:
+        console.print(f"name        {info['name']}")
+        console.print(f"network     {info['network']}  ({info['parameters']:,} parameters, "
+                      f"{info['outputs']} outputs{', value head' if info['value_head'] else ''})")
+    else:
+        console.print(f"[red]invalid[/red]     {info['error']}")
+    if "metadata" in info:
+        console.print("model_metadata:")
+        console.print_json(json.dumps(info["metadata"]))
+    return 0 if info["valid"] else 1
+
+
+def cmd_imitate(args) -> int:
+    import shlex
+
+    from .imitate import ImitationConfig, run_dagger
+
+    command = ["multirace", "imitate", "--out", args.out, "--tracks", *args.tracks, "--minutes",
+               f"{args.minutes:g}", "--seed", str(args.seed), "--network", args.network, "--speed",
+               f"{args.speed:g}"]
+    if args.action_space:
+        command += ["--action-space", args.action_space]
+    if args.one_direction:
+        command += ["--one-direction"]
+    if args.name:
+        command += ["--name", args.name]
+    config = ImitationConfig(out=args.out, tracks=tuple(args.tracks), both_directions=not args.one_direction,
+                             minutes=args.minutes, seed=args.seed, network=args.network,
+                             action_space=args.action_space, expert_speed=args.speed, name=args.name,
+                             command=shlex.join(command))
+    summary = run_dagger(config)
+    print(f"wrote {summary['out']}: {summary['iterations']} DAgger iterations, {summary['samples']} samples, "
+          f"final loss {summary['final_loss']}, {summary['wall_seconds']} s")
     return 0
 
 
@@ -64,7 +139,58 @@ def build_parser() -> argparse.ArgumentParser:
     race.add_argument("--seed", type=int, default=0, help="seed for grid, obstacles and noise")
     race.add_argument("--max-steps", type=int, default=None, help="stop the race after this many 15 Hz steps")
     race.add_argument("--json", metavar="FILE", help="write the result record as JSON")
+    race.add_argument("--replay", metavar="FILE.rrd", help="record the race to a rerun replay file")
+    race.add_argument("--simtrace", metavar="FILE.csv",
+                      help="write a DeepRacer sim-trace CSV (one row per car per step, episode = car slot)")
     race.set_defaults(func=cmd_race)
+
+    agent = sub.add_parser("agent", help="inspect agent files",
+                           description="Tools for agent files (.pt: weights + model_metadata).")
+    agent_sub = agent.add_subparsers(dest="agent_command", required=True)
+    inspect = agent_sub.add_parser("inspect", help="print an agent file's metadata, size and hash",
+                                   description="Validate an agent file and print its model_metadata, "
+                                               "parameter count and sha256 (exit 1 if invalid).")
+    inspect.add_argument("file", help="agent file (.pt)")
+    inspect.add_argument("--json", action="store_true", help="print the information as JSON")
+    inspect.set_defaults(func=cmd_agent_inspect)
+
+    from .imitate import DEFAULT_TRACKS
+    from .nets import DEFAULT_NETWORK, NETWORKS
+
+    imitate = sub.add_parser("imitate", help="train a camera agent by DAgger imitation of the scripted driver",
+                             description="Train a camera CNN by DAgger: the learner drives, the scripted "
+                                         "pure-pursuit driver labels every image with the nearest action, "
+                                         "the data is aggregated and the net retrained; writes an agent file.")
+    imitate.add_argument("--out", required=True, metavar="FILE.pt", help="agent file to write")
+    imitate.add_argument("--tracks", nargs="+", default=list(DEFAULT_TRACKS), metavar="TRACK",
+                         help=f"tracks to train on (default: {' '.join(DEFAULT_TRACKS)})")
+    imitate.add_argument("--one-direction", action="store_true",
+                         help="train on each track forwards only (default: both directions)")
+    imitate.add_argument("--minutes", type=float, default=4.0, help="wall-clock training budget (default 4)")
+    imitate.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    imitate.add_argument("--network", default=DEFAULT_NETWORK, choices=list(NETWORKS),
+                         help=f"network (default {DEFAULT_NETWORK})")
+    imitate.add_argument("--action-space", default=None, metavar="JSON",
+                         help="DeepRacer model_metadata.json with the action space (default: 10 actions, "
+                              "steering -30..30 by 15 x speed 0.5, 1.0)")
+    imitate.add_argument("--speed", type=float, default=1.0, help="expert's speed in m/s (default 1.0)")
+    imitate.add_argument("--name", default=None, help="agent name in the metadata (default: file stem)")
+    imitate.set_defaults(func=cmd_imitate)
+
+    replay = sub.add_parser("replay", help="open a race replay (.rrd) in the rerun viewer, or summarise it",
+                            description="Open a race replay in the rerun viewer where one is available; "
+                                        "--summary prints what the recording holds.")
+    replay.add_argument("file", metavar="FILE.rrd", help="a replay written by `multirace race --replay`")
+    replay.add_argument("--summary", action="store_true", help="print cars, laps, events and duration")
+    replay.add_argument("--json", metavar="FILE", help="with --summary: also write the summary as JSON")
+    replay.set_defaults(func=cmd_replay)
+
+    plot = sub.add_parser("plot", help="plot a sim-trace CSV: the path coloured by speed and reward",
+                          description="Draw the track with the driven path coloured by speed and by reward.")
+    plot.add_argument("trace", metavar="TRACE.csv", help="a DeepRacer sim-trace CSV")
+    plot.add_argument("--out", metavar="FILE.png", help="PNG to write (default: TRACE.png)")
+    plot.add_argument("--track", default=None, help="track name or .npy (default: guessed from track_len)")
+    plot.set_defaults(func=cmd_plot)
     return parser
 
 

@@ -422,9 +422,15 @@ def open_viewer(path) -> int:
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"replay {path}: no such file")
+    import os
+    import sys
+
     exe = shutil.which("rerun")
-    if exe is None:
-        print(f"The rerun viewer is not available here. Install it with `pip install rerun-sdk==0.41.*` and run "
-              f"`rerun {path}`, or print the contents with `multirace replay {path} --summary`.")
+    headless = sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+    if exe is None or headless:
+        why = "no display here" if exe is not None else "the `rerun` viewer is not installed"
+        print(f"Cannot open the rerun viewer ({why}). On a machine with a display, install it with "
+              f"`pip install rerun-sdk==0.41.*` and run `rerun {path}`; here, print the contents with "
+              f"`multirace replay {path} --summary`.")
         return 1
     return subprocess.call([exe, str(path)])
