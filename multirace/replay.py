@@ -380,7 +380,7 @@ def replay_summary(path, poses: bool = True) -> dict:
     summary = {
         "file": str(path), "size_mb": round(path.stat().st_size / 1e6, 3),
         "track": info["track"], "reverse": info["reverse"], "format": info["format"], "laps": info["laps"],
-        "cars": cars, "steps": (max(all_steps) if all_steps else 0), "duration": round(max_time, 4),
+        "cars": cars, "steps": (max(all_steps) if all_steps else 0), "duration": round(max_time, 6),
         "events": events, "result": result,
     }
     if poses:
