@@ -1,0 +1,122 @@
+"""The top-down race view and MP4 writing, on the real env."""
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from multirace.env import RaceEnv
+from multirace.race import RaceConfig, make_controller, run_race
+from multirace.topdown import layout_for, render_topdown
+from multirace.video import VideoRecorder, write_video
+from multirace.world import CAR_COLOURS
+
+
+def _colour_near(frame, col, row, colour, radius=3, tol=30) -> bool:
+    r0, c0 = int(round(row)), int(round(col))
+    patch = frame[max(r0 - radius, 0):r0 + radius + 1, max(c0 - radius, 0):c0 + radius + 1].astype(int)
+    return bool((np.abs(patch - np.array(colour)).max(axis=-1) <= tol).any())
+
+
+def _colour_pixels(frame, colour, right_edge, tol=30) -> int:
+    area = frame[:, :right_edge].astype(int)
+    return int((np.abs(area - np.array(colour)).max(axis=-1) <= tol).sum())
+
+
+def _step(env, count):
+    for _ in range(count):
+        if not env.agents:
+            break
+        env.step({a: 5 for a in env.agents})
+
+
+@pytest.mark.parametrize("num_cars, bots", [(1, ()), (4, ("follow@1.5",)), (3, ("follow@1.0", "lanes@1.5", "follow@2.0",
+                                                                                 "lanes@1.0", "follow@1.2"))])
+def test_shape_and_car_colours_at_car_positions(num_cars, bots):
+    env = RaceEnv(num_cars=num_cars, bots=bots, race="object_avoidance", laps=2, render_mode="rgb_array")
+    try:
+        env.reset(seed=2)
+        _step(env, 25)
+        for size in ((540, 960), (240, 320)):
+            frame = render_topdown(env, size)
+            assert frame.shape == size + (3,) and frame.dtype == np.uint8
+        frame = env.render()
+        assert frame.shape == (540, 960, 3)
+        layout = layout_for(env, (540, 960))
+        total = env.total_cars
+        for i in range(total):
+            x, y, yaw = env.world.poses[i]
+            # a point a quarter length behind the centre: body colour, not the heading mark
+            back = 0.25 * env.car_spec.length
+            col, row = layout.to_frame(np.array([x - back * math.cos(yaw), y - back * math.sin(yaw)]))
+            assert _colour_near(frame, col, row, CAR_COLOURS[i]), f"car {i} colour not at its position"
+        for x, y, _ in env.world.obstacle_poses:
+            col, row = layout.to_frame(np.array([x, y]))
+            assert _colour_near(frame, col, row, (250, 250, 250), radius=1, tol=10)
+    finally:
+        env.close()
+
+
+def test_parked_cars_not_drawn_and_trails():
+    env = RaceEnv(num_cars=2, laps=1, render_mode="rgb_array")
+    try:
+        before_reset = env.render()
+        assert before_reset.shape == (540, 960, 3)
+        env.reset(seed=0)
+        for k in range(20):
+            env.step({a: 5 for a in env.agents})
+            frame = env.render()
+            if k == 8:
+                earlier = env.world.poses[0][:2].copy()
+        layout = layout_for(env, (540, 960))
+        assert np.hypot(*(env.world.poses[0][:2] - earlier)) > env.car_spec.length  # it moved on
+        # the trail: car 0's colour (dimmed) where it was 11 steps ago
+        dimmed = tuple(int(c * 0.8) for c in CAR_COLOURS[0])
+        col, row = layout.to_frame(earlier)
+        assert _colour_near(frame, col, row, dimmed, radius=2, tol=12)
+        env.forfeit(0, "test")
+        env.step({a: 5 for a in env.agents})
+        frame = env.render()
+        assert _colour_pixels(frame, CAR_COLOURS[0], layout.panel_x, tol=60) == 0
+        assert _colour_pixels(frame, CAR_COLOURS[1], layout.panel_x) > 0
+        # a new episode clears the trails
+        env.reset(seed=1)
+        env.render()
+        assert all(len(t) == 1 for t in env._topdown_state.trails)
+    finally:
+        env.close()
+
+
+def test_video_recorder_writes_readable_mp4(tmp_path):
+    path = tmp_path / "race.mp4"
+    recorder = VideoRecorder(path, size=(240, 320))
+    controllers = [make_controller("bot:follow@1.5"), make_controller("bot:lanes@2.0")]
+    run_race(controllers, RaceConfig(laps=1, max_steps=20), recorders=[recorder])
+    assert recorder.frames == 21  # the start plus one per step
+    capture = cv2.VideoCapture(str(path))
+    frames = []
+    while True:
+        ok, frame = capture.read()
+        if not ok:
+            break
+        frames.append(frame)
+    capture.release()
+    assert len(frames) == 21
+    assert frames[0].shape == (240, 320, 3)
+
+
+def test_write_video_from_iterator(tmp_path):
+    path = tmp_path / "sub" / "gradient.mp4"
+    frames = (np.full((64, 96, 3), 10 * k, np.uint8) for k in range(12))
+    assert write_video(frames, path, fps=15) == 12
+    capture = cv2.VideoCapture(str(path))
+    assert int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) == 12
+    ok, first = capture.read()
+    assert ok and first.shape == (64, 96, 3)
+    capture.release()
+    with pytest.raises(ValueError):
+        write_video([], tmp_path / "empty.mp4")
+    with pytest.raises(ValueError):
+        write_video([np.zeros((64, 96, 3), np.uint8), np.zeros((32, 32, 3), np.uint8)], tmp_path / "bad.mp4")
