@@ -48,6 +48,10 @@ def cmd_race(args) -> int:
         from .simtrace import SimTraceRecorder
 
         recorders.append(SimTraceRecorder(args.simtrace))
+    if getattr(args, "video", None):
+        from .video import VideoRecorder
+
+        recorders.append(VideoRecorder(args.video))
     result = run_race(controllers, config, recorders=recorders)
     print_result(result, Console(width=120))
     if args.json:
@@ -142,6 +146,7 @@ def build_parser() -> argparse.ArgumentParser:
     race.add_argument("--replay", metavar="FILE.rrd", help="record the race to a rerun replay file")
     race.add_argument("--simtrace", metavar="FILE.csv",
                       help="write a DeepRacer sim-trace CSV (one row per car per step, episode = car slot)")
+    race.add_argument("--video", metavar="FILE.mp4", help="write the top-down race view as an MP4 (15 fps)")
     race.set_defaults(func=cmd_race)
 
     agent = sub.add_parser("agent", help="inspect agent files",
