@@ -76,10 +76,12 @@ def camera_pose(spec: CameraSpec, car_pose, jitter=(0.0, 0.0, 0.0)) -> CameraPos
                     spec.mount_height + d_height])
     cp, sp = math.cos(pitch), math.sin(pitch)
     cy, sy = math.cos(cam_yaw), math.sin(cam_yaw)
-    forward = np.array([cp * cy, cp * sy, -sp])
-    right = np.array([sy, -cy, 0.0])
-    down = np.cross(forward, right)
-    return CameraPose(eye=eye, rotation=np.stack([right, down, forward]))
+    rotation = np.array([
+        [sy, -cy, 0.0],  # right
+        [-sp * cy, -sp * sy, -cp],  # down = forward x right
+        [cp * cy, cp * sy, -sp],  # forward
+    ])
+    return CameraPose(eye=eye, rotation=rotation)
 
 
 class Renderer:
@@ -91,6 +93,10 @@ class Renderer:
     def render(self, world, car: int, pose: CameraPose) -> np.ndarray:
         """uint8 image (H, W, C) seen from `pose` by car `car` (which is not drawn)."""
         raise NotImplementedError
+
+    def render_many(self, world, cars: list[int], poses: list[CameraPose]) -> list[np.ndarray]:
+        """Images of several cars' cameras (renderers may batch this)."""
+        return [self.render(world, car, pose) for car, pose in zip(cars, poses)]
 
     def close(self) -> None:
         """Release what the renderer holds."""

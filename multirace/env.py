@@ -33,6 +33,7 @@ from .world import World
 ACTION_HZ = 15
 MAX_CARS = 8
 MIN_AVERAGE_SPEED = 0.4  # m/s; sets the default step limit of a race
+CLEAR_RADIUS = 0.45  # m; a reset spot closer than this to another body is taken
 
 
 def parallel_env(**config) -> "RaceEnv":
@@ -148,7 +149,8 @@ class RaceEnv(ParallelEnv):
         self._s = np.zeros(self.total_cars)
         self._commands = np.zeros((self.total_cars, 2))
         for i, (s, lateral) in enumerate(track.start_grid(self.total_cars)):
-            self.world.place_car(i, *track.point_at(s, lateral))
+            # the grid slot is where DeepRacer's reported point (ahead of the body centre) starts
+            self.world.place_car(i, *track.point_at(s - self.car_spec.reported_point_offset, lateral))
         self._place_obstacles()
         self._measure_all()
         for i, geo in enumerate(self._geometry):
@@ -159,7 +161,8 @@ class RaceEnv(ParallelEnv):
                                       lap_start_distance=signed, last_on_track_s=s,
                                       segment_hint=geo["proj"].segment))
         self.agents = list(self.possible_agents)
-        params = [self._params(i, set()) for i in range(self.num_cars)]
+        table = self._object_table()
+        params = [self._params(i, set(), table) for i in range(self.num_cars)]
         observations = self._observe()
         ranks = self.ranks()
         infos = {a: self._info(i, params[i], set(), ranks) for i, a in enumerate(self.agents)}
@@ -168,20 +171,21 @@ class RaceEnv(ParallelEnv):
     def _place_obstacles(self) -> None:
         """Boxes spread around the lap, in alternating lanes, with seeded jitter."""
         count = self.rules.obstacles
+        self.obstacle_slots = []
+        self._obstacle_rows = []
         if not count:
-            self.obstacle_slots = []
             return
         track, rng = self.track, self._rng
         spacing = 0.75 * track.length / count
         first = 0.15 * track.length + rng.uniform(0, 0.1) * track.length
         lane = int(rng.integers(2))
-        self.obstacle_slots = []
         for k in range(count):
             s = (first + k * spacing + rng.uniform(-0.1, 0.1) * spacing) % track.length
             lateral = track.lane_offset(lane, s)
             x, y, yaw = track.point_at(s, lateral)
             self.world.place_obstacle(k, x, y, yaw)
             self.obstacle_slots.append((s, lane))
+            self._obstacle_rows.append((-1, x, y, lateral > 0, 0.0, math.degrees(yaw), abs(lateral), s))
             lane = 1 - lane
 
     # -------------------------------------------------------------- step
@@ -210,8 +214,9 @@ class RaceEnv(ParallelEnv):
         self._measure_all()
         touched = self._apply_contacts(contacts)
         params, rewards = [], {}
+        table = self._object_table()
         for i, agent in enumerate(self.possible_agents):
-            p = self._params(i, touched[i])
+            p = self._params(i, touched[i], table)
             params.append(p)
             rewards[agent] = self.reward_function(p, self.steps, agent) if self.races[i].racing else 0.0
         events = [self._apply_rules(i, prev_distance[i], prev_time, touched[i]) for i in range(self.total_cars)]
@@ -337,9 +342,18 @@ class RaceEnv(ParallelEnv):
         return events
 
     def _reset_car(self, i: int, s: float, lateral: float) -> None:
-        """Put car i back on the track at arc length s, facing along the track, at rest."""
+        """Put car i back on the track at arc length s, facing along the track, at rest.
+
+        If another car or a box occupies the spot, the car is put further back until it is clear.
+        """
         track = self.track
-        x, y, yaw = track.point_at(s, lateral)
+        others = [self.world.poses[j][:2] for j in range(self.total_cars)
+                  if j != i and not self.world.parked[j]] + [p[:2] for p in self.world.obstacle_poses]
+        for _ in range(8):
+            x, y, yaw = track.point_at(s, lateral)
+            if all(math.hypot(x - ox, y - oy) > CLEAR_RADIUS for ox, oy in others):
+                break
+            s -= CLEAR_RADIUS
         self.world.place_car(i, x, y, yaw)
         geo = self._measure(i)
         self.races[i].distance += track.wrap_ds(geo["proj"].s - self._s[i])
@@ -359,19 +373,18 @@ class RaceEnv(ParallelEnv):
 
     # ----------------------------------------------------------- outputs
     def _observe(self) -> dict:
-        images = {}
-        for i, agent in enumerate(self.possible_agents):
-            pose = camera_pose(self.camera, self.world.poses[i])
-            images[agent] = self._renderer.render(self.world, i, pose)
-        return images
+        cars = range(self.num_cars)
+        poses = [camera_pose(self.camera, self.world.poses[i]) for i in cars]
+        images = self._renderer.render_many(self.world, list(cars), poses)
+        return dict(zip(self.possible_agents, images))
 
-    def _params(self, i: int, touched: set) -> dict:
+    def _params(self, i: int, touched: set, table: list[tuple]) -> dict:
         """The 27 DeepRacer reward params of car i, in DeepRacer's units."""
         geo = self._geometry[i] if self._geometry[i] is not None else self._last_params_geometry(i)
         race, track = self.races[i], self.track
         proj = geo["proj"]
         steer, speed = self._commands[i]
-        objects = self._objects_for(i)
+        objects = self._objects_for(i, table)
         return {
             "all_wheels_on_track": geo["wheels_on"] == 4,
             "x": geo["x"],
@@ -400,54 +413,50 @@ class RaceEnv(ParallelEnv):
         x, y, yaw = self.world.poses[i]
         return {"x": x, "y": y, "yaw": yaw, "proj": self.track.project(x, y), "wheels_on": 4}
 
-    def _objects_for(self, i: int) -> dict:
-        """DeepRacer's object params for car i: the boxes and every other car on track."""
-        track = self.track
-        me = self._geometry[i]["proj"].s if self._geometry[i] is not None else self._s[i]
-        yaw_i = self.world.poses[i][2]
-        xi, yi = self.world.poses[i][:2]
-        locations, left, speeds, headings, from_centre, along = [], [], [], [], [], []
-        in_camera = False
-        half_fov = self.camera.hfov / 2
-        for k, (x, y, yaw) in enumerate(self.world.obstacle_poses):
-            s, lateral = self.obstacle_slots[k][0], track.project(x, y).lateral
-            locations.append((float(x), float(y)))
-            left.append(lateral > 0)
-            speeds.append(0.0)
-            headings.append(math.degrees(yaw))
-            from_centre.append(abs(lateral))
-            along.append(s)
-        for j in range(self.total_cars):
-            geo = self._geometry[j]
-            if j == i or geo is None:
+    def _object_table(self) -> list[tuple]:
+        """Every object a car can see this step: boxes, then cars on track.
+
+        Rows are (car index or -1, x, y, left_of_centre, speed, heading_deg, distance_from_centre, s).
+        """
+        rows = list(self._obstacle_rows)
+        for j, geo in enumerate(self._geometry):
+            if geo is None:
                 continue
             proj = geo["proj"]
-            locations.append((geo["x"], geo["y"]))
-            left.append(proj.lateral > 0)
-            speeds.append(float(self.world.drive_speed[j]))
-            headings.append(math.degrees(geo["yaw"]))
-            from_centre.append(abs(proj.lateral))
-            along.append(proj.s)
-        for (x, y) in locations:
-            bearing = math.atan2(y - yi, x - xi) - yaw_i
-            bearing = (bearing + math.pi) % (2 * math.pi) - math.pi
-            if abs(bearing) < half_fov and math.hypot(x - xi, y - yi) < 8.0:
-                in_camera = True
+            rows.append((j, geo["x"], geo["y"], proj.lateral > 0, float(self.world.drive_speed[j]),
+                         math.degrees(geo["yaw"]), abs(proj.lateral), proj.s))
+        return rows
+
+    def _objects_for(self, i: int, table: list[tuple]) -> dict:
+        """DeepRacer's object params for car i: the boxes and every other car on track."""
+        track = self.track
+        rows = [row for row in table if row[0] != i]
+        me = self._geometry[i]["proj"].s if self._geometry[i] is not None else self._s[i]
+        xi, yi, yaw_i = self.world.poses[i]
+        half_fov = self.camera.hfov / 2
+        in_camera = False
         closest = [0, 0]
-        if along:
-            gaps = [track.wrap_ds(s - me) for s in along]
-            ahead = [g if g >= 0 else g + track.length for g in gaps]
-            behind = [-g if g < 0 else track.length - g for g in gaps]
-            closest = [int(np.argmin(behind)), int(np.argmin(ahead))]
+        best_ahead = best_behind = math.inf
+        for k, row in enumerate(rows):
+            dx, dy = row[1] - xi, row[2] - yi
+            bearing = (math.atan2(dy, dx) - yaw_i + math.pi) % (2 * math.pi) - math.pi
+            if abs(bearing) < half_fov and dx * dx + dy * dy < 64.0:
+                in_camera = True
+            gap = track.wrap_ds(row[7] - me)
+            ahead = gap if gap >= 0 else gap + track.length
+            if ahead < best_ahead:
+                best_ahead, closest[1] = ahead, k
+            if track.length - ahead < best_behind:
+                best_behind, closest[0] = track.length - ahead, k
         return {
             "closest_objects": closest,
-            "objects_location": locations,
-            "objects_left_of_center": left,
+            "objects_location": [(row[1], row[2]) for row in rows],
+            "objects_left_of_center": [row[3] for row in rows],
             "object_in_camera": in_camera,
-            "objects_speed": speeds,
-            "objects_heading": headings,
-            "objects_distance_from_center": from_centre,
-            "objects_distance": along,
+            "objects_speed": [row[4] for row in rows],
+            "objects_heading": [row[5] for row in rows],
+            "objects_distance_from_center": [row[6] for row in rows],
+            "objects_distance": [row[7] for row in rows],
         }
 
     def ranks(self) -> list[int]:

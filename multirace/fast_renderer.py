@@ -2,9 +2,10 @@
 
 The ground is flat, so the camera's view of it is a homography of the track's
 top-down texture: one `cv2.warpPerspective` per frame. Above the horizon the
-sky is filled in. Other cars and the obstacles are boxes: their front-facing
-faces are clipped against the near plane, projected and filled far to near, so
-nearer boxes hide farther ones. The camera's own car is never drawn.
+sky is filled in. Other cars and the obstacles are flat-coloured boxes, as in
+the PyBullet reference: a box's silhouette is the convex hull of its corners
+(clipped at the near plane), filled far to near so nearer boxes hide farther
+ones. The camera's own car is never drawn.
 """
 from __future__ import annotations
 
@@ -18,16 +19,10 @@ from .texture import TrackTexture
 from .world import CAR_COLOURS, OBSTACLE_COLOUR, OBSTACLE_SIZE
 
 SUBPIXEL_BITS = 4
-# Corners of the unit box (+-0.5, +-0.5, 0..1) and its six faces (outward order)
+# Corners of the unit box (+-0.5, +-0.5, 0..1); corner k has x = bit 0, y = bit 1, z = bit 2
 _UNIT_CORNERS = np.array([[sx * 0.5, sy * 0.5, sz] for sz in (0.0, 1.0) for sy in (-1, 1) for sx in (-1, 1)])
-_FACES = (
-    (0, 1, 3, 2),  # bottom
-    (4, 6, 7, 5),  # top
-    (0, 4, 5, 1),  # y = -0.5
-    (2, 3, 7, 6),  # y = +0.5
-    (0, 2, 6, 4),  # x = -0.5
-    (1, 5, 7, 3),  # x = +0.5
-)
+# the 12 edges of a box as pairs of corner indices
+_EDGES = tuple((i, i | bit) for i in range(8) for bit in (1, 2, 4) if not i & bit)
 
 
 def _gray(rgb) -> int:
@@ -44,21 +39,6 @@ def box_corners(poses: np.ndarray, size) -> np.ndarray:
     y = poses[:, None, 1] + sin[:, None] * local[None, :, 0] + cos[:, None] * local[None, :, 1]
     z = np.broadcast_to(local[None, :, 2], x.shape)
     return np.stack([x, y, z], axis=-1)
-
-
-def clip_near(polygon: np.ndarray, near: float) -> np.ndarray:
-    """Clip a camera-frame polygon (K, 3) to z >= near (Sutherland-Hodgman, one plane)."""
-    out = []
-    count = len(polygon)
-    for k in range(count):
-        a, b = polygon[k], polygon[(k + 1) % count]
-        a_in, b_in = a[2] >= near, b[2] >= near
-        if a_in:
-            out.append(a)
-        if a_in != b_in:
-            t = (near - a[2]) / (b[2] - a[2])
-            out.append(a + t * (b - a))
-    return np.array(out)
 
 
 class FastRenderer(Renderer):
@@ -84,14 +64,15 @@ class FastRenderer(Renderer):
             self._obstacle_colour = tuple(int(c) for c in OBSTACLE_COLOUR)
         self._scene_key = None
         self._scene = None
+        self._obstacle_key = None
+        self._obstacle_corners = None
 
     # ------------------------------------------------------------- ground
     def ground_homography(self, pose: CameraPose) -> np.ndarray:
-        """3x3 map from image pixels to texture pixels (the warp's inverse map)."""
+        """3x3 map from texture pixels to image pixels (the ground plane z = 0)."""
         R = pose.rotation
         image_from_world = self.K @ np.column_stack([R[:, 0], R[:, 1], -R @ pose.eye])
-        image_from_tex = image_from_world @ self._tex_from_world
-        return np.linalg.inv(image_from_tex)
+        return image_from_world @ self._tex_from_world
 
     def horizon_row(self, pose: CameraPose) -> int:
         """First image row below the horizon (rows above it show sky)."""
@@ -102,68 +83,103 @@ class FastRenderer(Renderer):
 
     # ------------------------------------------------------------- render
     def render(self, world, car: int, pose: CameraPose) -> np.ndarray:
+        return self.render_many(world, [car], [pose])[0]
+
+    def render_many(self, world, cars: list[int], poses: list[CameraPose]) -> list[np.ndarray]:
+        """Images of several cameras at once; the box projection is batched over cameras."""
         spec = self.spec
-        image = cv2.warpPerspective(
-            self._ground, self.ground_homography(pose), (spec.width, spec.height),
-            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT,
-            borderValue=self._floor)
-        if image.ndim == 2:
-            image = image[:, :, None]
-        image[: self.horizon_row(pose)] = self._sky
-        self._draw_boxes(image, world, car, pose)
-        return image
+        images = []
+        for pose in poses:
+            image = cv2.warpPerspective(
+                self._ground, self.ground_homography(pose), (spec.width, spec.height),
+                flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=self._floor)
+            if image.ndim == 2:
+                image = image[:, :, None]
+            image[: self.horizon_row(pose)] = self._sky
+            images.append(image)
+        self._draw_boxes(images, world, cars, poses)
+        return images
 
     def _scene_boxes(self, world):
-        """Corners and colours of every box in the scene (computed once per world step)."""
-        key = (id(world), world.poses.tobytes(), world.obstacle_poses.tobytes(), world.parked.tobytes())
-        if key != self._scene_key:
-            cars = box_corners(world.poses, (world.spec.length, world.spec.width, world.spec.height))
-            obstacles = box_corners(world.obstacle_poses, OBSTACLE_SIZE)
-            corners = np.concatenate([cars, obstacles]) if len(obstacles) else cars
-            owners = list(range(world.num_cars)) + [-1] * len(obstacles)
-            colours = [self._car_colours[i % len(self._car_colours)] for i in range(world.num_cars)]
-            colours += [self._obstacle_colour] * len(obstacles)
-            hidden = list(world.parked) + [False] * len(obstacles)
-            self._scene = (corners, owners, colours, hidden)
-            self._scene_key = key
+        """Boxes in the scene, computed once per world step and shared by all cameras.
+
+        Returns (corners (M, 8, 3), centres (M, 3), poses (M, 3), half sizes (M, 3), radii (M,),
+        colours, hidden (M,) bool). Cars come first (index = car), then obstacles.
+        """
+        obstacle_key = world.obstacle_poses.tobytes()
+        key = (id(world), world.poses.tobytes(), world.parked.tobytes(), obstacle_key)
+        if key == self._scene_key:
+            return self._scene
+        if self._obstacle_key != obstacle_key:
+            self._obstacle_corners = box_corners(world.obstacle_poses, OBSTACLE_SIZE)
+            self._obstacle_key = obstacle_key
+        car_size = (world.spec.length, world.spec.width, world.spec.height)
+        n_obstacles = len(world.obstacle_poses)
+        corners = np.concatenate([box_corners(world.poses, car_size), self._obstacle_corners])
+        poses = np.concatenate([world.poses, world.obstacle_poses])
+        half = np.array([car_size] * world.num_cars + [OBSTACLE_SIZE] * n_obstacles) / 2
+        centres = np.column_stack([poses[:, :2], half[:, 2]])
+        radii = np.linalg.norm(half, axis=1)
+        colours = [self._car_colours[i % len(self._car_colours)] for i in range(world.num_cars)]
+        colours += [self._obstacle_colour] * n_obstacles
+        hidden = np.concatenate([world.parked, np.zeros(n_obstacles, dtype=bool)])
+        self._scene = (corners, centres, poses, half, radii, colours, hidden)
+        self._scene_key = key
         return self._scene
 
-    def _draw_boxes(self, image, world, car, pose) -> None:
-        corners, owners, colours, hidden = self._scene_boxes(world)
+    def _draw_boxes(self, images, world, cars, poses) -> None:
+        corners, centres, box_poses, half, radii, colours, hidden = self._scene_boxes(world)
         if not len(corners):
             return
-        R = pose.rotation
-        cam = (corners - pose.eye) @ R.T  # (M, 8, 3) camera-frame corners
-        z = cam[:, :, 2]
         f, cx, cy = self.K[0, 0], self.K[0, 2], self.K[1, 2]
-        half_w = self.spec.width / 2 + 1
-        # cull boxes wholly behind the near plane or wholly left/right of the view
-        visible = (z.max(axis=1) > NEAR_PLANE)
+        limit = (self.spec.width / 2 + 1) / f
+        slack = radii * math.sqrt(1 + limit * limit)
+        rotations = np.stack([pose.rotation for pose in poses])  # (C, 3, 3)
+        eyes = np.stack([pose.eye for pose in poses])  # (C, 3)
+        # coarse culling on bounding spheres: in front of the camera and inside the horizontal view
+        centre_cam = np.einsum("cij,cmj->cmi", rotations, centres[None, :, :] - eyes[:, None, :])
+        near_enough = centre_cam[..., 2] + radii > NEAR_PLANE
+        inside = np.abs(centre_cam[..., 0]) - slack < np.maximum(centre_cam[..., 2], 0) * limit
+        candidates = near_enough & inside & ~hidden[None, :]
+        for c, car in enumerate(cars):
+            if car < len(hidden):
+                candidates[c, car] = False
+        cams, boxes = np.nonzero(candidates)
+        if not len(cams):
+            return
+        # draw order: camera by camera, far to near within a camera
+        order = np.lexsort((-centre_cam[cams, boxes, 2], cams))
+        cams, boxes = cams[order], boxes[order]
+        cam = np.einsum("pij,pkj->pki", rotations[cams], corners[boxes] - eyes[cams][:, None, :])
+        z = cam[..., 2]
         zc = np.maximum(z, NEAR_PLANE)
-        u = cam[:, :, 0] / zc * f
-        visible &= ~((u.max(axis=1) < -half_w) & (cam[:, :, 0].max(axis=1) < 0))
-        visible &= ~((u.min(axis=1) > half_w) & (cam[:, :, 0].min(axis=1) > 0))
-        order = np.argsort(-np.linalg.norm(corners.mean(axis=1) - pose.eye, axis=1))
         scale = float(1 << SUBPIXEL_BITS)
-        eye = pose.eye
-        for m in order:
-            if not visible[m] or owners[m] == car or hidden[m]:
+        pixels = np.empty(cam.shape[:2] + (2,))
+        pixels[..., 0] = cx + f * cam[..., 0] / zc
+        pixels[..., 1] = cy + f * cam[..., 1] / zc
+        pixels = (np.clip(pixels, -4096, 4096) * scale).astype(np.int32)
+        all_in_front = (z >= NEAR_PLANE).all(axis=1)
+        for p, (c, m) in enumerate(zip(cams.tolist(), boxes.tolist())):
+            # flat-shaded convex box: its silhouette is the hull of its (near-clipped) corners
+            points = pixels[p] if all_in_front[p] else self._clipped_outline(cam[p], z[p] >= NEAR_PLANE)
+            if points is None:
                 continue
-            box = corners[m]
-            centre = box.mean(axis=0)
-            for face in _FACES:
-                face_world = box[list(face)]
-                normal = np.cross(face_world[1] - face_world[0], face_world[3] - face_world[0])
-                if np.dot(normal, face_world[0] - centre) < 0:
-                    normal = -normal
-                if np.dot(normal, face_world[0] - eye) >= 0:
-                    continue  # faces away from the camera
-                poly = clip_near(cam[m, list(face)], NEAR_PLANE)
-                if len(poly) < 3:
-                    continue
-                px = np.empty((len(poly), 2))
-                px[:, 0] = cx + f * poly[:, 0] / poly[:, 2]
-                px[:, 1] = cy + f * poly[:, 1] / poly[:, 2]
-                px = np.clip(px, -4096, 4096)
-                cv2.fillConvexPoly(image, np.round(px * scale).astype(np.int32), colours[m],
-                                   lineType=cv2.LINE_8, shift=SUBPIXEL_BITS)
+            cv2.fillConvexPoly(images[c], cv2.convexHull(points), colours[m],
+                               lineType=cv2.LINE_8, shift=SUBPIXEL_BITS)
+
+    def _clipped_outline(self, corners_cam: np.ndarray, in_front: np.ndarray):
+        """Projected vertices of a box cut by the near plane: front corners plus edge crossings."""
+        points = [corners_cam[i] for i in range(8) if in_front[i]]
+        for i, j in _EDGES:
+            if in_front[i] != in_front[j]:
+                a, b = corners_cam[i], corners_cam[j]
+                t = (NEAR_PLANE - a[2]) / (b[2] - a[2])
+                points.append(a + t * (b - a))
+        if len(points) < 3:
+            return None
+        poly = np.array(points)
+        f, cx, cy = self.K[0, 0], self.K[0, 2], self.K[1, 2]
+        px = np.empty((len(poly), 2))
+        px[:, 0] = cx + f * poly[:, 0] / poly[:, 2]
+        px[:, 1] = cy + f * poly[:, 1] / poly[:, 2]
+        return (np.clip(px, -4096, 4096) * float(1 << SUBPIXEL_BITS)).astype(np.int32)

@@ -52,18 +52,28 @@ class PyBulletRenderer(Renderer):
         pybullet.createMultiBody(0, -1, floor, [0, 0, -0.003], physicsClientId=client)
         self._ground_client = client
 
-    def render(self, world, car: int, pose: CameraPose) -> np.ndarray:
+    def _camera_image(self, world, pose: CameraPose, segmentation: bool):
         client = world.connect()
         if self._ground_client != client:
             self._add_ground(client)
         spec = self.spec
         target = pose.eye + pose.forward
         view = pybullet.computeViewMatrix(pose.eye.tolist(), target.tolist(), (-pose.down).tolist())
-        _, _, rgba, _, _ = pybullet.getCameraImage(
+        flags = 0 if segmentation else pybullet.ER_NO_SEGMENTATION_MASK
+        _, _, rgba, _, seg = pybullet.getCameraImage(
             spec.width, spec.height, view, self._projection, renderer=pybullet.ER_TINY_RENDERER,
             lightAmbientCoeff=1.0, lightDiffuseCoeff=0.0, lightSpecularCoeff=0.0, shadow=0,
-            flags=pybullet.ER_NO_SEGMENTATION_MASK, physicsClientId=client)
+            flags=flags, physicsClientId=client)
         rgb = np.asarray(rgba, dtype=np.uint8).reshape(spec.height, spec.width, 4)[:, :, :3]
-        if spec.grayscale:
+        return rgb, seg
+
+    def segmentation(self, world, pose: CameraPose) -> np.ndarray:
+        """(H, W) int array of the PyBullet body id seen at each pixel (-1: background)."""
+        _, seg = self._camera_image(world, pose, segmentation=True)
+        return np.asarray(seg, dtype=np.int64).reshape(self.spec.height, self.spec.width)
+
+    def render(self, world, car: int, pose: CameraPose) -> np.ndarray:
+        rgb, _ = self._camera_image(world, pose, segmentation=False)
+        if self.spec.grayscale:
             return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)[:, :, None]
         return np.ascontiguousarray(rgb)

@@ -23,7 +23,7 @@ CENTRE_DASH = 0.30  # dash and gap length of the centre line, metres
 class Palette:
     """Colours (RGB) of the scene; domain randomisation swaps these."""
 
-    floor: tuple[int, int, int] = (52, 92, 50)
+    floor: tuple[int, int, int] = (110, 160, 90)
     road: tuple[int, int, int] = (68, 68, 72)
     border: tuple[int, int, int] = (240, 240, 240)
     centre: tuple[int, int, int] = (235, 190, 40)

@@ -1,0 +1,36 @@
+"""Shared helpers for the multirace tests (import as `from helpers import ...`)."""
+from __future__ import annotations
+
+from multirace.bots import PurePursuit
+
+
+def drive_expert(env, speed=1.0, steps=None, lateral=0.0):
+    """Drive every learning car with the centre-line pure-pursuit driver until the episode ends.
+
+    Returns the list of per-step info dicts of car_0.
+    """
+    driver = PurePursuit(speed=speed, lateral=lateral)
+    history = []
+    count = 0
+    while env.agents and (steps is None or count < steps):
+        actions = {}
+        for i, agent in enumerate(env.possible_agents):
+            steer, spd = driver.command(env.track, env.car_spec, env.world.poses[i], env.races[i].segment_hint)
+            actions[agent] = env.actions.nearest(steer, spd)
+        _, _, _, _, infos = env.step(actions)
+        history.append(infos["car_0"])
+        count += 1
+    return history
+
+
+CONTINUOUS = {"action_space": {"steering_angle": {"low": -30, "high": 30}, "speed": {"low": 0.1, "high": 4.0}},
+              "action_space_type": "continuous"}
+
+
+def place(env, i, x, y, yaw):
+    """Teleport car i to a pose and re-measure it, as if it had driven there (for geometry checks)."""
+    env.world.place_car(i, x, y, yaw)
+    env._measure_all()
+    s = env._geometry[i]["proj"].s
+    env.races[i].distance += env.track.wrap_ds(s - env._s[i])
+    env._s[i] = s

@@ -1,0 +1,99 @@
+"""Camera images: the road where it should be, and the fast renderer agreeing with PyBullet's."""
+import math
+
+import numpy as np
+import pytest
+
+import multirace
+from multirace.camera import CameraSpec, camera_pose
+from multirace.fast_renderer import FastRenderer
+from multirace.pybullet_renderer import PyBulletRenderer
+from multirace.texture import Palette, TrackTexture
+
+# distinct colours so that road and objects can be told apart by colour alone
+TEST_PALETTE = Palette(floor=(0, 120, 0), road=(90, 90, 90), border=(255, 0, 255), centre=(255, 255, 0))
+ROAD_COLOURS = np.array([TEST_PALETTE.road, TEST_PALETTE.border, TEST_PALETTE.centre], float)
+OTHER_COLOURS = np.array([TEST_PALETTE.floor, TEST_PALETTE.sky], float)
+
+
+@pytest.mark.parametrize("renderer", ["fast", "pybullet"])
+def test_on_a_straight_the_road_is_in_the_lower_middle_and_borders_are_bright(renderer):
+    env = multirace.parallel_env(num_cars=1, renderer=renderer)
+    obs, _ = env.reset(seed=0)  # reinvent_base starts on a straight, on the centre line
+    image = obs["car_0"][:, :, 0].astype(float)
+    assert image.shape == (120, 160)
+    road = env.texture.palette.road
+    road_gray = 0.299 * road[0] + 0.587 * road[1] + 0.114 * road[2]
+    lower_middle = image[80:, 40:120]
+    assert np.median(lower_middle) == pytest.approx(road_gray, abs=3)  # asphalt ahead
+    floor = env.texture.palette.floor
+    assert abs(0.299 * floor[0] + 0.587 * floor[1] + 0.114 * floor[2] - road_gray) > 40  # road stands out
+    band = image[35:70]  # the white border lines converge toward the horizon on both sides
+    assert band[:, :60].max() > 220 and band[:, 100:].max() > 220
+    assert image[:10].mean() > 240  # plain bright background above the horizon
+
+
+def _road_mask(rgb):
+    pixels = rgb.reshape(-1, 1, 3).astype(float)
+    to_road = np.min(np.linalg.norm(pixels - ROAD_COLOURS[None], axis=2), axis=1)
+    to_other = np.min(np.linalg.norm(pixels - OTHER_COLOURS[None], axis=2), axis=1)
+    return (to_road < to_other).reshape(rgb.shape[:2])
+
+
+def _parity_poses(track):
+    """(name, car_0 pose, car_1 pose or None, box pose or None) cases."""
+    cases = []
+    for s in np.linspace(0, track.length, 12, endpoint=False):
+        for lateral, turn in ((0.0, 0.0), (0.25, -0.3), (-0.3, 0.4)):
+            x, y, h = track.point_at(s, lateral)
+            cases.append((f"s={s:.1f} lat={lateral}", (x, y, h + turn), None, None))
+    for s in (1.0, 6.0, 12.0):
+        x, y, h = track.point_at(s)
+        cases.append(("off track", track.point_at(s, 0.9)[:2] + (h + 1.0,), None, None))
+        cases.append(("car ahead", (x, y, h), track.point_at(s + 0.9, 0.1), None))
+        cases.append(("car close", (x, y, h), track.point_at(s + 0.45, -0.15), None))
+        cases.append(("box ahead", (x, y, h), None, track.point_at(s + 1.2, 0.15)))
+        cases.append(("box close", (x, y, h), None, track.point_at(s + 0.5, -0.1)))
+    return cases
+
+
+def test_fast_renderer_matches_pybullet_on_many_poses():
+    env = multirace.parallel_env(num_cars=2, obstacles=1)
+    env.reset(seed=0)
+    world, track = env.world, env.track
+    spec = CameraSpec(grayscale=False)
+    texture = TrackTexture(track, TEST_PALETTE)
+    fast, reference = FastRenderer(spec, texture), PyBulletRenderer(spec, texture)
+    car_ids, box_id = world.car_ids, world.obstacle_ids[0]
+    agreement, overlaps = [], []
+    for name, pose0, pose1, box in _parity_poses(track):
+        world.place_car(0, *pose0)
+        if pose1 is None:
+            world.park(1)
+        else:
+            world.place_car(1, *pose1)
+        world.place_obstacle(0, *(box if box is not None else (0.0, 0.0, 0.0)))
+        if box is None:
+            world.place_obstacle(0, 1000.0, 1000.0, 0.0)
+        pose = camera_pose(spec, world.poses[0])
+        ours = fast.render(world, 0, pose)
+        theirs = reference.render(world, 0, pose)
+        agreement.append((_road_mask(ours) == _road_mask(theirs)).mean())
+        seg = reference.segmentation(world, pose)
+        for body, colour in ((car_ids[1], (40, 90, 230)), (box_id, (250, 250, 250))):
+            ref_mask = seg == body
+            our_mask = np.all(ours == np.array(colour, np.uint8), axis=2)
+            if ref_mask.sum() >= 20:
+                overlaps.append((name, (ref_mask & our_mask).sum() / (ref_mask | our_mask).sum()))
+    assert min(agreement) >= 0.90, f"road masks agree on only {min(agreement):.3f} of pixels"
+    assert len(overlaps) >= 8, "objects were not in view"
+    worst = min(overlaps, key=lambda item: item[1])
+    assert worst[1] >= 0.8, f"object masks overlap {worst[1]:.2f} in case {worst[0]}"
+
+
+def test_camera_mount_is_deepracer_like():
+    spec = CameraSpec()
+    assert spec.hfov == pytest.approx(1.13) and spec.pitch == pytest.approx(math.radians(15))
+    pose = camera_pose(spec, (0.0, 0.0, 0.0))
+    assert pose.forward[2] == pytest.approx(-math.sin(math.radians(15)))
+    assert np.allclose(pose.rotation @ pose.rotation.T, np.eye(3))

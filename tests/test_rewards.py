@@ -1,0 +1,64 @@
+"""DeepRacer reward files run unchanged; bad reward functions stop with a clear error."""
+from pathlib import Path
+
+import pytest
+
+import multirace
+from multirace.rewards import RewardFunctionError, load_reward_function
+
+FILES = Path(__file__).parent / "reward_files"
+
+
+@pytest.mark.parametrize("name", ["centerline", "follow_waypoints", "no_zigzag", "object_avoidance"])
+def test_deepracer_reward_files_run_unchanged(name):
+    env = multirace.parallel_env(num_cars=2, obstacles=3, race="object_avoidance",
+                                 reward_function=FILES / f"{name}.py", max_steps=40)
+    env.reset(seed=1)
+    total = 0.0
+    while env.agents:
+        _, rewards, _, _, _ = env.step({a: 7 for a in env.agents})
+        total += sum(rewards.values())
+    assert total > 0
+
+
+def test_default_reward_is_the_console_centre_line_example():
+    env = multirace.parallel_env(num_cars=1)
+    env.reset(seed=0)
+    _, rewards, _, _, infos = env.step({"car_0": 7})  # straight on, from the centre line
+    assert infos["car_0"]["distance_from_center"] < 0.1 * infos["car_0"]["track_width"]
+    assert rewards["car_0"] == 1.0
+
+
+@pytest.mark.parametrize("name,message", [
+    ("bad_raises", "raised at step 1 for car_0: KeyError"),
+    ("bad_nan", "returned nan at step 3"),
+    ("bad_huge", "returned 1000000.0 at step 1"),
+    ("bad_type", "returned 'fast' at step 1"),
+])
+def test_bad_reward_functions_stop_the_step_naming_file_and_step(name, message):
+    path = FILES / f"{name}.py"
+    env = multirace.parallel_env(num_cars=1, reward_function=path)
+    env.reset(seed=0)
+    with pytest.raises(RewardFunctionError) as err:
+        for _ in range(5):
+            env.step({"car_0": 7})
+    assert str(path) in str(err.value) and message in str(err.value), str(err.value)
+
+
+@pytest.mark.parametrize("name,message", [("bad_syntax", "cannot be loaded: SyntaxError"),
+                                          ("bad_missing", "defines no reward_function"),
+                                          ("absent", "no such file")])
+def test_unloadable_reward_files(name, message):
+    with pytest.raises(RewardFunctionError, match=message) as err:
+        load_reward_function(FILES / f"{name}.py")
+    assert f"{name}.py" in str(err.value)
+
+
+def test_reward_function_from_file_survives_pickling():
+    import pickle
+
+    env = multirace.parallel_env(num_cars=1, reward_function=FILES / "centerline.py")
+    clone = pickle.loads(pickle.dumps(env))
+    clone.reset(seed=0)
+    _, rewards, _, _, _ = clone.step({"car_0": 7})
+    assert rewards["car_0"] == 1.0

@@ -1,0 +1,111 @@
+"""Track loading, validation and geometry on the real DeepRacer tracks."""
+import math
+
+import numpy as np
+import pytest
+
+from multirace.tracks import TrackError, list_tracks, load_track
+
+ALL_TRACKS = list_tracks()
+
+
+def test_twelve_bundled_tracks_load_with_known_lengths():
+    assert len(ALL_TRACKS) == 12
+    lengths = {name: load_track(name).length for name in ALL_TRACKS}
+    # centre-line lengths from the tracks' README
+    assert lengths["reinvent_base"] == pytest.approx(17.71, abs=0.01)
+    assert lengths["reInvent2019_track"] == pytest.approx(23.12, abs=0.01)
+    assert lengths["penbay_pro"] == pytest.approx(89.24, abs=0.01)
+    assert lengths["Monaco"] == pytest.approx(60.27, abs=0.01)
+
+
+@pytest.mark.parametrize("name", ALL_TRACKS)
+def test_centre_points_project_onto_themselves(name):
+    track = load_track(name)
+    for s in np.linspace(0, track.length, 23, endpoint=False):
+        x, y, heading = track.point_at(s)
+        proj = track.project(x, y)
+        assert proj.s == pytest.approx(s, abs=1e-6) or abs(proj.s - s) == pytest.approx(track.length, abs=1e-6)
+        assert abs(proj.lateral) < 1e-6
+        assert track.on_track(proj)
+        assert proj.width > 0.5
+
+
+def test_lateral_offset_sign_and_off_track():
+    track = load_track("reinvent_base")
+    x, y, heading = track.point_at(2.0, lateral=0.2)
+    proj = track.project(x, y)
+    assert proj.lateral == pytest.approx(0.2, abs=1e-6)  # + is left of the driving direction
+    assert track.on_track(proj)
+    x, y, _ = track.point_at(2.0, lateral=-0.6)  # the road is 0.76 m wide
+    assert not track.on_track(track.project(x, y))
+
+
+def test_reverse_runs_the_other_way_and_flips_left():
+    fwd, rev = load_track("reinvent_base"), load_track("reinvent_base", reverse=True)
+    assert rev.length == pytest.approx(fwd.length)
+    x, y, heading = fwd.point_at(5.0, lateral=0.2)
+    proj = rev.project(x, y)
+    assert proj.lateral == pytest.approx(-0.2, abs=1e-3)
+    assert abs(math.remainder(rev.project(x, y).heading - heading - math.pi, 2 * math.pi)) < 0.2
+
+
+def test_monaco_runs_clockwise_and_inner_lane_is_on_the_right():
+    track = load_track("Monaco")
+    assert track.inner_side < 0  # CW loop: the geometric inside is to the right
+    assert track.lane_offset(0, 5.0) < 0 < track.lane_offset(1, 5.0)
+
+
+def test_hint_search_agrees_with_full_search():
+    track = load_track("reInvent2019_track")
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        s = rng.uniform(0, track.length)
+        x, y, _ = track.point_at(s, rng.uniform(-0.4, 0.4))
+        full = track.project(x, y)
+        hinted = track.project(x, y, hint=full.segment + int(rng.integers(-3, 4)))
+        assert hinted.s == pytest.approx(full.s, abs=1e-9)
+
+
+def test_start_grid_is_staggered_in_alternating_lanes():
+    track = load_track("reinvent_base")
+    grid = track.start_grid(4)
+    assert [round((-s) % track.length, 6) for s, _ in grid] == [0.0, 0.75, 1.5, 2.25]
+    laterals = [lat for _, lat in grid]
+    assert laterals[0] * laterals[1] < 0 and laterals[0] * laterals[2] > 0
+    assert track.start_grid(1) == [(0.0, 0.0)]
+
+
+def _save(tmp_path, name, array):
+    path = tmp_path / name
+    np.save(path, array)
+    return path
+
+
+def test_bad_track_files_fail_with_the_file_and_the_problem(tmp_path):
+    good = np.load(load_track("reinvent_base").source)
+    cases = {
+        "shape.npy": (good[:, :4], "wrong shape"),
+        "nan.npy": (np.where(np.arange(good.size).reshape(good.shape) == 40, np.nan, good), "NaN"),
+        "few.npy": (good[:3], "distinct points"),
+        "zero_width.npy": (np.column_stack([good[:, :2], good[:, :2], good[:, :2]]), "zero width"),
+    }
+    crossed = good.copy()
+    crossed[[10, 30], 2:4] = crossed[[30, 10], 2:4]  # swap inner border points: a figure-eight border
+    cases["cross.npy"] = (crossed, "self-intersecting")
+    for name, (array, message) in cases.items():
+        path = _save(tmp_path, name, array)
+        with pytest.raises(TrackError) as err:
+            load_track(path)
+        assert str(path) in str(err.value) and message in str(err.value), str(err.value)
+
+
+def test_unreadable_and_unknown_tracks(tmp_path):
+    junk = tmp_path / "junk.npy"
+    junk.write_bytes(b"not numpy at all")
+    with pytest.raises(TrackError, match="junk.npy"):
+        load_track(junk)
+    with pytest.raises(TrackError, match="not a bundled track"):
+        load_track("no_such_track")
+    with pytest.raises(TrackError, match="no such file"):
+        load_track(tmp_path / "missing.npy")
