@@ -24,6 +24,7 @@ from .actions import load_action_space
 from .bots import parse_bot
 from .camera import CameraSpec, camera_pose, make_renderer
 from .car import CarSpec
+from .randomize import Randomization, apply_command, apply_image
 from .rewards import load_reward_function
 from .rules import CarRace, make_rules
 from .texture import TrackTexture
@@ -72,8 +73,7 @@ class RaceEnv(ParallelEnv):
         self.total_cars = self.num_cars + len(self.bots)
         self.actions = load_action_space(action_space)
         self.reward_function = load_reward_function(reward_function)
-        if randomize is not None:
-            raise NotImplementedError("randomize: domain randomisation is not built yet (issue 3)")
+        self.randomization = Randomization.from_config(randomize)
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode: {render_mode!r} is not supported; use None or 'rgb_array'")
         self.render_mode = render_mode
@@ -105,6 +105,8 @@ class RaceEnv(ParallelEnv):
         self._renderer = None
         self._texture = None
         self._rng = np.random.default_rng()
+        self._randomizer_rng = np.random.default_rng()
+        self._draw = None  # this episode's domain-randomisation draw
         self.races: list[CarRace] = []
         self.steps = 0
         self.sim_time = 0.0
@@ -138,7 +140,14 @@ class RaceEnv(ParallelEnv):
     def reset(self, seed=None, options=None):
         if seed is not None:
             self._rng = np.random.default_rng(seed)
+            self._randomizer_rng = np.random.default_rng([seed, 3])  # its own stream: same grid either way
         self.world.connect()
+        self._draw = None
+        if self.randomization.enabled:
+            self._draw = self.randomization.draw_episode(self._randomizer_rng, self.total_cars)
+            if self.renderer_name == "fast" and self._draw.palette != self.texture.palette:
+                self._texture = TrackTexture(self.track, self._draw.palette)
+                self._renderer = None
         if self._renderer is None:
             self._renderer = make_renderer(self.renderer_name, self.camera, self.texture)
         self.steps = 0
@@ -196,8 +205,12 @@ class RaceEnv(ParallelEnv):
         for i, agent in enumerate(self.possible_agents):
             if self.races[i].racing and agent in actions:
                 steer, speed = self.actions.command(actions[agent])
-                steer = math.radians(steer) + spec.steer_noise * rng.standard_normal()
-                speed = speed + spec.speed_noise * rng.standard_normal()
+                if self._draw is not None and self.randomization.dynamics_enabled:
+                    steer, speed = apply_command(steer, speed, self._draw, self._randomizer_rng, i, spec)
+                    steer = math.radians(steer)
+                else:  # DeepRacer's own action noise
+                    steer = math.radians(steer) + spec.steer_noise * rng.standard_normal()
+                    speed = speed + spec.speed_noise * rng.standard_normal()
                 self._commands[i] = spec.clamp_command(steer, speed)
         for b, bot in enumerate(self.bots):
             i = self.num_cars + b
@@ -374,8 +387,14 @@ class RaceEnv(ParallelEnv):
     # ----------------------------------------------------------- outputs
     def _observe(self) -> dict:
         cars = range(self.num_cars)
-        poses = [camera_pose(self.camera, self.world.poses[i]) for i in cars]
+        draw = self._draw
+        if draw is not None and self.randomization.camera_enabled:
+            poses = [camera_pose(self.camera, self.world.poses[i], draw.camera_jitter[i]) for i in cars]
+        else:
+            poses = [camera_pose(self.camera, self.world.poses[i]) for i in cars]
         images = self._renderer.render_many(self.world, list(cars), poses)
+        if draw is not None and self.randomization.perception_enabled:
+            images = [apply_image(image, self._randomizer_rng, draw) for image in images]
         return dict(zip(self.possible_agents, images))
 
     def _params(self, i: int, touched: set, table: list[tuple]) -> dict:

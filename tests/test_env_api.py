@@ -89,3 +89,32 @@ def test_bad_config_errors_name_the_keyword():
         multirace.parallel_env(obstacles=7)
     with pytest.raises(ValueError, match="bot"):
         multirace.parallel_env(bots=("flying@2",))
+
+
+def test_parallel_api_with_randomisation():
+    env = multirace.parallel_env(num_cars=2, obstacles=2, max_steps=60, randomize="strong")
+    parallel_api_test(env, num_cycles=80)
+
+
+def test_randomised_images_follow_the_seed():
+    def first_frames(seed):
+        env = multirace.parallel_env(num_cars=2, randomize="strong", grayscale=False)
+        obs, _ = env.reset(seed=seed)
+        frames = [obs["car_0"]]
+        for _ in range(3):
+            obs, *_ = env.step({"car_0": 7, "car_1": 7})
+            frames.append(obs["car_0"])
+        return np.stack(frames)
+
+    plain = multirace.parallel_env(num_cars=2, grayscale=False).reset(seed=5)[0]["car_0"]
+    a, b, c = first_frames(5), first_frames(5), first_frames(6)
+    assert np.array_equal(a, b)
+    assert not np.array_equal(a, c)
+    assert not np.array_equal(a[0], plain)
+
+
+def test_bad_randomisation_config_names_the_key():
+    with pytest.raises(ValueError, match="brightnes"):
+        multirace.parallel_env(randomize={"brightnes": (0, 10)})
+    with pytest.raises(ValueError, match="wild"):
+        multirace.parallel_env(randomize="wild")
