@@ -104,8 +104,12 @@ def cmd_agent_inspect(args) -> int:
 def cmd_imitate(args) -> int:
     import shlex
 
-    from .imitate import ImitationConfig, run_dagger
+    from .imitate import DEFAULT_TRACKS, ImitationConfig, run_dagger
+    from .nets import NETWORKS
 
+    if args.network not in NETWORKS:
+        raise ValueError(f"--network: unknown network {args.network!r}; choose from {', '.join(NETWORKS)}")
+    args.tracks = list(args.tracks or DEFAULT_TRACKS)
     command = ["multirace", "imitate", "--out", args.out, "--tracks", *args.tracks, "--minutes",
                f"{args.minutes:g}", "--seed", str(args.seed), "--network", args.network, "--speed",
                f"{args.speed:g}"]
@@ -159,22 +163,21 @@ def build_parser() -> argparse.ArgumentParser:
     inspect.add_argument("--json", action="store_true", help="print the information as JSON")
     inspect.set_defaults(func=cmd_agent_inspect)
 
-    from .imitate import DEFAULT_TRACKS
-    from .nets import DEFAULT_NETWORK, NETWORKS
-
     imitate = sub.add_parser("imitate", help="train a camera agent by DAgger imitation of the scripted driver",
                              description="Train a camera CNN by DAgger: the learner drives, the scripted "
                                          "pure-pursuit driver labels every image with the nearest action, "
                                          "the data is aggregated and the net retrained; writes an agent file.")
     imitate.add_argument("--out", required=True, metavar="FILE.pt", help="agent file to write")
-    imitate.add_argument("--tracks", nargs="+", default=list(DEFAULT_TRACKS), metavar="TRACK",
-                         help=f"tracks to train on (default: {' '.join(DEFAULT_TRACKS)})")
+    imitate.add_argument("--tracks", nargs="+", default=None, metavar="TRACK",
+                         help="tracks to train on (default: reinvent_base reInvent2019_track Oval_track "
+                              "Bowtie_track)")
     imitate.add_argument("--one-direction", action="store_true",
                          help="train on each track forwards only (default: both directions)")
     imitate.add_argument("--minutes", type=float, default=4.0, help="wall-clock training budget (default 4)")
     imitate.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    imitate.add_argument("--network", default=DEFAULT_NETWORK, choices=list(NETWORKS),
-                         help=f"network (default {DEFAULT_NETWORK})")
+    imitate.add_argument("--network", default="MULTIRACE_SMALL_CNN", metavar="NAME",
+                         help="MULTIRACE_SMALL_CNN (default, under 1 MB) or DEEP_CONVOLUTIONAL_NETWORK_SHALLOW "
+                              "(DeepRacer's shallow net, about 23 MB at 120x160)")
     imitate.add_argument("--action-space", default=None, metavar="JSON",
                          help="DeepRacer model_metadata.json with the action space (default: 10 actions, "
                               "steering -30..30 by 15 x speed 0.5, 1.0)")

@@ -76,8 +76,11 @@ class CameraNet(nn.Module):
         self.image_shape = (height, width, channels)
         self.num_outputs = int(num_outputs)
         self.conv, hidden = NETWORKS[network](channels)
-        with torch.no_grad():
-            flat = self.conv(torch.zeros(1, channels, height, width)).shape[1]
+        try:
+            with torch.no_grad():
+                flat = self.conv(torch.zeros(1, channels, height, width)).shape[1]
+        except RuntimeError:
+            raise ValueError(f"image shape {image_shape}: too small for {network}") from None
         self.fc = nn.Sequential(nn.Linear(flat, hidden), nn.ReLU())
         self.head = nn.Linear(hidden, self.num_outputs)
         self.value_head = nn.Linear(hidden, 1) if value_head else None

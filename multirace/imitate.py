@@ -1,0 +1,223 @@
+"""DAgger imitation of the scripted driver, from the camera: a first real agent in minutes on a CPU.
+
+The expert is `bots.PurePursuit`: it reads the car's true pose and the track
+(privileged state) and says how to steer. The learner is a camera CNN
+(`nets.py`) that sees only the front camera image. DAgger (Ross et al., 2011)
+lets the learner drive so it visits its own mistakes, and asks the expert what
+it should have done there:
+
+1. roll out every env (several tracks, both directions, one car each) with the
+   mixed policy "expert with probability beta, else the learner" (beta = 1 on
+   the first iteration, then ``beta_decay ** i``);
+2. label every visited camera image with the expert's command, mapped to the
+   nearest action of the agent's action space (`ActionSpace.nearest`);
+3. aggregate into one dataset (capped: beyond ``max_samples`` new samples
+   replace random old ones) and train the CNN with cross-entropy (discrete) or
+   a Gaussian negative log-likelihood (continuous);
+4. repeat until the time budget is spent, then write an agent file.
+
+Cars race a time trial with unlimited resets, so a learner that leaves the
+track is put back by the rules (with the usual penalty) and DAgger goes on;
+the env adds DeepRacer's steering and speed noise to every command.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from .actions import load_action_space
+from .agentfile import make_metadata, save_agent
+from .bots import PurePursuit
+from .env import parallel_env
+from .nets import DEFAULT_NETWORK, build_net
+
+DEFAULT_TRACKS = ("reinvent_base", "reInvent2019_track", "Oval_track", "Bowtie_track")
+
+
+@dataclasses.dataclass
+class ImitationConfig:
+    """What to train and for how long (see the module docstring)."""
+
+    out: str = "agent.pt"
+    tracks: tuple = DEFAULT_TRACKS
+    both_directions: bool = True  # each track forwards and in reverse
+    minutes: float = 4.0  # wall-clock budget (rollouts + training), the file is written after it
+    seed: int = 0
+    network: str = DEFAULT_NETWORK
+    action_space: object = None  # model_metadata path/dict; None = the 10 default actions
+    expert_speed: float = 1.0  # m/s the expert drives (and so labels)
+    name: str | None = None  # agent name in the metadata (default: the file stem)
+    camera: tuple = (120, 160)
+    episode_steps: int = 900  # steps before an env is reset to the start grid (60 s at 15 Hz)
+    rollout_steps: int = 1600  # samples gathered per DAgger iteration, over all envs
+    train_steps: int = 250  # gradient steps per iteration
+    batch_size: int = 64
+    lr: float = 1e-3
+    beta_decay: float = 0.5
+    max_samples: int = 40000
+    threads: int | None = None  # torch threads; None = all cores
+    progress: bool = True
+    command: str | None = None  # the command line that ran this, recorded in the metadata
+
+
+class Dataset:
+    """Aggregated (image, label) pairs with a size cap (random replacement when full)."""
+
+    def __init__(self, capacity: int, image_shape, label_shape, label_dtype, rng: np.random.Generator):
+        self.images = np.zeros((capacity, *image_shape), np.uint8)
+        self.labels = np.zeros((capacity, *label_shape), label_dtype)
+        self.size, self.capacity, self.seen, self.rng = 0, capacity, 0, rng
+
+    def add(self, image, label) -> None:
+        if self.size < self.capacity:
+            k = self.size
+            self.size += 1
+        else:
+            k = int(self.rng.integers(self.capacity))
+        self.images[k] = image
+        self.labels[k] = label
+        self.seen += 1
+
+    def batch(self, n: int):
+        idx = self.rng.integers(self.size, size=n)
+        return torch.from_numpy(self.images[idx]), torch.from_numpy(self.labels[idx])
+
+
+def _make_loss(space):
+    """Loss(outputs, labels) for the action space: cross-entropy, or Gaussian NLL on scaled commands."""
+    if space.discrete:
+        ce = nn.CrossEntropyLoss()
+        return lambda out, labels: ce(out, labels)
+    low = torch.tensor(space.low, dtype=torch.float32)
+    scale = torch.clamp((torch.tensor(space.high, dtype=torch.float32) - low) / 2, min=1e-3)
+
+    def nll(out, labels):
+        z = (labels - out[:, :2]) / scale
+        log_std = torch.clamp(out[:, 2:] - torch.log(scale), -5.0, 2.0)
+        return (log_std + 0.5 * z ** 2 * torch.exp(-2 * log_std)).sum(dim=1).mean()
+
+    return nll
+
+
+def _greedy(space, out: torch.Tensor):
+    """The learner's actions for a batch of outputs."""
+    if space.discrete:
+        return out.argmax(dim=1).tolist()
+    return [row[:2].numpy() for row in out]
+
+
+def run_dagger(config: ImitationConfig) -> dict:
+    """Train a camera agent by DAgger and write it to `config.out`; returns a summary dict."""
+    started = time.perf_counter()
+    budget = max(1.0, 60.0 * float(config.minutes))
+    threads = config.threads or os.cpu_count() or 1
+    torch.set_num_threads(int(threads))
+    torch.manual_seed(config.seed)
+    rng = np.random.default_rng(config.seed)
+    space = load_action_space(config.action_space)
+    expert = PurePursuit(speed=float(config.expert_speed))
+    if not space.discrete and not space.low[1] <= expert.speed <= space.high[1]:
+        raise ValueError(f"expert_speed {expert.speed} is outside the action space's speed range")
+
+    runs = [(t, r) for t in config.tracks for r in ((False, True) if config.both_directions else (False,))]
+    if not runs:
+        raise ValueError("tracks: need at least one track")
+    envs = [parallel_env(track=t, reverse=r, num_cars=1, race="time_trial", laps=1000, action_space=space,
+                         camera=tuple(config.camera), max_steps=config.episode_steps) for t, r in runs]
+    obs_shape = envs[0].observation_space("car_0").shape
+    net = build_net(config.network, obs_shape, space)
+    optimiser = torch.optim.Adam(net.parameters(), lr=config.lr)
+    loss_fn = _make_loss(space)
+    label_shape, label_dtype = ((), np.int64) if space.discrete else ((2,), np.float32)
+    data = Dataset(config.max_samples, obs_shape, label_shape, label_dtype, rng)
+
+    observations = []
+    for k, env in enumerate(envs):
+        obs, _ = env.reset(seed=config.seed * 1000 + k)
+        observations.append(obs["car_0"])
+    episodes = [0] * len(envs)
+
+    progress = None
+    if config.progress:
+        from tqdm import tqdm
+
+        progress = tqdm(total=int(budget), unit="s", desc="dagger", bar_format=(
+            "{desc} {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} s {postfix}"))
+    history = []
+    iteration, loss_value = 0, float("nan")
+    try:
+        while True:
+            beta = config.beta_decay ** iteration
+            learner_steps = learner_resets = 0
+            steps_per_env = max(1, math.ceil(config.rollout_steps / len(envs)))
+            net.eval()
+            for _ in range(steps_per_env):
+                with torch.no_grad():
+                    learner = _greedy(space, net(torch.from_numpy(np.stack(observations))))
+                for k, env in enumerate(envs):
+                    steer, speed = expert.command(env.track, env.car_spec, env.world.poses[0],
+                                                  env.races[0].segment_hint)
+                    label = space.nearest(steer, speed)
+                    data.add(observations[k], label)
+                    use_learner = rng.random() >= beta
+                    action = learner[k] if use_learner else label
+                    resets_before = env.races[0].resets
+                    obs, _, terms, truncs, _ = env.step({"car_0": action})
+                    if use_learner:
+                        learner_steps += 1
+                        learner_resets += env.races[0].resets - resets_before
+                    if terms["car_0"] or truncs["car_0"]:
+                        episodes[k] += 1
+                        obs, _ = env.reset(seed=config.seed * 1000 + k + 100 * episodes[k])
+                    observations[k] = obs["car_0"]
+            net.train()
+            losses = []
+            for _ in range(config.train_steps):
+                images, labels = data.batch(config.batch_size)
+                loss = loss_fn(net(images), labels)
+                optimiser.zero_grad()
+                loss.backward()
+                optimiser.step()
+                losses.append(loss.item())
+            loss_value = float(np.mean(losses))
+            off_rate = 1000.0 * learner_resets / learner_steps if learner_steps else float("nan")
+            history.append({"iteration": iteration, "beta": round(beta, 4), "samples": data.seen,
+                            "loss": round(loss_value, 4), "learner_steps": learner_steps,
+                            "learner_resets_per_1000_steps": round(off_rate, 2)})
+            iteration += 1
+            elapsed = time.perf_counter() - started
+            if progress is not None:
+                progress.n = min(int(elapsed), progress.total)
+                progress.set_postfix_str(f"iter {iteration} beta {beta:.2f} samples {data.seen} "
+                                         f"loss {loss_value:.3f} learner resets/1k steps {off_rate:.1f}")
+                progress.refresh()
+            if elapsed >= budget:
+                break
+    finally:
+        if progress is not None:
+            progress.close()
+        for env in envs:
+            env.close()
+
+    out = Path(config.out)
+    name = config.name or out.stem
+    net.eval()
+    wall = time.perf_counter() - started
+    training = {
+        "method": "dagger", "expert": f"PurePursuit(speed={expert.speed:g})",
+        "tracks": [f"{t}{' (reverse)' if r else ''}" for t, r in runs], "seed": config.seed,
+        "minutes": config.minutes, "iterations": iteration, "samples": data.seen,
+        "dataset_size": data.size, "final_loss": round(loss_value, 4), "wall_seconds": round(wall, 1),
+    }
+    if config.command:
+        training["command"] = config.command
+    metadata = make_metadata(space, config.network, name, obs_shape, training=training)
+    save_agent(out, net, metadata)
+    return {"out": str(out), **training, "history": history}
