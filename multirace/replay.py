@@ -8,7 +8,7 @@ it writes, headless (no viewer needed), with rerun-sdk 0.41:
 - ``world/track/{center,inner,outer}`` (static): the track lines as `LineStrips3D`;
   ``world/obstacles`` (static): the boxes as `Boxes3D`;
 - ``world/cars/car_<i>``: a `Boxes3D` in the car's `CAR_COLOURS` colour (static)
-  moved by a `Transform3D` every step (body centre, yaw about z) while the car
+  moved by a `Transform3D` every step (body centre; yaw about z as a quaternion) while the car
   races, and once more on the step its run ends;
 - ``cameras/car_<i>``: the car's camera image as JPEG (`EncodedImage`), every
   `image_every`-th step;
@@ -86,6 +86,7 @@ class ReplayRecorder:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.rec = rec = rr.RecordingStream(self.application_id, make_default=False, make_thread_default=False)
         rec.save(str(self.path))
+        rec.set_log_time_enabled(False)  # wall-clock time says nothing about a simulated race
         self.n = n = env.total_cars if hasattr(env, "total_cars") else len(env.races)
         self.ids = [car_id(i) for i in range(n)]
         self._prev = [self._race_state(race) for race in env.races]
@@ -180,8 +181,7 @@ class ReplayRecorder:
         self._buf_times.append(sim_time)
         take_image = bool(self.image_every) and observations is not None and step % self.image_every == 0
         poses = env.world.poses
-        rec.set_time("step", sequence=step)
-        rec.set_time("race_time", duration=sim_time)
+        self._time_set = False
         for i, race in enumerate(env.races):
             just_ended = not race.racing and not self._ended[i]
             if race.racing or just_ended or step == 0:
@@ -240,6 +240,10 @@ class ReplayRecorder:
             reason = f" ({race.reason})" if race.reason else ""
             level = "INFO" if now["status"] == "finished" else "WARN"
             entries.append((now["status"], level, f"{name}: {text} at {race.finish_time:.3f} s{reason}"))
+        if entries and not self._time_set:
+            rec.set_time("step", sequence=int(env.steps))
+            rec.set_time("race_time", duration=float(env.sim_time))
+            self._time_set = True
         for kind, level, text in entries:
             rec.log(f"events/{self.ids[i]}", rr.TextLog(text, level=level),
                     rr.AnyValues(kind=kind, car=self.ids[i], clock=float(clock if clock is not None else 0.0)))
@@ -261,9 +265,10 @@ class ReplayRecorder:
             if poses:
                 arr = np.asarray(poses, dtype=np.float64)
                 z = np.full(len(arr), self._z)
+                half = arr[:, 3] / 2
+                quats = np.column_stack([np.zeros_like(half), np.zeros_like(half), np.sin(half), np.cos(half)])
                 rec.send_columns(f"world/cars/{cid}", indexes=index(arr[:, 0]), columns=rr.Transform3D.columns(
-                    translation=np.column_stack([arr[:, 1], arr[:, 2], z]),
-                    rotation_axis_angle=[rr.RotationAxisAngle(axis=[0, 0, 1], radians=float(a)) for a in arr[:, 3]]))
+                    translation=np.column_stack([arr[:, 1], arr[:, 2], z]), quaternion=quats))
             for name, values in self._buf_scalar[i].items():
                 if values:
                     arr = np.asarray(values, dtype=np.float64)
@@ -345,13 +350,14 @@ def replay_summary(path, poses: bool = True) -> dict:
                 max_time = max(max_time, float(times.max()))
             if parts[:2] == ["world", "cars"] and len(parts) == 3:
                 trans = _column(batch, "Transform3D:translation")
-                rot = _column(batch, "Transform3D:rotation_axis_angle")
-                if trans is None:
+                quat = _column(batch, "Transform3D:quaternion")
+                if trans is None or quat is None:
                     continue
-                for s, t, r in zip(steps, _first(trans.to_pylist()), _first(rot.to_pylist())):
-                    if t is None:
+                for s, t, q in zip(steps, _first(trans.to_pylist()), _first(quat.to_pylist())):
+                    if t is None or q is None:
                         continue
-                    yaw = r["angle"] * (1.0 if r["axis"][2] >= 0 else -1.0)
+                    qx, qy, qz, qw = q
+                    yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
                     pose_rows[parts[2]][int(s)] = (float(t[0]), float(t[1]), float(yaw))
             elif parts[0] == "cameras" and len(parts) == 2:
                 blob = _column(batch, "EncodedImage:blob")
@@ -434,3 +440,37 @@ def open_viewer(path) -> int:
               f"`multirace replay {path} --summary`.")
         return 1
     return subprocess.call([exe, str(path)])
+
+
+def replay_cost(seconds: float = 240.0, image_every: int | None = DEFAULT_IMAGE_EVERY, path=None,
+                track: str = "reinvent_base", repeats: int = 2) -> dict:
+    """Measure a 4-car reset_rule race of `seconds` race time with and without a replay.
+
+    Returns {"replay_mb", "race_wall_s", "race_with_replay_wall_s", "overhead_percent", "steps"}
+    (the best of `repeats` runs each, so that noise from other processes counts less).
+    """
+    import tempfile
+    import time
+
+    from .race import RaceConfig, make_controller, run_race
+
+    bots = ("bot:follow@1.5", "bot:lanes@1.0", "bot:follow@1.0", "bot:lanes@1.5")
+    config = RaceConfig(track=track, race="reset_rule", laps=1000, seed=0, max_steps=int(round(seconds * 15)))
+    _rr()  # import rerun (and its blueprint module) outside the timed runs: a one-off cost
+    import rerun.blueprint  # noqa: F401
+
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(path) if path is not None else Path(tmp) / "cost.rrd"
+        plain, recorded = [], []
+        for _ in range(max(1, repeats)):
+            start = time.perf_counter()
+            run_race([make_controller(b) for b in bots], config)
+            plain.append(time.perf_counter() - start)
+            start = time.perf_counter()
+            run_race([make_controller(b) for b in bots], config, recorders=[ReplayRecorder(out, image_every)])
+            recorded.append(time.perf_counter() - start)
+        size = out.stat().st_size
+    base, rec = min(plain), min(recorded)
+    return {"replay_mb": round(size / 1e6, 2), "race_wall_s": round(base, 3), "race_with_replay_wall_s": round(rec, 3),
+            "overhead_percent": round(100.0 * (rec - base) / base, 1), "steps": config.max_steps,
+            "image_every": image_every}
