@@ -174,7 +174,6 @@ class ReplayRecorder:
         self._buf_img = [[] for _ in range(self.n)]  # (row index, jpeg bytes)
 
     def _record_step(self, env, observations, rewards, infos) -> None:
-        rr, rec = _rr(), self.rec
         row = len(self._buf_steps)
         step, sim_time = int(env.steps), float(env.sim_time)
         self._buf_steps.append(step)
