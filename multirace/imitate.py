@@ -158,7 +158,9 @@ def run_dagger(config: ImitationConfig) -> dict:
             learner_steps = learner_resets = 0
             steps_per_env = max(1, math.ceil(config.rollout_steps / len(envs)))
             net.eval()
-            for _ in range(steps_per_env):
+            for step in range(steps_per_env):
+                if step and time.perf_counter() - started >= budget:
+                    break  # out of time: train on what we have and finish
                 with torch.no_grad():
                     learner = _greedy(space, net(torch.from_numpy(np.stack(observations))))
                 for k, env in enumerate(envs):
@@ -179,7 +181,9 @@ def run_dagger(config: ImitationConfig) -> dict:
                     observations[k] = obs["car_0"]
             net.train()
             losses = []
-            for _ in range(config.train_steps):
+            for step in range(config.train_steps):
+                if step and time.perf_counter() - started >= budget:
+                    break
                 images, labels = data.batch(config.batch_size)
                 loss = loss_fn(net(images), labels)
                 optimiser.zero_grad()
