@@ -62,7 +62,7 @@ class ImitationConfig:
     lr: float = 1e-3
     beta_decay: float = 0.5
     max_samples: int = 40000
-    threads: int | None = None  # torch threads; None = all cores
+    threads: int | None = None  # torch threads; None = all cores if the machine is idle, else 1
     progress: bool = True
     command: str | None = None  # the command line that ran this, recorded in the metadata
 
@@ -113,11 +113,26 @@ def _greedy(space, out: torch.Tensor):
     return [row[:2].numpy() for row in out]
 
 
+def default_threads() -> int:
+    """Torch threads for training: every core on an idle machine, else 1.
+
+    On a busy machine several torch threads spin against other processes and a
+    training step gets several times slower than on one thread (measured here:
+    222 ms vs 57 ms for a batch of 64 at load 6 on 2 cores).
+    """
+    cores = os.cpu_count() or 1
+    try:
+        busy = os.getloadavg()[0] > 0.5
+    except OSError:
+        busy = False
+    return 1 if busy else cores
+
+
 def run_dagger(config: ImitationConfig) -> dict:
     """Train a camera agent by DAgger and write it to `config.out`; returns a summary dict."""
     started = time.perf_counter()
     budget = max(1.0, 60.0 * float(config.minutes))
-    threads = config.threads or os.cpu_count() or 1
+    threads = config.threads or default_threads()
     torch.set_num_threads(int(threads))
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
