@@ -183,6 +183,8 @@ def build_parser() -> argparse.ArgumentParser:
                               "steering -30..30 by 15 x speed 0.5, 1.0)")
     imitate.add_argument("--speed", type=float, default=1.0, help="expert's speed in m/s (default 1.0)")
     imitate.add_argument("--name", default=None, help="agent name in the metadata (default: file stem)")
+    imitate.add_argument("--threads", type=int, default=None,
+                         help="torch threads (default: all cores on an idle machine, 1 on a busy one)")
     imitate.set_defaults(func=cmd_imitate)
 
     replay = sub.add_parser("replay", help="open a race replay (.rrd) in the rerun viewer, or summarise it",
