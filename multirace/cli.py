@@ -122,7 +122,7 @@ def cmd_imitate(args) -> int:
     config = ImitationConfig(out=args.out, tracks=tuple(args.tracks), both_directions=not args.one_direction,
                              minutes=args.minutes, seed=args.seed, network=args.network,
                              action_space=args.action_space, expert_speed=args.speed, name=args.name,
-                             command=shlex.join(command))
+                             threads=args.threads, command=shlex.join(command))
     summary = run_dagger(config)
     print(f"wrote {summary['out']}: {summary['iterations']} DAgger iterations, {summary['samples']} samples, "
           f"final loss {summary['final_loss']}, {summary['wall_seconds']} s")
