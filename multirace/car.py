@@ -1,8 +1,9 @@
-"""The DeepRacer car: dimensions and its kinematic bicycle (Ackermann) model.
+"""The DeepRacer car: its dimensions, steering and speed limits, and action noise.
 
 The car's reference point (its PyBullet base) is the centre of the body,
 midway between the axles. DeepRacer reports `x, y` as the point 0.14 m ahead
 of the rear axle; `CarSpec.reported_point_offset` converts between the two.
+The kinematic bicycle (Ackermann) model that drives it is in `world.World.step`.
 """
 from __future__ import annotations
 
@@ -45,16 +46,3 @@ class CarSpec:
         speed = min(max(speed, self.min_speed), self.max_speed)
         return steer, speed
 
-
-def bicycle_velocity(spec: CarSpec, yaw: float, speed: float, steer: float) -> tuple[float, float, float]:
-    """World-frame (vx, vy, yaw_rate) of the body centre for the kinematic bicycle model.
-
-    With the reference point midway between the axles the velocity points at
-    the slip angle beta = atan(tan(steer) / 2) from the heading.
-    """
-    tan_steer = math.tan(steer)
-    beta = math.atan(0.5 * tan_steer)
-    vx = speed * math.cos(yaw + beta)
-    vy = speed * math.sin(yaw + beta)
-    yaw_rate = speed * math.cos(beta) * tan_steer / spec.wheelbase
-    return vx, vy, yaw_rate

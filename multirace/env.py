@@ -34,6 +34,7 @@ from .world import World
 ACTION_HZ = 15
 MAX_CARS = 8
 MIN_AVERAGE_SPEED = 0.4  # m/s; sets the default step limit of a race
+CAMERA_RANGE = 8.0  # m; objects farther ahead do not count as `object_in_camera`
 CLEAR_RADIUS = 0.45  # m; a reset spot closer than this to another body is taken
 
 
@@ -452,21 +453,22 @@ class RaceEnv(ParallelEnv):
         rows = [row for row in table if row[0] != i]
         me = self._geometry[i]["proj"].s if self._geometry[i] is not None else self._s[i]
         xi, yi, yaw_i = self.world.poses[i]
-        half_fov = self.camera.hfov / 2
+        cos_i, sin_i = math.cos(yaw_i), math.sin(yaw_i)
+        tan_half_fov = math.tan(self.camera.hfov / 2)
+        length = track.length
         in_camera = False
         closest = [0, 0]
         best_ahead = best_behind = math.inf
         for k, row in enumerate(rows):
             dx, dy = row[1] - xi, row[2] - yi
-            bearing = (math.atan2(dy, dx) - yaw_i + math.pi) % (2 * math.pi) - math.pi
-            if abs(bearing) < half_fov and dx * dx + dy * dy < 64.0:
+            forward, left = dx * cos_i + dy * sin_i, dy * cos_i - dx * sin_i
+            if 0 < forward < CAMERA_RANGE and abs(left) < forward * tan_half_fov:
                 in_camera = True
-            gap = track.wrap_ds(row[7] - me)
-            ahead = gap if gap >= 0 else gap + track.length
+            ahead = (row[7] - me) % length
             if ahead < best_ahead:
                 best_ahead, closest[1] = ahead, k
-            if track.length - ahead < best_behind:
-                best_behind, closest[0] = track.length - ahead, k
+            if length - ahead < best_behind:
+                best_behind, closest[0] = length - ahead, k
         return {
             "closest_objects": closest,
             "objects_location": [(row[1], row[2]) for row in rows],

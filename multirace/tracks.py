@@ -126,6 +126,11 @@ class Track:
         self.seg_vec = seg
         self.seg_len = seg_len
         self.seg_len2 = np.maximum(seg_len**2, 1e-12)
+        # plain-Python copies for the per-step local search
+        self._n_segments = len(seg_len)
+        self._sx, self._sy = self.seg_start[:, 0].tolist(), self.seg_start[:, 1].tolist()
+        self._vx, self._vy = seg[:, 0].tolist(), seg[:, 1].tolist()
+        self._l2 = self.seg_len2.tolist()
         self.cum_s = np.concatenate([[0.0], np.cumsum(seg_len)])
         self.length = float(self.cum_s[-1])
         # unit direction per segment; zero-length segments borrow the next one
@@ -149,6 +154,10 @@ class Track:
         self.left_width = np.maximum(inner_off, outer_off)
         self.right_width = -np.minimum(inner_off, outer_off)
         self.width = np.linalg.norm(self.inner - self.outer, axis=1)
+        self._left, self._right = self.left_width.tolist(), self.right_width.tolist()
+        self._dir_x, self._dir_y = self.seg_dir[:, 0].tolist(), self.seg_dir[:, 1].tolist()
+        self._heading = self.seg_heading.tolist()
+        self._cum_s, self._seg_len = self.cum_s.tolist(), self.seg_len.tolist()
         if np.any(self.left_width + self.right_width < 0.05):
             bad = int(np.argmin(self.left_width + self.right_width))
             raise TrackError(f"track file {source}: zero width at waypoint {bad}")
@@ -205,49 +214,55 @@ class Track:
     def project(self, x: float, y: float, hint: int | None = None) -> Projection:
         """Project a world point on the centre line.
 
-        With `hint` (the segment found last time) only nearby segments are
-        searched, which is what makes per-step projection cheap; the search
-        falls back to the whole track when the local answer looks wrong.
+        With `hint` (the segment found last time) only a few segments around it
+        are searched, in plain Python, which is what makes per-step projection
+        cheap; the whole track is searched when the local answer is at the edge
+        of that window or far away.
         """
-        n = len(self.seg_len)
         if hint is not None:
-            idx = (np.arange(hint - 6, hint + 10)) % n
-            i, t, d2 = self._nearest(x, y, idx)
-            if not (i == idx[0] or i == idx[-1]) and d2 < 4.0:
-                return self._projection(x, y, i, t)
-        i, t, _ = self._nearest(x, y, None)
+            best, best_t, best_d2 = -1, 0.0, math.inf
+            n = self._n_segments
+            for k in range(hint - 3, hint + 6):
+                i = k % n
+                dx, dy = x - self._sx[i], y - self._sy[i]
+                vx, vy = self._vx[i], self._vy[i]
+                t = (dx * vx + dy * vy) / self._l2[i]
+                t = 0.0 if t < 0.0 else (1.0 if t > 1.0 else t)
+                ex, ey = dx - t * vx, dy - t * vy
+                d2 = ex * ex + ey * ey
+                if d2 < best_d2:
+                    best, best_t, best_d2, best_k = i, t, d2, k
+            if hint - 3 < best_k < hint + 5 and best_d2 < 4.0:
+                return self._projection(x, y, best, best_t)
+        i, t, _ = self._nearest(x, y)
         return self._projection(x, y, i, t)
 
-    def _nearest(self, x, y, idx):
-        start = self.seg_start if idx is None else self.seg_start[idx]
-        vec = self.seg_vec if idx is None else self.seg_vec[idx]
-        len2 = self.seg_len2 if idx is None else self.seg_len2[idx]
-        dx = x - start[:, 0]
-        dy = y - start[:, 1]
-        t = np.clip((dx * vec[:, 0] + dy * vec[:, 1]) / len2, 0.0, 1.0)
+    def _nearest(self, x, y):
+        """Nearest segment over the whole track (vectorised): (segment, t, squared distance)."""
+        dx = x - self.seg_start[:, 0]
+        dy = y - self.seg_start[:, 1]
+        vec = self.seg_vec
+        t = np.clip((dx * vec[:, 0] + dy * vec[:, 1]) / self.seg_len2, 0.0, 1.0)
         ex = dx - t * vec[:, 0]
         ey = dy - t * vec[:, 1]
         d2 = ex * ex + ey * ey
         k = int(np.argmin(d2))
-        seg = k if idx is None else int(idx[k])
-        return seg, float(t[k]), float(d2[k])
+        return k, float(t[k]), float(d2[k])
 
     def _projection(self, x, y, i, t) -> Projection:
-        fx = self.seg_start[i, 0] + t * self.seg_vec[i, 0]
-        fy = self.seg_start[i, 1] + t * self.seg_vec[i, 1]
-        dx, dy = self.seg_dir[i]
-        lateral = (x - fx) * -dy + (y - fy) * dx
+        fx = self._sx[i] + t * self._vx[i]
+        fy = self._sy[i] + t * self._vy[i]
+        dx, dy = self._dir_x[i], self._dir_y[i]
         dist = math.hypot(x - fx, y - fy)
-        lateral = math.copysign(dist, lateral)
-        left = self.left_width[i] + t * (self.left_width[i + 1] - self.left_width[i])
-        right = self.right_width[i] + t * (self.right_width[i + 1] - self.right_width[i])
+        lateral = math.copysign(dist, (x - fx) * -dy + (y - fy) * dx)
+        lw, rw = self._left, self._right
         return Projection(
-            s=float(self.cum_s[i] + t * self.seg_len[i]),
+            s=self._cum_s[i] + t * self._seg_len[i],
             lateral=lateral,
             segment=i,
-            heading=float(self.seg_heading[i]),
-            left_width=float(left),
-            right_width=float(right),
+            heading=self._heading[i],
+            left_width=lw[i] + t * (lw[i + 1] - lw[i]),
+            right_width=rw[i] + t * (rw[i + 1] - rw[i]),
         )
 
     def closest_waypoints(self, proj: Projection) -> tuple[int, int]:

@@ -1,10 +1,14 @@
 """The physics world: DeepRacer cars and box obstacles in one PyBullet scene.
 
 Each car is one box body (about 5 us per car per physics step, against about
-57 us for the wheeled `racecar.urdf`), driven by the kinematic bicycle model of
-`car.py`: every physics step the body's velocity is set to what the bicycle
-model asks for plus whatever a collision added, and that collision part decays
-with the tyres' grip. Contacts are real PyBullet contacts, so cars push each
+57 us for the wheeled `racecar.urdf`), driven by a kinematic bicycle model
+about the body centre: velocity at the slip angle beta = atan(tan(steer) / 2)
+from the heading, yaw rate = speed * cos(beta) * tan(steer) / wheelbase. Every
+action step the body's velocity is set to what the model asks for plus
+whatever a collision added; the sideways part of a push decays with the
+tyres' grip, the lengthwise part changes the drive train's speed. (Each
+PyBullet command costs about 10 us, so the car is commanded once per action
+step, not once per physics step.) Contacts are real PyBullet contacts, so cars push each
 other and stop at boxes; `World.step` reports who touched whom and who ran
 into whom.
 
@@ -19,7 +23,7 @@ import math
 import numpy as np
 import pybullet
 
-from .car import CarSpec, bicycle_velocity
+from .car import CarSpec
 
 CAR_COLOURS = (  # RGB, one per car slot
     (220, 40, 40), (40, 90, 230), (250, 200, 20), (30, 170, 60),
@@ -28,7 +32,9 @@ CAR_COLOURS = (  # RGB, one per car slot
 OBSTACLE_COLOUR = (250, 250, 250)
 OBSTACLE_SIZE = (0.30, 0.30, 0.25)  # metres, a DeepRacer-like box (length, width, height)
 PARKED_Z = -50.0  # where parked cars wait, far below the scene
+SOLVER_ITERATIONS = 10
 CONTACT_DISTANCE = 0.002  # metres; closer than this counts as touching
+CONTACT_EVERY = 2  # physics steps between contact queries (each query costs about 10 us)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -75,8 +81,9 @@ class World:
         self.drive_speed = np.zeros(num_cars)  # the drive train's current speed, m/s
         self.parked = np.zeros(num_cars, dtype=bool)
         self._set_velocity = [(0.0, 0.0, 0.0)] * num_cars  # last velocity we imposed
-        self._speed_blend = 1.0 - math.exp(-self.physics_dt / spec.speed_time_constant)
-        self._grip_keep = math.exp(-self.physics_dt / spec.grip_time_constant)
+        step_time = self.physics_dt * self.substeps  # the car's command changes once per action step
+        self._speed_blend = 1.0 - math.exp(-step_time / spec.speed_time_constant)
+        self._grip_keep = math.exp(-step_time / spec.grip_time_constant)
 
     # --------------------------------------------------------------- set-up
     def __getstate__(self):
@@ -92,6 +99,8 @@ class World:
         self.client = cid
         pybullet.setGravity(0, 0, 0, physicsClientId=cid)
         pybullet.setTimeStep(self.physics_dt, physicsClientId=cid)
+        # boxes sliding on a plane need far fewer solver iterations than the default 50
+        pybullet.setPhysicsEngineParameter(numSolverIterations=SOLVER_ITERATIONS, physicsClientId=cid)
         s = self.spec
         car_shape = pybullet.createCollisionShape(
             pybullet.GEOM_BOX, halfExtents=[s.length / 2, s.width / 2, s.height / 2], physicsClientId=cid)
@@ -159,38 +168,42 @@ class World:
     def step(self, commands: np.ndarray) -> list[Contact]:
         """Advance one action step (several physics steps) under (steer rad, speed m/s) commands.
 
+        The commanded velocity is set once per action step, pointing along the
+        heading the car will have half-way through the step (the midpoint rule,
+        so arcs are followed closely), with the yaw rate held; PyBullet then
+        integrates the physics steps and resolves contacts within them.
         Returns the contacts that happened during the step, one per touching pair.
         """
         cid = self.client
-        get_pose = pybullet.getBasePositionAndOrientation
-        get_vel = pybullet.getBaseVelocity
-        set_vel = pybullet.resetBaseVelocity
-        spec = self.spec
-        contacts: dict[tuple, Contact] = {}
+        step_time = self.physics_dt * self.substeps
         active = [i for i in range(self.num_cars) if not self.parked[i]]
-        for _ in range(self.substeps):
-            for i in active:
-                body = self.car_ids[i]
-                pos, orn = get_pose(body, cid)
-                (lvx, lvy, _), _ = get_vel(body, cid)
-                yaw = yaw_of(orn)
-                # what a collision (or anything but our own command) changed
-                sx, sy, _ = self._set_velocity[i]
-                push_x, push_y = lvx - sx, lvy - sy
-                cos_y, sin_y = math.cos(yaw), math.sin(yaw)
-                steer, target = commands[i]
-                speed = self.drive_speed[i] + push_x * cos_y + push_y * sin_y
-                speed += (target - speed) * self._speed_blend
-                self.drive_speed[i] = speed
-                vx, vy, yaw_rate = bicycle_velocity(spec, yaw, speed, steer)
-                # the sideways part of a push decays with the tyres' grip
-                side = (-push_x * sin_y + push_y * cos_y) * self._grip_keep
-                vx -= side * sin_y
-                vy += side * cos_y
-                set_vel(body, (vx, vy, 0.0), (0.0, 0.0, yaw_rate), cid)
-                self._set_velocity[i] = (vx, vy, yaw_rate)
+        for i in active:
+            body = self.car_ids[i]
+            (lvx, lvy, _), _ = pybullet.getBaseVelocity(body, cid)
+            yaw = float(self.poses[i][2])
+            # what a collision (or anything but our own command) changed since we set the velocity
+            sx, sy, _ = self._set_velocity[i]
+            push_x, push_y = lvx - sx, lvy - sy
+            cos_y, sin_y = math.cos(yaw), math.sin(yaw)
+            steer, target = commands[i]
+            speed = self.drive_speed[i] + push_x * cos_y + push_y * sin_y
+            speed += (target - speed) * self._speed_blend
+            self.drive_speed[i] = speed
+            tan_steer = math.tan(steer)
+            beta = math.atan(0.5 * tan_steer)
+            yaw_rate = speed * math.cos(beta) * tan_steer / self.spec.wheelbase
+            direction = yaw + 0.5 * yaw_rate * step_time + beta
+            # the sideways part of a push decays with the tyres' grip
+            side = (-push_x * sin_y + push_y * cos_y) * self._grip_keep
+            vx = speed * math.cos(direction) - side * sin_y
+            vy = speed * math.sin(direction) + side * cos_y
+            pybullet.resetBaseVelocity(body, (vx, vy, 0.0), (0.0, 0.0, yaw_rate), cid)
+            self._set_velocity[i] = (vx, vy, yaw_rate)
+        contacts: dict[tuple, Contact] = {}
+        for substep in range(self.substeps):
             pybullet.stepSimulation(cid)
-            self._collect_contacts(contacts)
+            if substep % CONTACT_EVERY == CONTACT_EVERY - 1 or substep == self.substeps - 1:
+                self._collect_contacts(contacts)
         self._read_poses(active)
         return list(contacts.values())
 
@@ -198,18 +211,20 @@ class World:
         for point in pybullet.getContactPoints(physicsClientId=self.client):
             if point[8] > CONTACT_DISTANCE:
                 continue
-            a = self._body_owner.get(point[1])
-            b = self._body_owner.get(point[2])
-            if a is None or b is None or (a[0] == "obstacle" and b[0] == "obstacle"):
-                continue
-            key = (min(a, b), max(a, b))
+            body_a, body_b = point[1], point[2]
+            key = (body_a, body_b) if body_a < body_b else (body_b, body_a)
             if key in contacts:
+                continue
+            a = self._body_owner.get(body_a)
+            b = self._body_owner.get(body_b)
+            if a is None or b is None or (a[0] == "obstacle" and b[0] == "obstacle"):
                 continue
             normal_on_b = point[7]  # points from B towards A
             approach_a = -self._velocity_along(a, normal_on_b)
             approach_b = self._velocity_along(b, normal_on_b)
             striker = a if approach_a >= approach_b else b
-            contacts[key] = Contact(a=key[0], b=key[1], striker=striker)
+            first, second = (a, b) if a <= b else (b, a)
+            contacts[key] = Contact(a=first, b=second, striker=striker)
 
     def _velocity_along(self, owner: tuple[str, int], direction) -> float:
         if owner[0] != "car":
