@@ -129,6 +129,23 @@ def cmd_imitate(args) -> int:
     return 0
 
 
+def cmd_bench(args) -> int:
+    from .bench import format_table, run_bench
+
+    console = Console(width=120)
+    figures = run_bench(seconds=args.seconds, replay_seconds=args.replay_seconds,
+                        progress=lambda line: console.print(f"[dim]{line}[/dim]"))
+    table = Table(title="multirace bench (one run, this machine)")
+    table.add_column("figure")
+    table.add_column("value", justify="right")
+    for label, value in format_table(figures):
+        table.add_row(label, value)
+    console.print(table)
+    if args.json:
+        Path(args.json).write_text(json.dumps(figures, indent=2))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="multirace", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -201,6 +218,16 @@ def build_parser() -> argparse.ArgumentParser:
     plot.add_argument("--out", metavar="FILE.png", help="PNG to write (default: TRACE.png)")
     plot.add_argument("--track", default=None, help="track name or .npy (default: guessed from track_len)")
     plot.set_defaults(func=cmd_plot)
+
+    bench = sub.add_parser("bench", help="measure env throughput, renderer ratios, worker scaling and memory",
+                           description="Benchmark (not a test): agent-steps/s for 1-8 cars with the fast and "
+                                       "PyBullet renderers, the physics+warp floor, two workers over one, peak "
+                                       "memory and replay cost, all from one run.")
+    bench.add_argument("--json", metavar="FILE", help="write the figures as JSON")
+    bench.add_argument("--seconds", type=float, default=3.0, help="time per measurement (default 3)")
+    bench.add_argument("--replay-seconds", type=float, default=60.0,
+                       help="race time of the replay-cost race (0 skips it; default 60)")
+    bench.set_defaults(func=cmd_bench)
     return parser
 
 

@@ -156,7 +156,7 @@ class RaceEnv(ParallelEnv):
         self._touching: set = set()
         track = self.track
         self.races = []
-        self._s = np.zeros(self.total_cars)
+        self._s = [0.0] * self.total_cars
         self._commands = np.zeros((self.total_cars, 2))
         for i, (s, lateral) in enumerate(track.start_grid(self.total_cars)):
             # the grid slot is where DeepRacer's reported point (ahead of the body centre) starts
@@ -226,6 +226,7 @@ class RaceEnv(ParallelEnv):
 
         prev_distance = [race.distance for race in self.races]
         self._measure_all()
+        self._advance_distances()
         touched = self._apply_contacts(contacts)
         params, rewards = [], {}
         table = self._object_table()
@@ -282,6 +283,14 @@ class RaceEnv(ParallelEnv):
             wheels_on += -proj.right_width <= lateral <= proj.left_width
         return {"x": float(px), "y": float(py), "yaw": float(yaw), "proj": proj, "wheels_on": wheels_on}
 
+    def _advance_distances(self) -> None:
+        """Add what each car drove along the centre line since the last step to its race distance."""
+        for i, geo in enumerate(self._geometry):
+            if geo is not None:
+                s = geo["proj"].s
+                self.races[i].distance += self.track.wrap_ds(s - self._s[i])
+                self._s[i] = s
+
     def _apply_contacts(self, contacts) -> list[set]:
         """Record contacts; penalise a striker in head-to-head. Returns who each car touched."""
         touched = [set() for _ in range(self.total_cars)]
@@ -315,8 +324,6 @@ class RaceEnv(ParallelEnv):
         track, rules = self.track, self.rules
         events = []
         proj = geo["proj"]
-        race.distance += track.wrap_ds(proj.s - self._s[i])
-        self._s[i] = proj.s
         # laps: every crossing of a lap boundary, timed by interpolation within the step
         while race.racing and race.distance >= (race.laps + 1) * track.length:
             boundary = (race.laps + 1) * track.length

@@ -136,7 +136,7 @@ def race_result(env: RaceEnv, controllers: list[Controller], config: RaceConfig)
             "penalties": race.penalties,
             "collisions": len(race.collisions),
             "collisions_caused": race.collisions_caused(),
-            "progress": round(100.0 * (race.distance - race.start_distance) / env.track.length, 2),
+            "progress": round(race.race_progress(env.track.length, env.rules.laps), 2),
             "status": race.status,
             "reason": race.reason,
         })

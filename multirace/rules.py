@@ -64,6 +64,11 @@ class CarRace:
         done = self.distance - self.lap_start_distance
         return float(min(max(100.0 * done / max(lap_len, 1e-9), 0.0), 100.0))
 
+    def race_progress(self, track_length: float, laps: int) -> float:
+        """Percent of the whole race distance (all laps, from the grid slot) driven, 0-100."""
+        total = laps * track_length - self.start_distance
+        return float(min(max(100.0 * (self.distance - self.start_distance) / total, 0.0), 100.0))
+
     def collisions_caused(self) -> int:
         return sum(1 for c in self.collisions if c["caused"])
 

@@ -1,0 +1,127 @@
+"""Race formats and scoring, driven by scripted cars in the real env."""
+import math
+
+import pytest
+
+import multirace
+from multirace.bots import PurePursuit
+from multirace.rules import CarRace, make_rules
+from helpers import CONTINUOUS, drive_expert
+
+
+def _leave_track_repeatedly(env, max_steps=3000):
+    """Steer hard left at speed until the episode ends; returns car_0's infos."""
+    history = []
+    while env.agents and len(history) < max_steps:
+        _, _, _, _, infos = env.step({"car_0": [30.0, 2.0]})
+        history.append(infos["car_0"])
+    return history
+
+
+def test_reset_rule_allows_three_resets_and_the_fourth_off_track_ends_the_run():
+    env = multirace.parallel_env(num_cars=1, race="reset_rule", action_space=CONTINUOUS)
+    env.reset(seed=0)
+    history = _leave_track_repeatedly(env)
+    off_tracks = [k for k, info in enumerate(history) if "off_track" in info["events"]]
+    assert len(off_tracks) == 4
+    assert [history[k]["resets"] for k in off_tracks] == [1, 2, 3, 3]
+    race = env.races[0]
+    assert race.status == "out_of_resets" and race.resets == 3 and race.off_tracks == 4
+    assert race.finish_time == pytest.approx(len(history) / 15, abs=1e-6)
+    assert env.agents == []  # its run is over, and it was the only car
+
+
+def test_reset_rule_window_ends_a_crawling_car_at_240_seconds():
+    # at DeepRacer's slowest command (0.1 m/s) 240 s cover 24 m: not a lap of the 89 m track
+    env = multirace.parallel_env(track="penbay_pro", num_cars=1, race="reset_rule", action_space=CONTINUOUS)
+    env.reset(seed=0)
+    driver = PurePursuit(speed=0.1)
+    steps = 0
+    while env.agents:
+        steer, speed = driver.command(env.track, env.car_spec, env.world.poses[0], env.races[0].segment_hint)
+        env.step({"car_0": [steer, speed]})
+        steps += 1
+    race = env.races[0]
+    assert race.status == "timed_out" and race.finish_time == pytest.approx(240.0)
+    assert steps == 3600 and race.laps == 0
+
+
+def test_time_trial_penalties_add_their_seconds_to_the_total():
+    env = multirace.parallel_env(num_cars=1, laps=1, action_space=CONTINUOUS)
+    env.reset(seed=0)
+    for _ in range(40):  # leave the track twice with hard steering
+        _, _, _, _, infos = env.step({"car_0": [30.0, 2.0]})
+        if infos["car_0"]["resets"] == 2:
+            break
+    assert infos["car_0"]["resets"] == 2 and infos["car_0"]["penalties"] == 2
+    history = drive_expert(env, speed=1.0)
+    race = env.races[0]
+    assert race.status == "finished"
+    driven = env.sim_time  # the run ended on this step
+    assert race.finish_time == pytest.approx(race.lap_times[0]) == pytest.approx(driven + 4.0, abs=1 / 15)
+    assert history[-1]["race_time"] == race.finish_time
+
+
+def test_best_lap_is_scored_under_the_reset_rule():
+    rules = make_rules("reset_rule")
+    fast_once = CarRace("a", laps=1, lap_times=[20.0], distance=30.0)
+    steady = CarRace("b", laps=3, lap_times=[22.0, 21.0, 21.5], distance=60.0)
+    no_lap = CarRace("c", laps=0, distance=15.0)
+    order = rules.ranking([steady, no_lap, fast_once], track_length=17.7)
+    assert order == [2, 0, 1]  # best lap first, then laps, then progress
+    env = multirace.parallel_env(num_cars=1, race="reset_rule", laps=2)
+    env.reset(seed=1)
+    drive_expert(env, speed=1.0)
+    race = env.races[0]
+    assert race.laps == 2 and race.best_lap == min(race.lap_times)
+
+
+def test_object_avoidance_crash_resets_behind_the_box_in_the_other_lane():
+    env = multirace.parallel_env(num_cars=1, race="object_avoidance", action_space=CONTINUOUS)
+    env.reset(seed=4)
+    track = env.track
+    s_box, lane = env.obstacle_slots[0]
+    driver = PurePursuit(speed=1.0, lateral=track.lane_offset(lane, s_box))  # drive in the box's lane
+    crash = None
+    for _ in range(600):
+        steer, speed = driver.command(track, env.car_spec, env.world.poses[0], env.races[0].segment_hint)
+        _, _, _, _, infos = env.step({"car_0": [steer, speed]})
+        if "crashed" in infos["car_0"]["events"]:
+            crash = infos["car_0"]
+            break
+    assert crash is not None, "never reached the box"
+    assert crash["penalty_time"] == pytest.approx(5.0) and crash["collisions"] == ["obstacle_0"]
+    x, y, yaw = env.world.poses[0]
+    offset = env.car_spec.reported_point_offset
+    proj = track.project(x + offset * math.cos(yaw), y + offset * math.sin(yaw))
+    behind = track.wrap_ds(s_box - proj.s)
+    assert behind == pytest.approx(1.0, abs=0.1)
+    box_side = track.lane_offset(lane, s_box)
+    assert proj.lateral * box_side < 0  # the other lane
+
+
+def test_head_to_head_finish_order_follows_laps_then_time():
+    env = multirace.parallel_env(num_cars=3, race="head_to_head", laps=1, action_space=CONTINUOUS)
+    env.reset(seed=2)
+    speeds = [1.6, 0.7, 1.1]
+    while env.agents:
+        actions = {}
+        for i, agent in enumerate(env.possible_agents):
+            lateral = env.track.lane_offset(i % 2, env.races[i].distance)
+            steer, speed = PurePursuit(speed=speeds[i], lateral=lateral).command(
+                env.track, env.car_spec, env.world.poses[i], env.races[i].segment_hint)
+            actions[agent] = [steer, speed]
+        env.step(actions)
+    ranks = env.ranks()
+    finished = [race.status == "finished" for race in env.races]
+    assert all(finished)
+    times = [race.finish_time for race in env.races]
+    assert sorted(range(3), key=lambda i: ranks[i]) == sorted(range(3), key=lambda i: times[i])
+    assert ranks[0] == 1 and ranks[1] == 3
+
+
+def test_unknown_format_and_bad_laps():
+    with pytest.raises(ValueError, match="race: unknown format"):
+        make_rules("drift")
+    with pytest.raises(ValueError, match="laps"):
+        make_rules("time_trial", laps=0)
