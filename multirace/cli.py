@@ -62,6 +62,13 @@ def cmd_race(args) -> int:
 def cmd_replay(args) -> int:
     from .replay import format_summary, open_viewer, replay_summary
 
+    if getattr(args, "video", None):
+        from .replay_video import replay_video
+
+        made = replay_video(args.file, args.video)
+        print(f"wrote {made['file']}: {made['frames']} frames ({made['steps']} steps at {made['fps']:g} fps)")
+        if not args.summary:
+            return 0
     if not args.summary:
         return open_viewer(args.file)
     summary = replay_summary(args.file, poses=False)
@@ -210,6 +217,8 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument("file", metavar="FILE.rrd", help="a replay written by `multirace race --replay`")
     replay.add_argument("--summary", action="store_true", help="print cars, laps, events and duration")
     replay.add_argument("--json", metavar="FILE", help="with --summary: also write the summary as JSON")
+    replay.add_argument("--video", metavar="FILE.mp4",
+                        help="render the top-down race view from the recorded poses to an MP4 (no viewer needed)")
     replay.set_defaults(func=cmd_replay)
 
     plot = sub.add_parser("plot", help="plot a sim-trace CSV: the path coloured by speed and reward",
