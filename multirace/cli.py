@@ -237,6 +237,10 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--replay-seconds", type=float, default=60.0,
                        help="race time of the replay-cost race (0 skips it; default 60)")
     bench.set_defaults(func=cmd_bench)
+
+    from .league import add_league_commands
+
+    add_league_commands(sub)
     return parser
 
 
