@@ -528,6 +528,92 @@ def worker_main() -> int:
     return 0
 
 
+# ------------------------------------------------------------------ Ray
+def _ray_match(spec: dict, files: dict, want_replay: bool, image_every: int):
+    """A Ray task: run one match in a scratch folder holding its agent files; (result, replay bytes, seconds)."""
+    import tempfile
+
+    start = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="multirace-league-") as scratch:
+        scratch = Path(scratch)
+        (scratch / SUBMISSIONS).mkdir()
+        for rel, data in files.items():
+            (scratch / rel).write_bytes(data)
+        replay = scratch / "match.rrd" if want_replay else None
+        result = run_match(spec, scratch, str(replay) if replay else None, image_every)
+        data = replay.read_bytes() if replay else None
+    return json.loads(json.dumps(result, default=float)), data, time.perf_counter() - start
+
+
+def _run_on_ray(folder: Path, config: LeagueConfig, conn, todo, address: str, stats: dict, progress: bool):
+    """Run pending matches as Ray tasks (agent files shipped as bytes; results written here, one transaction each)."""
+    try:
+        import ray
+    except ImportError:
+        raise LeagueError("--ray: Ray is not installed; install it with: pip install 'multirace[ray]'") from None
+    ray.init(address=address, ignore_reinit_error=True, log_to_driver=False,
+             runtime_env={"env_vars": {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}})
+    try:
+        task = ray.remote(num_cpus=1, max_retries=0)(_ray_match)
+        file_refs = {}
+        slots = max(1, int(ray.cluster_resources().get("CPU", 1)))
+        queue_ = list(todo)
+        running = {}  # ObjectRef -> (match_id, spec, started)
+
+        def launch(match_id, spec):
+            files = {}
+            for e in spec["entrants"]:
+                if not e["spec"].startswith("bot:"):
+                    if e["spec"] not in file_refs:
+                        file_refs[e["spec"]] = (folder / e["spec"]).read_bytes()
+                    files[e["spec"]] = file_refs[e["spec"]]
+            ref = task.remote(spec, files, config.replays, config.replay_image_every)
+            running[ref] = (match_id, spec, time.monotonic())
+
+        with _progress_bar(len(todo), progress) as bar:
+            bar_task = bar.add_task("ray", total=len(todo))
+            while queue_ or running:
+                while queue_ and len(running) < slots:
+                    launch(*queue_.pop(0))
+                ready, _ = ray.wait(list(running), num_returns=1, timeout=1.0)
+                finished = []
+                for ref in ready:
+                    match_id, spec, _ = running.pop(ref)
+                    try:
+                        result, replay_bytes, seconds = ray.get(ref)
+                        finished.append((match_id, spec, {"ok": True, "result": result, "wall_seconds": seconds},
+                                         replay_bytes))
+                    except Exception as exc:  # the task raised, or its worker crashed
+                        finished.append((match_id, spec, {"ok": False, "error": f"ray task failed: "
+                                                          f"{type(exc).__name__}: {str(exc)[:300]}"}, None))
+                now = time.monotonic()
+                for ref, (match_id, spec, started) in list(running.items()):
+                    if now - started > config.match_timeout:
+                        ray.cancel(ref, force=True)
+                        running.pop(ref)
+                        finished.append((match_id, spec, {"ok": False, "error": f"match timed out after "
+                                         f"{config.match_timeout:.0f} s wall clock (ray task cancelled)"}, None))
+                for match_id, spec, answer, replay_bytes in finished:
+                    if answer["ok"]:
+                        replay = None
+                        if replay_bytes is not None:
+                            final = folder / REPLAYS / f"{match_id}.rrd"
+                            tmp = final.with_name(f"{final.name}.{os.getpid()}.tmp")
+                            tmp.write_bytes(replay_bytes)
+                            os.replace(tmp, final)
+                            replay = f"{REPLAYS}/{final.name}"
+                        record_result(conn, match_id, answer["result"], replay, answer["wall_seconds"])
+                        stats["ran"] += 1
+                        bar.advance(bar_task)
+                    elif record_attempt_failure(conn, match_id, answer["error"], config.max_retries):
+                        stats["failed"] += 1
+                        bar.advance(bar_task)
+                    else:
+                        queue_.append((match_id, spec))
+    finally:
+        ray.shutdown()
+
+
 DEFAULT_TOML_TEXT = """# An example league (multirace league init DIR copies this file to DIR/league.toml).
 # Time trials run under the AWS Summit reset rule (4-minute window, 3 resets;
 # scored by best lap, then laps, then progress); head-to-head heats of `cars`
@@ -654,6 +740,11 @@ def run_league(folder, workers: int | None = None, ray_address: str | None = Non
     """Run every pending match of the league; returns {"ran", "failed", "skipped", "wall_seconds"}."""
     folder = Path(folder).resolve()
     config = load_config(folder)
+    if ray_address:
+        try:
+            import ray  # noqa: F401
+        except ImportError:
+            raise LeagueError("--ray: Ray is not installed; install it with: pip install 'multirace[ray]'") from None
     conn = connect(folder)
     try:
         schedule = sync_schedule(folder, config, conn)
@@ -668,9 +759,7 @@ def run_league(folder, workers: int | None = None, ray_address: str | None = Non
         stats = {"scheduled": len(schedule), "ran": 0, "failed": 0, "pending_at_start": len(todo)}
         if todo:
             if ray_address:
-                from .league_ray import run_on_ray
-
-                run_on_ray(folder, config, conn, todo, ray_address, stats, progress)
+                _run_on_ray(folder, config, conn, todo, ray_address, stats, progress)
             else:
                 _run_local(folder, config, conn, todo, workers or os.cpu_count() or 1, stats, progress)
         stats["wall_seconds"] = round(time.perf_counter() - start, 3)
