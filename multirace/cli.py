@@ -78,6 +78,22 @@ def cmd_replay(args) -> int:
     return 0
 
 
+def cmd_explain(args) -> int:
+    from .explain import explain
+
+    out = args.out if args.out is not None else f"{Path(args.agent).stem}_gradcam.mp4"
+    result = explain(args.agent, track=args.track, steps=args.steps, out=out, replay=args.replay,
+                     reverse=args.reverse, seed=args.seed, target=args.target, scale=args.scale)
+    print(f"wrote {result['out']}: Grad-CAM of {result['agent']} over {result['frames']} frames on "
+          f"{result['track']}" + (f", replay {result['replay']}" if result["replay"] else ""))
+    print(f"heat on the track (road + borders + centre line): {100 * result['heat_on_track']:.1f}% of the mass, "
+          f"on {100 * result['track_fraction']:.1f}% of the image; on the lines {result['lines_lift']:.2f}x "
+          "their area share")
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=2))
+    return 0
+
+
 def cmd_plot(args) -> int:
     from .plot import plot_simtrace
 
@@ -220,6 +236,23 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument("--video", metavar="FILE.mp4",
                         help="render the top-down race view from the recorded poses to an MP4 (no viewer needed)")
     replay.set_defaults(func=cmd_replay)
+
+    explain = sub.add_parser("explain", help="Grad-CAM heat maps of what an agent looks at while it drives",
+                             description="Drive an agent file alone on a track (1-car time trial) and write "
+                                         "Grad-CAM heat maps of its chosen actions over its camera frames.")
+    explain.add_argument("agent", metavar="AGENT.pt", help="an agent file")
+    explain.add_argument("--track", default="reinvent_base", help="track name or .npy (default reinvent_base)")
+    explain.add_argument("--reverse", action="store_true", help="drive the track the other way round")
+    explain.add_argument("--out", metavar="FILE.mp4|FILE.png",
+                         help="an MP4 of every frame, or a PNG strip of a few (default AGENT_gradcam.mp4)")
+    explain.add_argument("--steps", type=int, default=150, help="steps to drive (default 150, 10 s)")
+    explain.add_argument("--replay", metavar="FILE.rrd", help="also record the run with the heat maps as a replay")
+    explain.add_argument("--seed", type=int, default=0)
+    explain.add_argument("--target", choices=("steer", "speed"), default="steer",
+                         help="continuous action spaces: explain the steering or the speed mean (default steer)")
+    explain.add_argument("--scale", type=int, default=3, help="upscale the camera frames this many times (default 3)")
+    explain.add_argument("--json", metavar="FILE", help="write the figures as JSON")
+    explain.set_defaults(func=cmd_explain)
 
     plot = sub.add_parser("plot", help="plot a sim-trace CSV: the path coloured by speed and reward",
                           description="Draw the track with the driven path coloured by speed and by reward.")
