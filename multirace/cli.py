@@ -271,6 +271,11 @@ def build_parser() -> argparse.ArgumentParser:
                        help="race time of the replay-cost race (0 skips it; default 60)")
     bench.set_defaults(func=cmd_bench)
 
+    from .train.cli import add_evaluate_parser, add_train_parser
+
+    add_train_parser(sub)
+    add_evaluate_parser(sub)
+
     from .league import add_league_commands
 
     add_league_commands(sub)

@@ -1,0 +1,115 @@
+"""`multirace train` and `multirace evaluate`: argument definitions and handlers (hooked into multirace.cli)."""
+from __future__ import annotations
+
+import json
+import shlex
+import sys
+from pathlib import Path
+
+
+def add_train_parser(sub) -> None:
+    p = sub.add_parser("train", help="train a camera agent with PPO self-play (shared parameters)",
+                       description="PPO with shared parameters from the camera: every car is the learner. "
+                                   "Writes FILE.pt (agent file), FILE.png (learning curve), FILE.train.json "
+                                   "and FILE.ckpt/ (checkpoint, snapshots).")
+    p.add_argument("--track", default="reinvent_base",
+                   help="track(s), comma-separated (bundled names or .npy paths; default reinvent_base)")
+    p.add_argument("--reverse", default="no", choices=("no", "yes", "both"), help="direction(s) (default no)")
+    p.add_argument("--minutes", type=float, default=10.0, help="wall-clock budget (default 10)")
+    p.add_argument("--out", required=True, metavar="FILE.pt", help="agent file to write")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--config", default="fast", metavar="PRESET",
+                   help="hyperparameter preset: fast (default), deepracer (the console's PPO defaults), tiny")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override one setting (JSON value), e.g. --set epochs=4 --set gamma=0.995; "
+                        "see `multirace train --list-settings`")
+    p.add_argument("--list-settings", action="store_true", help="print every setting with its doc and exit")
+    p.add_argument("--action-space", default=None, metavar="JSON", help="model_metadata.json with the action space")
+    p.add_argument("--reward", default=None,
+                   help="'progress' (built-in, default), 'centre' (DeepRacer default) or a reward .py file")
+    p.add_argument("--network", default=None, help="MULTIRACE_SMALL_CNN or DEEP_CONVOLUTIONAL_NETWORK_SHALLOW")
+    p.add_argument("--envs", type=int, default=None, help="worker processes (default 2)")
+    p.add_argument("--cars", type=int, default=None, help="learning cars per env (default 4)")
+    p.add_argument("--init", default=None, metavar="AGENT.pt", help="initialise the policy from an agent file")
+    p.add_argument("--resume", default=None, metavar="CKPT", help="resume from FILE.ckpt/checkpoint.pt")
+    p.add_argument("--robust", action="store_true",
+                   help="domain randomisation with a curriculum, opponent pool (PFSP), nature adversary and "
+                        "procedural tracks")
+    p.add_argument("--stop-on-success", action="store_true",
+                   help="stop at the first evaluation that finishes every lap")
+    p.add_argument("--engine", default="local", choices=("local", "rllib"), help="local (default) or rllib")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_train)
+
+
+def config_from_args(args):
+    from .config import make_config
+
+    overrides = {}
+    for item in args.set:
+        key, _, value = item.partition("=")
+        try:
+            overrides[key.strip()] = json.loads(value)
+        except json.JSONDecodeError:
+            overrides[key.strip()] = value
+    tracks = tuple(t.strip() for t in args.track.split(",") if t.strip())
+    if args.robust:
+        overrides.setdefault("robust", True)
+    config = make_config(args.config, tracks=tracks, reverse=args.reverse, minutes=args.minutes, seed=args.seed,
+                         action_space=args.action_space, reward=args.reward, network=args.network,
+                         num_envs=args.envs, cars_per_env=args.cars,
+                         stop_on_success=True if args.stop_on_success else None,
+                         progress=False if args.no_progress else None, **overrides)
+    for key in ("camera", "tracks", "bots"):
+        setattr(config, key, tuple(getattr(config, key)))
+    if config.robust:
+        from .robust import apply_robust
+
+        apply_robust(config, explicit=set(overrides))
+    return config
+
+
+def cmd_train(args) -> int:
+    if args.list_settings:
+        from .config import describe
+
+        print(describe())
+        return 0
+    if args.engine == "rllib":
+        from .rllib import train_rllib
+
+        return train_rllib(args)
+    from .ppo import train
+
+    config = config_from_args(args)
+    command = shlex.join(["multirace", *sys.argv[1:]]) if sys.argv and sys.argv[0].endswith("multirace") else None
+    summary = train(config, args.out, init=args.init, resume=args.resume, command=command)
+    first = summary["first_success_seconds"]
+    print(f"wrote {summary['out']}: {summary['iterations']} iterations, {summary['agent_steps']} agent-steps in "
+          f"{summary['wall_seconds']} s ({summary['steps_per_s']} agent-steps/s, sampling "
+          f"{summary['sample_seconds']} s, updates {summary['update_seconds']} s); first "
+          f"{config.eval_laps}/{config.eval_laps} evaluation: "
+          + (f"{first} s" if first is not None else "none"))
+    print(f"learning curve: {Path(args.out).with_suffix('.png')}")
+    return 0
+
+
+def add_evaluate_parser(sub) -> None:
+    p = sub.add_parser("evaluate", help="robustness report of an agent: held-out tracks, perturbations, traffic",
+                       description="Race an agent over held-out tracks and a grid of perturbations and report lap "
+                                   "completion, mean best lap, off-tracks per lap and collisions per lap in "
+                                   "traffic, as a table and a PNG.")
+    p.add_argument("agents", nargs="+", metavar="FILE.pt", help="agent file(s) to evaluate")
+    p.add_argument("--json", metavar="FILE", help="write the report as JSON")
+    p.add_argument("--png", metavar="FILE.png", help="write the report plot (default: next to the first agent)")
+    p.add_argument("--tracks", default=None, help="comma-separated tracks (default: the held-out set)")
+    p.add_argument("--laps", type=int, default=2, help="laps per run (default 2)")
+    p.add_argument("--seeds", type=int, default=1, help="seeds per cell (default 1)")
+    p.add_argument("--quick", action="store_true", help="fewer tracks and perturbations")
+    p.set_defaults(func=cmd_evaluate)
+
+
+def cmd_evaluate(args) -> int:
+    from .evaluate import run_evaluation
+
+    return run_evaluation(args)

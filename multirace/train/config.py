@@ -1,0 +1,124 @@
+"""Every hyperparameter of `multirace train`, in one dataclass, with presets.
+
+`TrainConfig` holds all the knobs (each documented on its line). Presets:
+
+- ``fast`` (the default): what reaches 3-of-3 laps of reinvent_base from the
+  camera in minutes on a 2-core CPU: the small CNN, a progress reward, off-track
+  ends the car's training episode, 2 worker processes x 4 cars, rollouts of
+  2048 agent-steps, 3 epochs of minibatch 512, discount 0.99.
+- ``deepracer``: the AWS DeepRacer console's PPO defaults: batch 64, lr 3e-4,
+  entropy 0.01, discount 0.999, 10 epochs, clip 0.2, GAE lambda 0.95, its
+  shallow CNN and its default (centre-line) reward.
+- ``tiny``: a few seconds per iteration, for tests and smoke runs.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+
+from ..nets import SHALLOW, TINY
+
+
+@dataclasses.dataclass
+class TrainConfig:
+    """All training settings; see `PRESETS` for named bundles."""
+
+    # ---- what to train on
+    tracks: tuple = ("reinvent_base",)  # bundled track names or .npy paths; several = multi-track training
+    reverse: str = "no"  # "no", "yes" or "both": the direction(s) each track is raced in
+    procedural_tracks: int = 0  # seeded generated tracks (multirace.trackgen) added to the track list
+    action_space: object = None  # model_metadata.json path or dict; None = DeepRacer's 10 discrete actions
+    reward: str = "progress"  # "progress" (built-in shaped), "centre" (DeepRacer default) or a reward .py file
+    camera: tuple = (120, 160)  # camera (height, width), grayscale as DeepRacer
+    network: str = TINY  # nets.NETWORKS name: MULTIRACE_TINY_CNN, MULTIRACE_SMALL_CNN or DEEP_CONVOLUTIONAL_NETWORK_SHALLOW
+    # ---- environments
+    num_envs: int = 2  # worker processes (one env each); 2 uses both cores of this machine
+    cars_per_env: int = 4  # learning cars per env, all driven by the shared policy (self-play)
+    bots: tuple = ()  # scripted cars added to each env, e.g. ("follow@1.0",)
+    episode_steps: int = 1500  # env steps before the env is reset to the start grid (100 s at 15 Hz)
+    terminate_off_track: bool = True  # an off-track ends that car's training episode (value target 0)
+    off_track_penalty: float = 1.0  # reward subtracted on an off-track step
+    progress_weight: float = 1.0  # "progress" reward: metres along the centre line per step / (1 m/s * dt)
+    centre_weight: float = 0.1  # "progress" reward: bonus of up to this for staying near the centre line
+    randomize: object = None  # env domain randomisation: None, "mild", "strong" or a dict (see randomize.py)
+    # ---- PPO
+    rollout_steps: int = 256  # steps per env per iteration (batch = num_envs * cars_per_env * rollout_steps)
+    minibatch_size: int = 512  # samples per gradient step (DeepRacer: batch_size 64)
+    epochs: int = 3  # passes over each rollout (DeepRacer: num_epochs 10)
+    lr: float = 3e-4  # Adam learning rate (DeepRacer: 3e-4)
+    anneal_lr: bool = False  # linearly decay lr to 0 over the time budget
+    gamma: float = 0.99  # discount (DeepRacer: 0.999)
+    gae_lambda: float = 0.95  # GAE lambda (DeepRacer: 0.95)
+    clip: float = 0.2  # PPO ratio clip (DeepRacer: 0.2)
+    clip_value: bool = False  # clip the value loss too (CleanRL option)
+    ent_coef: float = 0.01  # entropy bonus (DeepRacer: beta_entropy 0.01)
+    vf_coef: float = 0.5  # value loss weight
+    max_grad_norm: float = 0.5  # gradient norm clip
+    target_kl: float | None = None  # stop an iteration's epochs early above this approximate KL
+    norm_adv: bool = True  # normalise advantages per minibatch
+    # ---- budget, logging, outputs
+    minutes: float = 10.0  # wall-clock budget, including evaluations and checkpoints
+    seed: int = 0  # seeds torch, the envs and sampling
+    threads: int = 1  # torch threads in the learner (1 is fastest on a busy 2-core machine)
+    checkpoint_every: float = 60.0  # seconds between checkpoints (and evaluations, see eval_every)
+    eval_every: float = 60.0  # seconds between greedy time-trial evaluations (0 = never)
+    eval_track: str | None = None  # track of the evaluation (default: the first training track)
+    eval_laps: int = 3  # laps of the evaluation time trial
+    stop_on_success: bool = False  # end training at the first evaluation that finishes every lap
+    progress: bool = True  # show a progress bar
+    # ---- robust options (multirace.train.selfplay / nature)
+    robust: bool = False  # shorthand: curriculum randomisation, opponent pool, nature adversary, procedural tracks
+    curriculum: bool = False  # ramp domain randomisation from none to `randomize` over the first half
+    opponent_pool: bool = False  # some cars in each env are driven by past snapshots / shipped agents (PFSP)
+    pool_fraction: float = 0.25  # share of cars driven by pool opponents when the pool is on
+    snapshot_every: float = 90.0  # seconds between snapshots added to the opponent pool
+    nature: bool = False  # adversarial per-episode perturbations from an uncertainty set (Zhang et al. 2020)
+    nature_temperature: float = 1.0  # softmax temperature of nature's choice (lower = more adversarial)
+
+    def to_dict(self) -> dict:
+        return json.loads(json.dumps(dataclasses.asdict(self), default=str))
+
+    @property
+    def batch_size(self) -> int:
+        return self.num_envs * self.cars_per_env * self.rollout_steps
+
+    def directions(self) -> tuple:
+        if self.reverse not in ("no", "yes", "both"):
+            raise ValueError(f"reverse: expected 'no', 'yes' or 'both', got {self.reverse!r}")
+        return {"no": (False,), "yes": (True,), "both": (False, True)}[self.reverse]
+
+
+PRESETS: dict[str, dict] = {
+    "fast": {},
+    "deepracer": {"minibatch_size": 64, "lr": 3e-4, "ent_coef": 0.01, "gamma": 0.999, "epochs": 10, "clip": 0.2,
+                  "gae_lambda": 0.95, "network": SHALLOW, "reward": "centre"},
+    "tiny": {"num_envs": 1, "cars_per_env": 2, "rollout_steps": 64, "minibatch_size": 64, "epochs": 2,
+             "lr": 1e-3, "episode_steps": 300, "eval_every": 0, "checkpoint_every": 1e9},
+}
+
+
+def make_config(preset: str = "fast", **overrides) -> TrainConfig:
+    """A TrainConfig from a preset name plus field overrides (None values are ignored)."""
+    if preset not in PRESETS:
+        raise ValueError(f"--config: unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    fields = {f.name for f in dataclasses.fields(TrainConfig)}
+    values = dict(PRESETS[preset])
+    for key, value in overrides.items():
+        if key not in fields:
+            raise ValueError(f"unknown training setting {key!r}")
+        if value is not None:
+            values[key] = value
+    return TrainConfig(**values)
+
+
+def describe() -> str:
+    """Every setting with its default and one-line doc (for --help and the README)."""
+    import inspect
+
+    lines = []
+    source = inspect.getsource(TrainConfig).splitlines()
+    for f in dataclasses.fields(TrainConfig):
+        doc = next((line.split("#", 1)[1].strip() for line in source
+                    if line.strip().startswith(f"{f.name}:") and "#" in line), "")
+        lines.append(f"{f.name} = {f.default!r}: {doc}")
+    return "\n".join(lines)

@@ -1,0 +1,155 @@
+"""The training env: a `RaceEnv` per (track, direction), switched per episode, with training rewards.
+
+`TrainEnv` runs inside a `vector.SubprocVectorEnv` worker. It looks like a
+PettingZoo ParallelEnv to the worker (reset/step/possible_agents/close) and
+adds what training needs on top of the race env:
+
+- several tracks and directions: each env episode (reset) picks one of the
+  `runs` at random; one `RaceEnv` per run is built lazily and kept;
+- the built-in ``"progress"`` reward: metres gained along the centre line per
+  step (in units of 1 m/s), plus a small centre-line bonus, minus a penalty on
+  an off-track; or the env's DeepRacer reward function (``"centre"`` or a
+  ``.py`` file) unchanged;
+- per-car training episodes: an off-track ends that car's episode (the race
+  rules have already put it back on the centre line where it left, which is
+  where its next episode starts), so there is no need to end the whole race;
+- per-car episode statistics in the infos (return, length, laps driven);
+- robust options read per episode from shared memory the learner writes:
+  a domain-randomisation scale (curriculum) and nature's perturbation weights.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+INFO_KEYS = ("train_done", "ep_return", "ep_length", "ep_laps", "off_track", "collisions", "perturbation")
+
+
+class TrainEnv:
+    """See the module docstring. All arguments are plain data so the env pickles to worker processes."""
+
+    def __init__(self, runs, num_cars=4, bots=(), action_space=None, reward="progress", camera=(120, 160),
+                 episode_steps=1500, terminate_off_track=True, off_track_penalty=1.0, progress_weight=1.0,
+                 centre_weight=0.1, randomize=None, shared=None, worker=0):
+        self.runs = list(runs)  # [(track name/path or Track rows, reverse)]
+        self.num_cars = int(num_cars)
+        self.bots = tuple(bots)
+        self.action_space = action_space
+        self.reward = reward
+        self.camera = tuple(camera)
+        self.episode_steps = int(episode_steps)
+        self.terminate_off_track = bool(terminate_off_track)
+        self.off_track_penalty = float(off_track_penalty)
+        self.progress_weight = float(progress_weight)
+        self.centre_weight = float(centre_weight)
+        self.randomize = randomize
+        self.shared = shared  # optional {"scale": mp.Value, "nature": mp.Array} written by the learner
+        self.worker = int(worker)
+        self.possible_agents = [f"car_{i}" for i in range(self.num_cars)]
+        self.agents = list(self.possible_agents)
+        self._envs: dict = {}
+        self.env = None
+        self._rng = np.random.default_rng([worker, 7])
+        self.perturbation = -1
+
+    # -------------------------------------------------------------- envs
+    def _env_for(self, k: int):
+        if k not in self._envs:
+            from ..env import RaceEnv
+            from ..tracks import Track
+
+            track, reverse = self.runs[k]
+            if isinstance(track, np.ndarray):
+                track = Track(track, name=f"generated_{k}", source="<trackgen>", reverse=reverse)
+            reward = None if self.reward in ("progress", "centre", None) else self.reward
+            self._envs[k] = RaceEnv(track=track, reverse=reverse, num_cars=self.num_cars, race="time_trial",
+                                    laps=100000, bots=self.bots, action_space=self.action_space,
+                                    reward_function=reward, camera=self.camera, max_steps=self.episode_steps)
+        return self._envs[k]
+
+    def _episode_randomization(self):
+        """This episode's randomisation: the configured one scaled by the curriculum, or nature's pick."""
+        from ..randomize import Randomization
+
+        self.perturbation = -1
+        if self.shared is not None and "nature" in self.shared:
+            from .nature import UNCERTAINTY_SET, sample_perturbation
+
+            weights = np.frombuffer(self.shared["nature"].get_obj(), dtype=np.float64).copy()
+            self.perturbation = sample_perturbation(weights, self._rng)
+            return Randomization.from_config(UNCERTAINTY_SET[self.perturbation][1])
+        if self.randomize is None:
+            return Randomization.from_config(None)
+        base = Randomization.from_config(self.randomize)
+        scale = float(self.shared["scale"].value) if self.shared is not None and "scale" in self.shared else 1.0
+        if scale >= 1.0:
+            return base
+        from .nature import scale_randomization
+
+        return scale_randomization(base, scale)
+
+    def reset(self, seed=None, options=None):
+        if seed is not None:
+            self._rng = np.random.default_rng([int(seed), self.worker, 7])
+        k = int(self._rng.integers(len(self.runs)))
+        self.env = self._env_for(k)
+        self.env.randomization = self._episode_randomization()
+        obs, infos = self.env.reset(seed=None if seed is None else int(seed))
+        track = self.env.track
+        self.track_length = track.length
+        self._prev_s = [infos[a]["projection_distance"] for a in self.possible_agents]
+        self._ep_return = [0.0] * self.num_cars
+        self._ep_length = [0] * self.num_cars
+        self._ep_dist = [0.0] * self.num_cars
+        self._ep_collisions = [0] * self.num_cars
+        self._collisions_seen = [0] * self.num_cars
+        self.agents = list(self.possible_agents)
+        return obs, {a: self._small(infos[a], False, None) for a in self.possible_agents}
+
+    def _small(self, info, done, episode):
+        small = {"train_done": done, "off_track": bool(info.get("off_track", False)),
+                 "collisions": len(info.get("collisions", ())), "perturbation": self.perturbation}
+        if episode is not None:
+            small.update(episode)
+        return small
+
+    def step(self, actions):
+        env = self.env
+        obs, rewards, terms, truncs, infos = env.step(actions)
+        dt = env.dt
+        out_rewards, out_infos = {}, {}
+        truncated = all(truncs.values()) or all(terms.values())
+        for i, agent in enumerate(self.possible_agents):
+            info = infos[agent]
+            off = bool(info["off_track"])
+            s = info["projection_distance"]
+            ds = 0.0 if self._prev_s[i] is None else env.track.wrap_ds(s - self._prev_s[i])
+            self._prev_s[i] = None if off else s
+            if self.reward == "progress":
+                width = max(info["track_width"], 1e-3)
+                centre = max(0.0, 1.0 - 2.0 * info["distance_from_center"] / width)
+                r = self.progress_weight * ds / dt + self.centre_weight * centre
+                if off:
+                    r -= self.off_track_penalty
+            else:
+                r = float(rewards[agent])
+            self._ep_return[i] += r
+            self._ep_length[i] += 1
+            self._ep_dist[i] += ds
+            self._ep_collisions[i] += len(info["collisions"]) > 0
+            done = (off and self.terminate_off_track) or truncated
+            episode = None
+            if done:
+                episode = {"ep_return": self._ep_return[i], "ep_length": self._ep_length[i],
+                           "ep_laps": self._ep_dist[i] / self.track_length}
+                self._ep_return[i], self._ep_length[i], self._ep_dist[i] = 0.0, 0, 0.0
+            out_rewards[agent] = r
+            out_infos[agent] = self._small(info, done, episode)
+        if truncated:
+            self.agents = []
+        return obs, out_rewards, terms, truncs, out_infos
+
+    def close(self):
+        for env in self._envs.values():
+            env.close()
