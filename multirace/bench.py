@@ -20,29 +20,50 @@ from .camera import camera_pose
 from .env import RaceEnv
 
 CAR_COUNTS = (1, 2, 4, 8)
+WINDOWS = 5  # each figure is the best of this many equal time windows
 OBSTACLES = 3
 
 
+def _best_rate(step, agents_per_step: int, seconds: float, windows: int = WINDOWS) -> float:
+    """Agent-steps per second of `step()`: the best of several short windows.
+
+    Other processes on a 2-core machine slow some windows down; the best window
+    is the closest to what the code itself costs.
+    """
+    best = 0.0
+    for _ in range(windows):
+        steps, start = 0, time.perf_counter()
+        while time.perf_counter() - start < seconds / windows:
+            step()
+            steps += 1
+        best = max(best, agents_per_step * steps / (time.perf_counter() - start))
+    return best
+
+
 def _bench_env(num_cars: int, renderer: str, seconds: float, seed: int = 0) -> float:
-    """Agent-steps per second of the env stepped with random actions for about `seconds`."""
+    """Agent-steps per second of the env stepped with random actions (resetting when done)."""
     env = RaceEnv(num_cars=num_cars, obstacles=OBSTACLES, renderer=renderer, max_steps=2000)
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)
     n_actions = env.actions.space.n
-    env.step({a: int(rng.integers(n_actions)) for a in env.agents})  # warm-up
-    steps, start = 0, time.perf_counter()
-    while time.perf_counter() - start < seconds:
+
+    def step():
         if not env.agents:
-            env.reset(seed=seed + steps)
+            env.reset()
         env.step({a: int(rng.integers(n_actions)) for a in env.agents})
-        steps += 1
-    elapsed = time.perf_counter() - start
+
+    step()  # warm-up
+    rate = _best_rate(step, num_cars, seconds)
     env.close()
-    return num_cars * steps / elapsed
+    return rate
 
 
 def _bench_floor(num_cars: int, seconds: float, seed: int = 0) -> float:
-    """Agent-steps per second of the bare minimum: physics steps plus one texture warp per camera."""
+    """Agent-steps per second of the bare minimum: physics steps plus one texture warp per camera.
+
+    The cars get random commands like the env benchmark's, and are put back on
+    the grid every 60 steps so that they keep touching as often.
+    """
     env = RaceEnv(num_cars=num_cars, obstacles=OBSTACLES, max_steps=2000)
     env.reset(seed=seed)
     world, renderer = env.world, env._renderer
@@ -50,18 +71,20 @@ def _bench_floor(num_cars: int, seconds: float, seed: int = 0) -> float:
     size = (env.camera.width, env.camera.height)
     homographies = [renderer.ground_homography(camera_pose(env.camera, world.poses[i])) for i in range(num_cars)]
     rng = np.random.default_rng(seed)
-    commands = np.column_stack([rng.uniform(-0.5, 0.5, env.total_cars), rng.uniform(0.5, 1.0, env.total_cars)])
-    steps, start = 0, time.perf_counter()
-    while time.perf_counter() - start < seconds:
-        world.step(commands)
+    table = np.array([(np.radians(s), v) for s, v in env.actions.actions])
+    count = [0]
+
+    def step():
+        world.step(table[rng.integers(len(table), size=env.total_cars)])
         for homography in homographies:
             cv2.warpPerspective(ground, homography, size, flags=cv2.INTER_NEAREST)
-        steps += 1
-        if steps % 60 == 0:  # keep the cars on the track
-            env.reset(seed=seed + steps)
-    elapsed = time.perf_counter() - start
+        count[0] += 1
+        if count[0] % 60 == 0:
+            env.reset()
+
+    rate = _best_rate(step, num_cars, seconds)
     env.close()
-    return num_cars * steps / elapsed
+    return rate
 
 
 def _bench_workers(num_workers: int, num_cars: int, seconds: float) -> float:
@@ -70,18 +93,14 @@ def _bench_workers(num_workers: int, num_cars: int, seconds: float) -> float:
 
     make = functools.partial(RaceEnv, num_cars=num_cars, obstacles=OBSTACLES, max_steps=2000)
     vec = SubprocVectorEnv([make] * num_workers, info_keys=())
+    rng = np.random.default_rng(0)
     try:
         vec.reset(seeds=list(range(num_workers)))
-        rng = np.random.default_rng(0)
         vec.step(rng.integers(10, size=(num_workers, num_cars)))
-        steps, start = 0, time.perf_counter()
-        while time.perf_counter() - start < seconds:
-            vec.step(rng.integers(10, size=(num_workers, num_cars)))
-            steps += 1
-        elapsed = time.perf_counter() - start
+        return _best_rate(lambda: vec.step(rng.integers(10, size=(num_workers, num_cars))),
+                          num_workers * num_cars, seconds)
     finally:
         vec.close()
-    return num_workers * num_cars * steps / elapsed
 
 
 def run_bench(seconds: float = 3.0, replay_seconds: float = 60.0, progress=print) -> dict:

@@ -48,10 +48,11 @@ class Bot:
     kind: str
     speed: float
     lane_period: float = 4.0  # seconds between lane changes (lanes bot)
+    speed_text: str = ""  # the speed as the user wrote it, so names read back as typed
 
     @property
     def name(self) -> str:
-        return f"bot:{self.kind}@{self.speed:g}"
+        return f"bot:{self.kind}@{self.speed_text or format(self.speed, 'g')}"
 
     def command(self, track: Track, spec: CarSpec, pose, sim_time: float, segment_hint=None):
         """(steering degrees, speed m/s) at race time `sim_time`."""
@@ -72,4 +73,4 @@ def parse_bot(text: str) -> Bot:
     speed = float(match["speed"])
     if not 0.1 <= speed <= 4.0:
         raise ValueError(f"bot {text!r}: speed {speed} outside 0.1-4.0 m/s")
-    return Bot(kind=match["kind"], speed=speed)
+    return Bot(kind=match["kind"], speed=speed, speed_text=match["speed"])

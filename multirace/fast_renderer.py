@@ -51,7 +51,8 @@ class FastRenderer(Renderer):
         super().__init__(spec)
         self.texture = texture
         self.K = spec.intrinsics()
-        self._tex_from_world = np.linalg.inv(texture.pixel_from_world_matrix())
+        self._metres_per_texel = 1.0 / texture.ppm
+        self._focal, self._cx, self._cy = float(self.K[0, 0]), float(self.K[0, 2]), float(self.K[1, 2])
         palette = texture.palette
         if spec.grayscale:
             self._ground = texture.gray
@@ -68,15 +69,27 @@ class FastRenderer(Renderer):
         self._scene_key = None
         self._scene = None
         self._obstacle_key = None
-        self._obstacle_corners = None
+        self._obstacle_boxes = []
 
     # ------------------------------------------------------------- ground
     def ground_homography(self, pose: CameraPose) -> np.ndarray:
         """3x3 map from texture pixels to image pixels (the ground plane z = 0)."""
-        R = pose.rotation
-        plane = R.copy()  # columns: world x axis, world y axis, then the translation
-        plane[:, 2] = -R @ pose.eye
-        return self.K @ plane @ self._tex_from_world
+        # K [r1 r2 t] A, with A the texture-to-world affine map, in plain floats (tiny
+        # numpy matrix products cost more in call overhead than they compute)
+        (r11, r12, r13), (r21, r22, r23), (r31, r32, r33) = pose.rotation.tolist()
+        ex, ey, ez = pose.eye.tolist()
+        t1 = -(r11 * ex + r12 * ey + r13 * ez)
+        t2 = -(r21 * ex + r22 * ey + r23 * ez)
+        t3 = -(r31 * ex + r32 * ey + r33 * ez)
+        scale, (x0, y0) = self._metres_per_texel, self.texture.origin
+        rows = []
+        for a, b, t in ((r11, r12, t1), (r21, r22, t2), (r31, r32, t3)):
+            rows.append((a * scale, -b * scale, a * x0 + b * y0 + t))
+        (a1, a2, a3), (b1, b2, b3), (c1, c2, c3) = rows
+        f, cx, cy = self._focal, self._cx, self._cy
+        return np.array([[f * a1 + cx * c1, f * a2 + cx * c2, f * a3 + cx * c3],
+                         [f * b1 + cy * c1, f * b2 + cy * c2, f * b3 + cy * c3],
+                         [c1, c2, c3]])
 
     def horizon_row(self, pose: CameraPose) -> int:
         """First image row below the horizon (rows above it show sky)."""
@@ -105,71 +118,70 @@ class FastRenderer(Renderer):
         return images
 
     def _scene_boxes(self, world):
-        """Boxes in the scene, computed once per world step and shared by all cameras.
+        """Boxes in the scene as plain floats, computed once per world step and shared by all cameras.
 
-        Returns (corners (M, 8, 3), centres (M, 3), poses (M, 3), half sizes (M, 3), radii (M,),
-        colours, hidden (M,) bool). Cars come first (index = car), then obstacles.
+        Returns a list of (index, corners [8 x (x, y, z)], centre (x, y, z), bounding radius,
+        colour); cars first (index = car), then obstacles. Parked cars are left out.
         """
         obstacle_key = world.obstacle_poses.tobytes()
         key = (id(world), world.poses.tobytes(), world.parked.tobytes(), obstacle_key)
         if key == self._scene_key:
             return self._scene
         if self._obstacle_key != obstacle_key:
-            self._obstacle_corners = box_corners(world.obstacle_poses, OBSTACLE_SIZE)
+            corners = box_corners(world.obstacle_poses, OBSTACLE_SIZE).tolist()
+            radius = math.hypot(*OBSTACLE_SIZE) / 2
+            self._obstacle_boxes = [
+                (world.num_cars + k, corners[k], (x, y, OBSTACLE_SIZE[2] / 2), radius, self._obstacle_colour)
+                for k, (x, y, _) in enumerate(world.obstacle_poses.tolist())]
             self._obstacle_key = obstacle_key
-        car_size = (world.spec.length, world.spec.width, world.spec.height)
-        n_obstacles = len(world.obstacle_poses)
-        corners = np.concatenate([box_corners(world.poses, car_size), self._obstacle_corners])
-        poses = np.concatenate([world.poses, world.obstacle_poses])
-        half = np.array([car_size] * world.num_cars + [OBSTACLE_SIZE] * n_obstacles) / 2
-        centres = np.column_stack([poses[:, :2], half[:, 2]])
-        radii = np.linalg.norm(half, axis=1)
-        colours = [self._car_colours[i % len(self._car_colours)] for i in range(world.num_cars)]
-        colours += [self._obstacle_colour] * n_obstacles
-        hidden = np.concatenate([world.parked, np.zeros(n_obstacles, dtype=bool)])
-        self._scene = (corners, centres, poses, half, radii, colours, hidden)
+        spec = world.spec
+        car_size = (spec.length, spec.width, spec.height)
+        corners = box_corners(world.poses, car_size).tolist()
+        radius = math.hypot(*car_size) / 2
+        colours = self._car_colours
+        boxes = [(i, corners[i], (x, y, spec.height / 2), radius, colours[i % len(colours)])
+                 for i, (x, y, _) in enumerate(world.poses.tolist()) if not world.parked[i]]
+        self._scene = boxes + self._obstacle_boxes
         self._scene_key = key
         return self._scene
 
     def _draw_boxes(self, images, world, cars, poses) -> None:
-        corners, centres, box_poses, half, radii, colours, hidden = self._scene_boxes(world)
-        if not len(corners):
-            return
-        f, cx, cy = self.K[0, 0], self.K[0, 2], self.K[1, 2]
+        """Fill every box a camera sees, far to near (plain Python: a few boxes per frame)."""
+        boxes = self._scene_boxes(world)
+        f, cx, cy = self._focal, self._cx, self._cy
         limit = (self.spec.width / 2 + 1) / f
-        slack = radii * math.sqrt(1 + limit * limit)
-        rotations = np.stack([pose.rotation for pose in poses])  # (C, 3, 3)
-        eyes = np.stack([pose.eye for pose in poses])  # (C, 3)
-        # coarse culling on bounding spheres: in front of the camera and inside the horizontal view
-        centre_cam = np.einsum("cij,cmj->cmi", rotations, centres[None, :, :] - eyes[:, None, :])
-        near_enough = centre_cam[..., 2] + radii > NEAR_PLANE
-        inside = np.abs(centre_cam[..., 0]) - slack < np.maximum(centre_cam[..., 2], 0) * limit
-        candidates = near_enough & inside & ~hidden[None, :]
-        for c, car in enumerate(cars):
-            if car < len(hidden):
-                candidates[c, car] = False
-        cams, boxes = np.nonzero(candidates)
-        if not len(cams):
-            return
-        # draw order: camera by camera, far to near within a camera
-        order = np.lexsort((-centre_cam[cams, boxes, 2], cams))
-        cams, boxes = cams[order], boxes[order]
-        cam = np.einsum("pij,pkj->pki", rotations[cams], corners[boxes] - eyes[cams][:, None, :])
-        z = cam[..., 2]
-        zc = np.maximum(z, NEAR_PLANE)
+        spread = math.sqrt(1 + limit * limit)
         scale = float(1 << SUBPIXEL_BITS)
-        pixels = np.empty(cam.shape[:2] + (2,))
-        pixels[..., 0] = cx + f * cam[..., 0] / zc
-        pixels[..., 1] = cy + f * cam[..., 1] / zc
-        pixels = (np.clip(pixels, -4096, 4096) * scale).astype(np.int32)
-        all_in_front = (z >= NEAR_PLANE).all(axis=1)
-        for p, (c, m) in enumerate(zip(cams.tolist(), boxes.tolist())):
-            # flat-shaded convex box: its silhouette is the hull of its (near-clipped) corners
-            points = pixels[p] if all_in_front[p] else self._clipped_outline(cam[p], z[p] >= NEAR_PLANE)
-            if points is None:
-                continue
-            cv2.fillConvexPoly(images[c], cv2.convexHull(points), colours[m],
-                               lineType=cv2.LINE_8, shift=SUBPIXEL_BITS)
+        for image, car, pose in zip(images, cars, poses):
+            (r11, r12, r13), (r21, r22, r23), (r31, r32, r33) = pose.rotation.tolist()
+            ex, ey, ez = pose.eye.tolist()
+            in_view = []
+            for index, corners, (bx, by, bz), radius, colour in boxes:
+                if index == car:
+                    continue
+                dx, dy, dz = bx - ex, by - ey, bz - ez
+                depth = r31 * dx + r32 * dy + r33 * dz
+                across = r11 * dx + r12 * dy + r13 * dz
+                # bounding-sphere culling: in front of the near plane and inside the horizontal view
+                if depth + radius > NEAR_PLANE and abs(across) - radius * spread < max(depth, 0.0) * limit:
+                    in_view.append((depth, corners, colour))
+            in_view.sort(key=lambda item: -item[0])
+            for _, corners, colour in in_view:
+                cam = [(r11 * (x - ex) + r12 * (y - ey) + r13 * (z - ez),
+                        r21 * (x - ex) + r22 * (y - ey) + r23 * (z - ez),
+                        r31 * (x - ex) + r32 * (y - ey) + r33 * (z - ez)) for x, y, z in corners]
+                if all(z >= NEAR_PLANE for _, _, z in cam):
+                    # flat-shaded convex box: its silhouette is the hull of its projected corners
+                    points = np.array([(min(max(cx + f * x / z, -4096.0), 4096.0) * scale,
+                                        min(max(cy + f * y / z, -4096.0), 4096.0) * scale) for x, y, z in cam],
+                                      dtype=np.int32)
+                else:
+                    cam = np.array(cam)
+                    points = self._clipped_outline(cam, cam[:, 2] >= NEAR_PLANE)
+                    if points is None:
+                        continue
+                cv2.fillConvexPoly(image, cv2.convexHull(points), colour, lineType=cv2.LINE_8,
+                                   shift=SUBPIXEL_BITS)
 
     def _clipped_outline(self, corners_cam: np.ndarray, in_front: np.ndarray):
         """Projected vertices of a box cut by the near plane: front corners plus edge crossings."""
@@ -180,7 +192,7 @@ class FastRenderer(Renderer):
         poly = np.concatenate([corners_cam[in_front], a + t * (b - a)])
         if len(poly) < 3:
             return None
-        f, cx, cy = self.K[0, 0], self.K[0, 2], self.K[1, 2]
+        f, cx, cy = self._focal, self._cx, self._cy
         px = np.empty((len(poly), 2))
         px[:, 0] = cx + f * poly[:, 0] / poly[:, 2]
         px[:, 1] = cy + f * poly[:, 1] / poly[:, 2]

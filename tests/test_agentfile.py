@@ -253,7 +253,7 @@ def test_bad_agents_forfeit_in_a_real_race(tmp_path, good):
         assert cars[name]["status"] == "forfeit", (name, cars[name])
         assert reason in cars[name]["reason"], (name, cars[name]["reason"])
     assert cars["tester"]["status"] == "not_finished"
-    assert cars["bot:follow@1"]["status"] == "not_finished"
+    assert cars["bot:follow@1.0"]["status"] == "not_finished"
     assert cars["tester"]["file_sha256"] == cars["slow"]["file_sha256"] and len(cars["tester"]["file_sha256"]) == 64
     assert all(car["position"] >= 3 for car in result["cars"] if car["status"] == "forfeit")
 

@@ -83,7 +83,7 @@ def test_replay_poses_match_the_race_trajectory(recorded):
     path, capture, _ = recorded
     summary = replay_summary(path)
     assert [c["id"] for c in summary["cars"]] == ["car_0", "car_1"]
-    assert [c["name"] for c in summary["cars"]] == ["bot:follow@0.6", "bot:follow@2"]
+    assert [c["name"] for c in summary["cars"]] == ["bot:follow@0.6", "bot:follow@2.0"]
     assert summary["steps"] == capture.final_step
     assert summary["duration"] == pytest.approx(capture.final_time, abs=1e-6)
     for i in range(2):
