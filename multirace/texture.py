@@ -56,14 +56,6 @@ class TrackTexture:
         row = (self.origin[1] - xy[..., 1]) * self.ppm
         return np.stack([col, row], axis=-1)
 
-    def pixel_from_world_matrix(self) -> np.ndarray:
-        """3x3 affine matrix taking homogeneous world (x, y, 1) to texture (col, row, 1)."""
-        return np.array([
-            [self.ppm, 0.0, -self.origin[0] * self.ppm],
-            [0.0, -self.ppm, self.origin[1] * self.ppm],
-            [0.0, 0.0, 1.0],
-        ])
-
     def _draw(self) -> np.ndarray:
         p = self.palette
         img = np.empty((self.height, self.width, 3), np.uint8)

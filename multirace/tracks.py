@@ -279,10 +279,6 @@ class Track:
         """Is a point with this projection on the road (borders included)?"""
         return -proj.right_width - margin <= proj.lateral <= proj.left_width + margin
 
-    def points_on_track(self, points: np.ndarray, hint: int | None = None) -> np.ndarray:
-        """On-road test for several points (e.g. the four wheels)."""
-        return np.array([self.on_track(self.project(px, py, hint)) for px, py in points])
-
     def lane_offset(self, lane: int, s: float = 0.0) -> float:
         """Lateral offset of a lane centre: lane 0 is the inner half, lane 1 the outer."""
         proj = self.project(*self.point_at(s)[:2])
