@@ -54,14 +54,34 @@ class Bot:
     def name(self) -> str:
         return f"bot:{self.kind}@{self.speed_text or format(self.speed, 'g')}"
 
-    def command(self, track: Track, spec: CarSpec, pose, sim_time: float, segment_hint=None):
-        """(steering degrees, speed m/s) at race time `sim_time`."""
+    def command(self, track: Track, spec: CarSpec, pose, sim_time: float, segment_hint=None, traffic=()):
+        """(steering degrees, speed m/s) at race time `sim_time`.
+
+        `traffic` lists the other cars as (metres ahead along the track, lateral
+        offset from this car, speed); a bot slows behind a car in its way.
+        """
         lateral = 0.0
         if self.kind == "lanes":
             lane = int(sim_time // self.lane_period) % 2
             proj = track.project(pose[0], pose[1], segment_hint)
             lateral = (proj.left_width if lane == 0 else -proj.right_width) / 2
-        return PurePursuit(speed=self.speed, lateral=lateral).command(track, spec, pose, segment_hint)
+        speed = speed_in_traffic(self.speed, traffic, spec)
+        return PurePursuit(speed=speed, lateral=lateral).command(track, spec, pose, segment_hint)
+
+
+FOLLOW_DISTANCE = 1.2  # m; a car closer than this ahead, in the same lane, sets the pace
+STOP_DISTANCE = 0.55  # m; closer than this the bot crawls
+LANE_HALF_WIDTH = 0.4  # m; cars closer than this sideways are in the way (two car widths)
+
+
+def speed_in_traffic(speed: float, traffic, spec: CarSpec) -> float:
+    """Speed that keeps a scripted driver from running into the car ahead."""
+    for ahead, lateral, other_speed in traffic:
+        if 0.0 < ahead < FOLLOW_DISTANCE and abs(lateral) < LANE_HALF_WIDTH:
+            if ahead < STOP_DISTANCE:
+                return spec.min_speed
+            speed = min(speed, max(spec.min_speed, 0.9 * other_speed))
+    return speed
 
 
 def parse_bot(text: str) -> Bot:

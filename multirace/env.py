@@ -217,7 +217,7 @@ class RaceEnv(ParallelEnv):
             i = self.num_cars + b
             if self.races[i].racing:
                 steer, speed = bot.command(self.track, spec, self.world.poses[i], self.sim_time,
-                                           self.races[i].segment_hint)
+                                           self.races[i].segment_hint, self.traffic(i))
                 self._commands[i] = spec.clamp_command(math.radians(steer), speed)
         contacts = self.world.step(self._commands)
         prev_time = self.sim_time
@@ -380,6 +380,16 @@ class RaceEnv(ParallelEnv):
         self.races[i].distance += track.wrap_ds(geo["proj"].s - self._s[i])
         self._s[i] = geo["proj"].s
         self._geometry[i] = geo
+
+    def traffic(self, i: int) -> list[tuple[float, float, float]]:
+        """The other cars on track as seen from car i: (metres ahead, lateral offset, speed)."""
+        mine = self._geometry[i]
+        if mine is None:
+            return []
+        s_i, lateral_i = mine["proj"].s, mine["proj"].lateral
+        length = self.track.length
+        return [((geo["proj"].s - s_i) % length, geo["proj"].lateral - lateral_i, float(self.world.drive_speed[j]))
+                for j, geo in enumerate(self._geometry) if geo is not None and j != i]
 
     def forfeit(self, i: int, reason: str) -> None:
         """End car i's run now (its agent failed); the race goes on for the others."""

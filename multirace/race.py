@@ -49,7 +49,7 @@ class BotController(Controller):
     def act(self, observation, info):
         env, i = self.env, self.car
         return self.bot.command(env.track, env.car_spec, env.world.poses[i], env.sim_time,
-                                env.races[i].segment_hint)
+                                env.races[i].segment_hint, env.traffic(i))
 
 
 def make_controller(spec: str, **agent_options) -> Controller:
