@@ -27,6 +27,15 @@ class Wild(BotController):
         return (-30.0, 2.0) if lo <= self.env.steps < hi else (steer, speed)
 
 
+class Blind(BotController):
+    """A bot that ignores the traffic ahead (so that it runs into the slower car)."""
+
+    def act(self, observation, info):
+        env, i = self.env, self.car
+        return self.bot.command(env.track, env.car_spec, env.world.poses[i], env.sim_time,
+                                env.races[i].segment_hint)
+
+
 class Capture:
     """A recorder that keeps the race's own trajectory and events, to compare the replay with."""
 
@@ -64,7 +73,7 @@ class Capture:
 def recorded(tmp_path_factory):
     path = tmp_path_factory.mktemp("replay") / "race.rrd"
     capture = Capture()
-    controllers = [Wild("bot:follow@0.6", (200, 240)), BotController("bot:follow@2.0")]
+    controllers = [Wild("bot:follow@0.6", (200, 240)), Blind("bot:follow@2.0")]
     result = run_race(controllers, RaceConfig(laps=1, race="head_to_head", seed=1),
                       recorders=[ReplayRecorder(path, image_every=2), capture])
     return path, capture, result
