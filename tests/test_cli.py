@@ -1,0 +1,41 @@
+"""The `multirace race` command: a real subprocess, its JSON record, and clear errors."""
+import json
+import subprocess
+import sys
+
+import pytest
+
+from multirace.cli import main
+
+RESULT_KEYS = {"name", "file_sha256", "position", "laps", "lap_times", "best_lap", "total_time", "resets",
+               "penalties", "collisions", "status", "reason"}
+
+
+def test_race_command_prints_a_table_and_writes_the_record(tmp_path):
+    out = tmp_path / "result.json"
+    run = subprocess.run([sys.executable, "-m", "multirace.cli", "race", "agents/dagger_small.pt", "bot:follow@1.5",
+                          "--laps", "1", "--seed", "3", "--json", str(out)],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert "dagger_small" in run.stdout and "bot:follow@1.5" in run.stdout and "finished" in run.stdout
+    record = json.loads(out.read_text())
+    assert record["format"] == "head_to_head" and record["track"] == "reinvent_base" and record["seed"] == 3
+    assert [car["position"] for car in record["cars"]] == [1, 2]
+    for car in record["cars"]:
+        assert RESULT_KEYS <= set(car)
+        assert car["status"] == "finished" and car["laps"] == 1
+        assert car["total_time"] == pytest.approx(sum(car["lap_times"]))
+    agent = next(car for car in record["cars"] if car["name"] == "dagger_small")
+    assert len(agent["file_sha256"]) == 64
+
+
+@pytest.mark.parametrize("args,message", [
+    (["race", "missing.pt"], "missing.pt"),
+    (["race", "bot:follow@1", "--track", "nowhere"], "track 'nowhere'"),
+    (["race", "bot:follow@1", "--laps", "0"], "laps"),
+    (["race", "bot:warp@1"], "bot:KIND@SPEED"),
+    (["race", "bot:follow@1", "--obstacles", "9"], "obstacles"),
+])
+def test_bad_arguments_get_a_clear_error_and_exit_2(args, message, capsys):
+    assert main(args) == 2
+    assert message in capsys.readouterr().err
