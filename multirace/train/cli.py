@@ -36,7 +36,7 @@ def add_train_parser(sub) -> None:
                    help="domain randomisation with a curriculum, opponent pool (PFSP), nature adversary and "
                         "procedural tracks")
     p.add_argument("--stop-on-success", action="store_true",
-                   help="stop at the first evaluation that finishes every lap")
+                   help="stop at the first evaluation that finishes every lap with no off-track")
     p.add_argument("--engine", default="local", choices=("local", "rllib"), help="local (default) or rllib")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_train)
@@ -89,7 +89,8 @@ def cmd_train(args) -> int:
           f"{summary['wall_seconds']} s ({summary['steps_per_s']} agent-steps/s, sampling "
           f"{summary['sample_seconds']} s, updates {summary['update_seconds']} s); first "
           f"{config.eval_laps}/{config.eval_laps} evaluation: "
-          + (f"{first} s" if first is not None else "none"))
+          + (f"{first} s" if first is not None else "none") + ", first with no off-track: "
+          + (f"{summary['first_clean_seconds']} s" if summary["first_clean_seconds"] is not None else "none"))
     print(f"learning curve: {Path(args.out).with_suffix('.png')}")
     return 0
 

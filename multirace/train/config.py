@@ -64,7 +64,7 @@ class TrainConfig:
     eval_every: float = 60.0  # seconds between greedy time-trial evaluations (0 = never)
     eval_track: str | None = None  # track of the evaluation (default: the first training track)
     eval_laps: int = 3  # laps of the evaluation time trial
-    stop_on_success: bool = False  # end training at the first evaluation that finishes every lap
+    stop_on_success: bool = False  # end training at the first evaluation that finishes every lap with no off-track
     progress: bool = True  # show a progress bar
     # ---- robust options (multirace.train.selfplay / nature)
     robust: bool = False  # shorthand: curriculum randomisation, opponent pool, nature adversary, procedural tracks

@@ -73,7 +73,8 @@ class TrainEnv:
         from ..randomize import Randomization
 
         self.perturbation = -1
-        if self.shared is not None and "nature" in self.shared:
+        use_nature = self.randomize is None or self._rng.random() < 0.5  # with a curriculum too: half the episodes
+        if self.shared is not None and "nature" in self.shared and use_nature:
             from .nature import UNCERTAINTY_SET, sample_perturbation
 
             weights = np.frombuffer(self.shared["nature"].get_obj(), dtype=np.float64).copy()

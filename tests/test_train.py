@@ -1,0 +1,87 @@
+"""Training: a short PPO run writes an agent file that loads and races, and its returns rise.
+
+Real env, real torch, real worker process; about a minute in all.
+"""
+import json
+
+import numpy as np
+import pytest
+
+from multirace.agentfile import AgentController, load_agent
+from multirace.race import RaceConfig, run_race
+from multirace.train.config import PRESETS, TrainConfig, describe, make_config
+from multirace.train.nature import Nature, UNCERTAINTY_SET, scale_randomization
+from multirace.randomize import Randomization
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    from multirace.train.ppo import train
+
+    out = tmp_path_factory.mktemp("train") / "ppo_test.pt"
+    config = make_config("tiny", tracks=("Oval_track",), minutes=0.75, seed=1, progress=False,
+                         cars_per_env=4, rollout_steps=64, minibatch_size=128, epochs=3, lr=1e-3)
+    summary = train(config, out)
+    return out, summary
+
+
+def test_agent_file_loads_and_races(trained):
+    out, summary = trained
+    agent = load_agent(out, step_budget=None)
+    assert agent.metadata["training_algorithm"] == "clipped_ppo"
+    assert agent.metadata["training"]["agent_steps"] == summary["agent_steps"] > 0
+    result = run_race([AgentController(out, step_budget=0.5)],
+                      RaceConfig(track="Oval_track", race="time_trial", laps=1, max_steps=60))
+    car = result["cars"][0]
+    assert car["status"] in ("finished", "not_finished")  # drove, did not forfeit
+    assert car["progress"] > 0
+    assert out.with_suffix(".png").stat().st_size > 1000  # learning curve
+    history = json.loads(out.with_suffix(".train.json").read_text())["history"]
+    assert len(history) == summary["iterations"]
+    assert (out.parent / (out.stem + ".ckpt") / "checkpoint.pt").exists()
+
+
+def test_returns_rise_on_a_simple_track(trained):
+    _, summary = trained
+    rewards = [h["mean_reward"] for h in summary["history"]]
+    assert len(rewards) >= 8, f"too few iterations in the budget: {len(rewards)}"
+    k = max(3, len(rewards) // 4)
+    first, last = np.mean(rewards[:k]), np.mean(rewards[-k:])
+    assert last > first + 0.05, f"mean reward per step did not rise: first {first:.3f}, last {last:.3f}"
+
+
+def test_resume_continues_from_the_checkpoint(trained, tmp_path):
+    from multirace.train.ppo import train
+
+    out, summary = trained
+    config = make_config("tiny", tracks=("Oval_track",), minutes=0.05, seed=1, progress=False)
+    resumed = train(config, tmp_path / "resumed.pt", resume=out.parent / (out.stem + ".ckpt") / "checkpoint.pt")
+    assert resumed["agent_steps"] > summary["agent_steps"]
+    assert resumed["iterations"] > summary["iterations"]
+
+
+def test_config_presets_and_docs():
+    deepracer = make_config("deepracer")
+    assert (deepracer.minibatch_size, deepracer.lr, deepracer.ent_coef, deepracer.gamma, deepracer.epochs,
+            deepracer.clip, deepracer.gae_lambda) == (64, 3e-4, 0.01, 0.999, 10, 0.2, 0.95)
+    assert set(PRESETS) >= {"fast", "deepracer", "tiny"}
+    text = describe()
+    for line in text.splitlines():
+        assert line.split(": ", 1)[1].strip(), f"undocumented setting: {line}"
+    with pytest.raises(ValueError, match="unknown"):
+        make_config("nope")
+    assert TrainConfig().batch_size == 2 * 4 * 256
+
+
+def test_nature_prefers_the_worst_perturbation():
+    nature = Nature(seed=0)
+    for k in range(len(UNCERTAINTY_SET)):
+        nature.update(k, 1.0)
+    nature.update(3, 0.0)
+    nature.update(3, 0.0)
+    w = nature.weights()
+    assert int(np.argmax(w)) == 3 and w.sum() == pytest.approx(1.0) and w.min() > 0
+    for _, cfg in UNCERTAINTY_SET:
+        Randomization.from_config(cfg)
+    half = scale_randomization(Randomization.preset("strong"), 0.0)
+    assert not half.enabled
