@@ -811,14 +811,16 @@ def _run_local(folder: Path, config: LeagueConfig, conn, todo, n_workers: int, s
                 replay = str(folder / REPLAYS / f"{match_id}.rrd") if config.replays else None
                 request = {"op": "match", "spec": spec, "folder": str(folder), "replay": replay,
                            "image_every": config.replay_image_every}
-                if worker is None:
-                    worker = _Worker()
                 try:
+                    if worker is None:
+                        worker = _Worker()
                     answer = worker.request(request, config.match_timeout)
-                except _WorkerFailed as exc:
-                    worker.kill()
+                except (_WorkerFailed, OSError, ValueError) as exc:  # died, hung, or spoke garbage
+                    if worker is not None:
+                        worker.kill()
                     worker = None
-                    answer = {"ok": False, "error": str(exc)}
+                    answer = {"ok": False, "error": str(exc) if isinstance(exc, _WorkerFailed)
+                              else f"worker failed: {type(exc).__name__}: {exc}"}
                 done.put((match_id, spec, answer, replay))
         finally:
             if worker is not None:
