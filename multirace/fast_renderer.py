@@ -20,28 +20,26 @@ from .texture import TrackTexture
 from .world import CAR_COLOURS, OBSTACLE_COLOUR, OBSTACLE_SIZE
 
 SUBPIXEL_BITS = 4
-# Corners of the unit box (+-0.5, +-0.5, 0..1); corner k has x = bit 0, y = bit 1, z = bit 2
-_UNIT_CORNERS = np.array([[sx * 0.5, sy * 0.5, sz] for sz in (0.0, 1.0) for sy in (-1, 1) for sx in (-1, 1)])
-# the 12 edges of a box as pairs of corner indices
+# Corner k of a box is centre + sx * half-axis x + sy * half-axis y + sz * half-axis z, with the
+# signs given by the bits of k (x = bit 0, y = bit 1, z = bit 2); the 12 edges are corner pairs
+_SIGNS = tuple(tuple(1.0 if k & bit else -1.0 for bit in (1, 2, 4)) for k in range(8))
 _EDGES = tuple((i, i | bit) for i in range(8) for bit in (1, 2, 4) if not i & bit)
 _EDGE_START = np.array([i for i, _ in _EDGES])
 _EDGE_END = np.array([j for _, j in _EDGES])
 
 
+def _box(index: int, pose, size, colour):
+    """A box of `size` (length, width, height) standing at `pose` (x, y, yaw), as the renderer's tuple."""
+    x, y, yaw = pose
+    length, width, height = size
+    c, s = math.cos(yaw), math.sin(yaw)
+    axes = ((c * length / 2, s * length / 2, 0.0), (-s * width / 2, c * width / 2, 0.0), (0.0, 0.0, height / 2))
+    return index, (x, y, height / 2), axes, math.hypot(length, width, height) / 2, colour
+
+
 def _gray(rgb) -> int:
     r, g, b = rgb
     return int(round(0.299 * r + 0.587 * g + 0.114 * b))
-
-
-def box_corners(poses: np.ndarray, size) -> np.ndarray:
-    """World corners (M, 8, 3) of boxes of `size` (length, width, height) at (x, y, yaw) poses."""
-    length, width, height = size
-    local = _UNIT_CORNERS * np.array([length, width, height])
-    cos, sin = np.cos(poses[:, 2]), np.sin(poses[:, 2])
-    x = poses[:, None, 0] + cos[:, None] * local[None, :, 0] - sin[:, None] * local[None, :, 1]
-    y = poses[:, None, 1] + sin[:, None] * local[None, :, 0] + cos[:, None] * local[None, :, 1]
-    z = np.broadcast_to(local[None, :, 2], x.shape)
-    return np.stack([x, y, z], axis=-1)
 
 
 class FastRenderer(Renderer):
@@ -107,12 +105,16 @@ class FastRenderer(Renderer):
         spec = self.spec
         images = []
         for pose in poses:
-            image = cv2.warpPerspective(
-                self._ground, self.ground_homography(pose), (spec.width, spec.height),
-                flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=self._floor)
-            if image.ndim == 2:
-                image = image[:, :, None]
-            image[: self.horizon_row(pose)] = self._sky
+            image = np.empty((spec.height, spec.width, spec.channels), np.uint8)
+            horizon = self.horizon_row(pose)
+            image[:horizon] = self._sky
+            if horizon < spec.height:  # warp only the rows below the horizon
+                homography = self.ground_homography(pose)
+                homography[:2] -= horizon * homography[2] * np.array([[0.0], [1.0]])
+                ground = image[horizon:, :, 0] if spec.grayscale else image[horizon:]
+                cv2.warpPerspective(self._ground, homography, (spec.width, spec.height - horizon), dst=ground,
+                                    flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                                    borderValue=self._floor)
             images.append(image)
         self._draw_boxes(images, world, cars, poses)
         return images
@@ -120,7 +122,7 @@ class FastRenderer(Renderer):
     def _scene_boxes(self, world):
         """Boxes in the scene as plain floats, computed once per world step and shared by all cameras.
 
-        Returns a list of (index, corners [8 x (x, y, z)], centre (x, y, z), bounding radius,
+        Returns a list of (index, centre (x, y, z), half-axes ((x, y, z) x 3), bounding radius,
         colour); cars first (index = car), then obstacles. Parked cars are left out.
         """
         obstacle_key = world.obstacle_poses.tobytes()
@@ -128,19 +130,13 @@ class FastRenderer(Renderer):
         if key == self._scene_key:
             return self._scene
         if self._obstacle_key != obstacle_key:
-            corners = box_corners(world.obstacle_poses, OBSTACLE_SIZE).tolist()
-            radius = math.hypot(*OBSTACLE_SIZE) / 2
-            self._obstacle_boxes = [
-                (world.num_cars + k, corners[k], (x, y, OBSTACLE_SIZE[2] / 2), radius, self._obstacle_colour)
-                for k, (x, y, _) in enumerate(world.obstacle_poses.tolist())]
+            self._obstacle_boxes = [_box(world.num_cars + k, pose, OBSTACLE_SIZE, self._obstacle_colour)
+                                    for k, pose in enumerate(world.obstacle_poses.tolist())]
             self._obstacle_key = obstacle_key
-        spec = world.spec
+        spec, colours = world.spec, self._car_colours
         car_size = (spec.length, spec.width, spec.height)
-        corners = box_corners(world.poses, car_size).tolist()
-        radius = math.hypot(*car_size) / 2
-        colours = self._car_colours
-        boxes = [(i, corners[i], (x, y, spec.height / 2), radius, colours[i % len(colours)])
-                 for i, (x, y, _) in enumerate(world.poses.tolist()) if not world.parked[i]]
+        boxes = [_box(i, pose, car_size, colours[i % len(colours)])
+                 for i, pose in enumerate(world.poses.tolist()) if not world.parked[i]]
         self._scene = boxes + self._obstacle_boxes
         self._scene_key = key
         return self._scene
@@ -156,7 +152,7 @@ class FastRenderer(Renderer):
             (r11, r12, r13), (r21, r22, r23), (r31, r32, r33) = pose.rotation.tolist()
             ex, ey, ez = pose.eye.tolist()
             in_view = []
-            for index, corners, (bx, by, bz), radius, colour in boxes:
+            for index, (bx, by, bz), axes, radius, colour in boxes:
                 if index == car:
                     continue
                 dx, dy, dz = bx - ex, by - ey, bz - ez
@@ -164,12 +160,15 @@ class FastRenderer(Renderer):
                 across = r11 * dx + r12 * dy + r13 * dz
                 # bounding-sphere culling: in front of the near plane and inside the horizontal view
                 if depth + radius > NEAR_PLANE and abs(across) - radius * spread < max(depth, 0.0) * limit:
-                    in_view.append((depth, corners, colour))
+                    in_view.append((depth, across, r21 * dx + r22 * dy + r23 * dz, axes, colour))
             in_view.sort(key=lambda item: -item[0])
-            for _, corners, colour in in_view:
-                cam = [(r11 * (x - ex) + r12 * (y - ey) + r13 * (z - ez),
-                        r21 * (x - ex) + r22 * (y - ey) + r23 * (z - ez),
-                        r31 * (x - ex) + r32 * (y - ey) + r33 * (z - ez)) for x, y, z in corners]
+            for depth, across, down, axes, colour in in_view:
+                # the box in camera coordinates: centre +- three half-axes
+                (ux, uy, uz), (vx, vy, vz), (wx, wy, wz) = [
+                    (r11 * ax + r12 * ay + r13 * az, r21 * ax + r22 * ay + r23 * az,
+                     r31 * ax + r32 * ay + r33 * az) for ax, ay, az in axes]
+                cam = [(across + su * ux + sv * vx + sw * wx, down + su * uy + sv * vy + sw * wy,
+                        depth + su * uz + sv * vz + sw * wz) for su, sv, sw in _SIGNS]
                 if all(z >= NEAR_PLANE for _, _, z in cam):
                     # flat-shaded convex box: its silhouette is the hull of its projected corners
                     points = np.array([(min(max(cx + f * x / z, -4096.0), 4096.0) * scale,
