@@ -376,7 +376,6 @@ def test_crashing_and_hanging_workers_cost_only_their_match(tmp_path, hook_env):
 
 
 def test_ray_without_ray_is_a_clear_error(tmp_path):
-    pytest.importorskip("multirace")
     try:
         import ray  # noqa: F401
         pytest.skip("ray is installed")
@@ -385,3 +384,16 @@ def test_ray_without_ray_is_a_clear_error(tmp_path):
     folder = _league(tmp_path)
     with pytest.raises(LeagueError, match=r"pip install 'multirace\[ray\]'"):
         run_league(folder, ray_address="auto", progress=False)
+
+
+@pytest.mark.slow
+def test_ray_local_instance_gives_the_same_table(reference, tmp_path):
+    pytest.importorskip("ray")
+    ref_folder, _ = reference
+    folder = _league(tmp_path)
+    submit(folder, DAGGER, "dagger")
+    stats = run_league(folder, ray_address="local", progress=False)
+    assert stats["ran"] == 10 and stats["failed"] == 0
+    assert len(_results(folder)) == 10
+    assert all((folder / "replays" / f"{mid}.rrd").stat().st_size > 1000 for mid, *_ in _results(folder))
+    assert _comparable(compute_table(folder)) == _comparable(compute_table(ref_folder))
