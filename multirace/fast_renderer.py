@@ -22,7 +22,7 @@ from .world import CAR_COLOURS, OBSTACLE_COLOUR, OBSTACLE_SIZE
 SUBPIXEL_BITS = 4
 # Corner k of a box is centre + sx * half-axis x + sy * half-axis y + sz * half-axis z, with the
 # signs given by the bits of k (x = bit 0, y = bit 1, z = bit 2); the 12 edges are corner pairs
-_SIGNS = tuple(tuple(1.0 if k & bit else -1.0 for bit in (1, 2, 4)) for k in range(8))
+_SIGN_ARRAY = np.array([[1.0 if k & bit else -1.0 for bit in (1, 2, 4)] for k in range(8)])
 _EDGES = tuple((i, i | bit) for i in range(8) for bit in (1, 2, 4) if not i & bit)
 _EDGE_START = np.array([i for i, _ in _EDGES])
 _EDGE_END = np.array([j for _, j in _EDGES])
@@ -142,17 +142,22 @@ class FastRenderer(Renderer):
         return self._scene
 
     def _draw_boxes(self, images, world, cars, poses) -> None:
-        """Fill every box a camera sees, far to near (plain Python: a few boxes per frame)."""
+        """Fill every box each camera sees, far to near.
+
+        Culling runs per camera in plain Python on bounding spheres; the corners of
+        all (camera, box) pairs that survive are then projected in one numpy pass.
+        """
         boxes = self._scene_boxes(world)
         f, cx, cy = self._focal, self._cx, self._cy
         limit = (self.spec.width / 2 + 1) / f
         spread = math.sqrt(1 + limit * limit)
-        scale = float(1 << SUBPIXEL_BITS)
-        for image, car, pose in zip(images, cars, poses):
-            (r11, r12, r13), (r21, r22, r23), (r31, r32, r33) = pose.rotation.tolist()
+        pairs, centres, rotations, axes = [], [], [], []
+        for c, (car, pose) in enumerate(zip(cars, poses)):
+            rotation = pose.rotation
+            (r11, r12, r13), (r21, r22, r23), (r31, r32, r33) = rotation.tolist()
             ex, ey, ez = pose.eye.tolist()
             in_view = []
-            for index, (bx, by, bz), axes, radius, colour in boxes:
+            for index, (bx, by, bz), box_axes, radius, colour in boxes:
                 if index == car:
                     continue
                 dx, dy, dz = bx - ex, by - ey, bz - ez
@@ -160,27 +165,33 @@ class FastRenderer(Renderer):
                 across = r11 * dx + r12 * dy + r13 * dz
                 # bounding-sphere culling: in front of the near plane and inside the horizontal view
                 if depth + radius > NEAR_PLANE and abs(across) - radius * spread < max(depth, 0.0) * limit:
-                    in_view.append((depth, across, r21 * dx + r22 * dy + r23 * dz, axes, colour))
-            in_view.sort(key=lambda item: -item[0])
-            for depth, across, down, axes, colour in in_view:
-                # the box in camera coordinates: centre +- three half-axes
-                (ux, uy, uz), (vx, vy, vz), (wx, wy, wz) = [
-                    (r11 * ax + r12 * ay + r13 * az, r21 * ax + r22 * ay + r23 * az,
-                     r31 * ax + r32 * ay + r33 * az) for ax, ay, az in axes]
-                cam = [(across + su * ux + sv * vx + sw * wx, down + su * uy + sv * vy + sw * wy,
-                        depth + su * uz + sv * vz + sw * wz) for su, sv, sw in _SIGNS]
-                if all(z >= NEAR_PLANE for _, _, z in cam):
-                    # flat-shaded convex box: its silhouette is the hull of its projected corners
-                    points = np.array([(min(max(cx + f * x / z, -4096.0), 4096.0) * scale,
-                                        min(max(cy + f * y / z, -4096.0), 4096.0) * scale) for x, y, z in cam],
-                                      dtype=np.int32)
-                else:
-                    cam = np.array(cam)
-                    points = self._clipped_outline(cam, cam[:, 2] >= NEAR_PLANE)
-                    if points is None:
-                        continue
-                cv2.fillConvexPoly(image, cv2.convexHull(points), colour, lineType=cv2.LINE_8,
-                                   shift=SUBPIXEL_BITS)
+                    in_view.append((depth, (across, r21 * dx + r22 * dy + r23 * dz, depth), box_axes, colour))
+            in_view.sort(key=lambda item: -item[0])  # far to near
+            for _, centre, box_axes, colour in in_view:
+                pairs.append((c, colour))
+                centres.append(centre)
+                rotations.append(rotation)
+                axes.append(box_axes)
+        if not pairs:
+            return
+        # camera-frame corners of every pair: centre + signs . (R @ half-axes)
+        axes_cam = np.einsum("pij,pkj->pki", np.array(rotations), np.array(axes))
+        cam = np.array(centres)[:, None, :] + np.einsum("sk,pki->psi", _SIGN_ARRAY, axes_cam)
+        z = cam[..., 2]
+        zc = np.maximum(z, NEAR_PLANE)
+        pixels = np.empty(cam.shape[:2] + (2,))
+        pixels[..., 0] = cx + f * cam[..., 0] / zc
+        pixels[..., 1] = cy + f * cam[..., 1] / zc
+        pixels = (np.clip(pixels, -4096, 4096) * float(1 << SUBPIXEL_BITS)).astype(np.int32)
+        in_front = z >= NEAR_PLANE
+        all_in_front = in_front.all(axis=1).tolist()
+        for p, (c, colour) in enumerate(pairs):
+            # flat-shaded convex box: its silhouette is the hull of its (near-clipped) corners
+            points = pixels[p] if all_in_front[p] else self._clipped_outline(cam[p], in_front[p])
+            if points is None:
+                continue
+            cv2.fillConvexPoly(images[c], cv2.convexHull(points), colour, lineType=cv2.LINE_8,
+                               shift=SUBPIXEL_BITS)
 
     def _clipped_outline(self, corners_cam: np.ndarray, in_front: np.ndarray):
         """Projected vertices of a box cut by the near plane: front corners plus edge crossings."""
