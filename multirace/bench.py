@@ -24,24 +24,28 @@ WINDOWS = 5  # each figure is the best of this many equal time windows
 OBSTACLES = 3
 
 
-def _best_rate(step, agents_per_step: int, seconds: float, windows: int = WINDOWS) -> float:
-    """Agent-steps per second of `step()`: the best of several short windows.
+def _best_rate(step, agents_per_step: int, seconds: float, windows: int = WINDOWS) -> tuple[float, float]:
+    """Agent-steps per second of `step()`: per wall-clock second and per CPU second of this thread.
 
-    Other processes on a 2-core machine slow some windows down; the best window
-    is the closest to what the code itself costs.
+    Each is the best of several short windows: other processes on a 2-core
+    machine slow some windows down, and the best window is the closest to what
+    the code itself costs. The CPU figure does not count time spent waiting for
+    a core, so it stays meaningful on a busy machine.
     """
-    best = 0.0
+    best_wall = best_cpu = 0.0
     for _ in range(windows):
-        steps, start = 0, time.perf_counter()
+        steps, start, start_cpu = 0, time.perf_counter(), time.thread_time()
         while time.perf_counter() - start < seconds / windows:
             step()
             steps += 1
-        best = max(best, agents_per_step * steps / (time.perf_counter() - start))
-    return best
+        wall, cpu = time.perf_counter() - start, time.thread_time() - start_cpu
+        best_wall = max(best_wall, agents_per_step * steps / wall)
+        best_cpu = max(best_cpu, agents_per_step * steps / max(cpu, 1e-9))
+    return best_wall, best_cpu
 
 
-def _bench_env(num_cars: int, renderer: str, seconds: float, seed: int = 0) -> float:
-    """Agent-steps per second of the env stepped with random actions (resetting when done)."""
+def _bench_env(num_cars: int, renderer: str, seconds: float, seed: int = 0) -> tuple[float, float]:
+    """Agent-steps per wall and per CPU second of the env with random actions (resetting when done)."""
     env = RaceEnv(num_cars=num_cars, obstacles=OBSTACLES, renderer=renderer, max_steps=2000)
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)
@@ -58,8 +62,8 @@ def _bench_env(num_cars: int, renderer: str, seconds: float, seed: int = 0) -> f
     return rate
 
 
-def _bench_floor(num_cars: int, seconds: float, seed: int = 0) -> float:
-    """Agent-steps per second of the bare minimum: physics steps plus one texture warp per camera.
+def _bench_floor(num_cars: int, seconds: float, seed: int = 0) -> tuple[float, float]:
+    """Agent-steps per wall and CPU second of the bare minimum: physics plus one texture warp per camera.
 
     The cars get random commands like the env benchmark's, and are put back on
     the grid every 60 steps so that they keep touching as often.
@@ -97,30 +101,31 @@ def _bench_workers(num_workers: int, num_cars: int, seconds: float) -> float:
     try:
         vec.reset(seeds=list(range(num_workers)))
         vec.step(rng.integers(10, size=(num_workers, num_cars)))
-        return _best_rate(lambda: vec.step(rng.integers(10, size=(num_workers, num_cars))),
-                          num_workers * num_cars, seconds)
+        wall, _ = _best_rate(lambda: vec.step(rng.integers(10, size=(num_workers, num_cars))),
+                             num_workers * num_cars, seconds)
+        return wall
     finally:
         vec.close()
 
 
-def run_bench(seconds: float = 3.0, replay_seconds: float = 60.0, progress=print) -> dict:
+def run_bench(seconds: float = 3.0, replay_seconds: float = 60.0, progress=print,
+              training_seconds: float = 40.0) -> dict:
     """All figures of the benchmark; `seconds` is the time spent per measurement."""
     cv2.setNumThreads(1)  # one core per process, as in training workers
-    figures: dict = {"agent_steps_per_s": {"fast": {}, "pybullet": {}, "floor": {}}}
-    per_s = figures["agent_steps_per_s"]
-    for n in CAR_COUNTS:
-        per_s["fast"][str(n)] = round(_bench_env(n, "fast", seconds), 1)
-        progress(f"fast renderer, {n} cars: {per_s['fast'][str(n)]:.0f} agent-steps/s")
-    for n in (1, 4):
-        per_s["pybullet"][str(n)] = round(_bench_env(n, "pybullet", seconds), 1)
-        progress(f"pybullet renderer, {n} cars: {per_s['pybullet'][str(n)]:.0f} agent-steps/s")
-    for n in (1, 4):
-        per_s["floor"][str(n)] = round(_bench_floor(n, seconds), 1)
-        progress(f"floor (physics + one warp per camera), {n} cars: {per_s['floor'][str(n)]:.0f} agent-steps/s")
-    fast4 = per_s["fast"]["4"]
-    figures["fast_over_pybullet_4"] = round(fast4 / per_s["pybullet"]["4"], 1)
-    figures["fast_over_floor_4"] = round(fast4 / per_s["floor"]["4"], 3)
-    per_agent_us = {n: 1e6 / per_s["fast"][str(n)] for n in CAR_COUNTS}
+    figures: dict = {"agent_steps_per_s": {"fast": {}, "pybullet": {}, "floor": {}},
+                     "agent_steps_per_cpu_s": {"fast": {}, "pybullet": {}, "floor": {}}}
+    per_s, per_cpu_s = figures["agent_steps_per_s"], figures["agent_steps_per_cpu_s"]
+    runs = [("fast", n, functools.partial(_bench_env, n, "fast")) for n in CAR_COUNTS]
+    runs += [("pybullet", n, functools.partial(_bench_env, n, "pybullet")) for n in (1, 4)]
+    runs += [("floor", n, functools.partial(_bench_floor, n)) for n in (1, 4)]
+    for kind, n, bench in runs:
+        wall, cpu = bench(seconds)
+        per_s[kind][str(n)], per_cpu_s[kind][str(n)] = round(wall, 1), round(cpu, 1)
+        progress(f"{kind}, {n} cars: {wall:.0f} agent-steps/s ({cpu:.0f} per CPU second)")
+    for suffix, rates in (("", per_s), ("_cpu", per_cpu_s)):
+        figures["fast_over_pybullet_4" + suffix] = round(rates["fast"]["4"] / rates["pybullet"]["4"], 1)
+        figures["fast_over_floor_4" + suffix] = round(rates["fast"]["4"] / rates["floor"]["4"], 3)
+    per_agent_us = {n: 1e6 / per_cpu_s["fast"][str(n)] for n in CAR_COUNTS}
     figures["per_agent_cost_growth_1_to_8"] = round(per_agent_us[8] / per_agent_us[1], 3)
     one = _bench_workers(1, 4, seconds)
     two = _bench_workers(2, 4, seconds)
@@ -134,20 +139,26 @@ def run_bench(seconds: float = 3.0, replay_seconds: float = 60.0, progress=print
         figures["replay"] = cost
         progress(f"replay of a 4-car {replay_seconds:g} s race: {cost['replay_mb']} MB, "
                  f"+{cost['overhead_percent']}% race time")
+    if training_seconds:  # the full PPO loop (sampling + updates) on 2 worker processes
+        from .train.throughput import training_throughput
+
+        figures["training"] = training_throughput(seconds=training_seconds)
+        progress(f"training (PPO, sampling + updates, 2 workers): {figures['training']['agent_steps_per_s']:.0f} "
+                 "agent-steps/s")
     figures["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
     return figures
 
 
 def format_table(figures: dict) -> list[tuple[str, str]]:
     """(label, value) rows for printing."""
-    per_s = figures["agent_steps_per_s"]
-    rows = [(f"fast, {n} cars (agent-steps/s)", f"{v:,.0f}") for n, v in per_s["fast"].items()]
-    rows += [(f"pybullet, {n} cars (agent-steps/s)", f"{v:,.0f}") for n, v in per_s["pybullet"].items()]
-    rows += [(f"floor, {n} cars (agent-steps/s)", f"{v:,.0f}") for n, v in per_s["floor"].items()]
+    per_s, per_cpu_s = figures["agent_steps_per_s"], figures["agent_steps_per_cpu_s"]
+    rows = [(f"{kind}, {n} cars (agent-steps/s; per CPU s)", f"{v:,.0f}; {per_cpu_s[kind][n]:,.0f}")
+            for kind in ("fast", "pybullet", "floor") for n, v in per_s[kind].items()]
     rows += [
-        ("fast / pybullet, 4 cars", f"{figures['fast_over_pybullet_4']}x"),
-        ("fast / floor, 4 cars", f"{figures['fast_over_floor_4']}"),
-        ("per-agent cost, 8 cars / 1 car", f"{figures['per_agent_cost_growth_1_to_8']}x"),
+        ("fast / pybullet, 4 cars (wall; CPU)", f"{figures['fast_over_pybullet_4']}x; "
+                                                f"{figures['fast_over_pybullet_4_cpu']}x"),
+        ("fast / floor, 4 cars (wall; CPU)", f"{figures['fast_over_floor_4']}; {figures['fast_over_floor_4_cpu']}"),
+        ("per-agent CPU cost, 8 cars / 1 car", f"{figures['per_agent_cost_growth_1_to_8']}x"),
         ("2 workers / 1 worker", f"{figures['workers_speedup_2']}x"),
         ("peak RSS (MB)", f"{figures['peak_rss_mb']}"),
     ]

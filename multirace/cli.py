@@ -37,7 +37,8 @@ def cmd_race(args) -> int:
     from .race import RaceConfig, make_controller, run_race
 
     controllers = [make_controller(spec) for spec in args.entrants]
-    config = RaceConfig(track=args.track, reverse=args.reverse, race=args.format, laps=args.laps,
+    race_format = args.format or ("time_trial" if len(controllers) == 1 else "head_to_head")
+    config = RaceConfig(track=args.track, reverse=args.reverse, race=race_format, laps=args.laps,
                         seed=args.seed, obstacles=args.obstacles, max_steps=args.max_steps)
     recorders = []
     if getattr(args, "replay", None):
@@ -285,8 +286,6 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if getattr(args, "format", "x") is None:
-        args.format = "time_trial" if len(args.entrants) == 1 else "head_to_head"
     try:
         return args.func(args)
     except (TrackError, ValueError, FileNotFoundError) as exc:
