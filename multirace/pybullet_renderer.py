@@ -13,10 +13,10 @@ import tempfile
 
 import cv2
 import numpy as np
-import pybullet
 
 from .camera import FAR_PLANE, NEAR_PLANE, CameraPose, CameraSpec, Renderer
 from .texture import TrackTexture
+from .world import pybullet
 
 FLOOR_EXTENT = 200.0  # metres of plain floor around the track texture
 

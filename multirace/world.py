@@ -19,11 +19,27 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 
 import numpy as np
-import pybullet
 
 from .car import CarSpec
+
+
+def _import_pybullet():
+    """Import pybullet without the "pybullet build time" banner it prints on stderr."""
+    saved, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        import pybullet as module
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
+    return module
+
+
+pybullet = _import_pybullet()
 
 CAR_COLOURS = (  # RGB, one per car slot
     (220, 40, 40), (40, 90, 230), (250, 200, 20), (30, 170, 60),
