@@ -19,8 +19,7 @@ def trained(tmp_path_factory):
     from multirace.train.ppo import train
 
     out = tmp_path_factory.mktemp("train") / "ppo_test.pt"
-    config = make_config("tiny", tracks=("Oval_track",), minutes=0.75, seed=1, progress=False,
-                         cars_per_env=4, rollout_steps=64, minibatch_size=128, epochs=3, lr=1e-3)
+    config = make_config("tiny", tracks=("Oval_track",), minutes=0.75, seed=1, progress=False)
     summary = train(config, out)
     return out, summary
 
@@ -47,7 +46,7 @@ def test_returns_rise_on_a_simple_track(trained):
     assert len(rewards) >= 8, f"too few iterations in the budget: {len(rewards)}"
     k = max(3, len(rewards) // 4)
     first, last = np.mean(rewards[:k]), np.mean(rewards[-k:])
-    assert last > first + 0.05, f"mean reward per step did not rise: first {first:.3f}, last {last:.3f}"
+    assert last > first + 0.1, f"mean reward per step did not rise: first {first:.3f}, last {last:.3f}"
 
 
 def test_resume_continues_from_the_checkpoint(trained, tmp_path):

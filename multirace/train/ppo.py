@@ -116,7 +116,7 @@ def evaluate_time_trial(agent_path, track: str, laps: int = 3, seed: int = 0, re
     from ..race import RaceConfig, run_race
 
     # a generous step budget: the evaluation measures driving, not how busy the machine is
-    result = run_race([AgentController(agent_path, step_budget=0.25)], RaceConfig(track=track, reverse=reverse, race="time_trial",
+    result = run_race([AgentController(agent_path, step_budget=5.0)], RaceConfig(track=track, reverse=reverse, race="time_trial",
                                                                laps=laps, seed=seed))
     return result["cars"][0]
 
@@ -153,6 +153,11 @@ def plot_history(history: list, evals: list, path) -> None:
     plt.close(fig)
 
 
+def eval_score(e: dict) -> tuple:
+    """Order of evaluations: more laps, then fewer off-tracks, then faster."""
+    return (e["laps"], -e["resets"], -(e["total_time"] or 1e9))
+
+
 # ------------------------------------------------------------------ train
 def train(config: TrainConfig, out, init=None, resume=None, command=None, log=print) -> dict:
     """Train with PPO until the time budget is spent; write the agent file `out`; return a summary."""
@@ -167,7 +172,7 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
     checkpoint = None
     if resume:
         checkpoint = torch.load(resume, map_location="cpu", weights_only=True)
-        saved = checkpoint["config"]
+        saved = json.loads(checkpoint["config"])
         for key in ("network", "action_space", "camera"):
             setattr(config, key, saved[key] if key != "camera" else tuple(saved[key]))
     if init:
@@ -236,6 +241,7 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
         if e["laps"] >= e["target"] and e["resets"] == 0 and first_clean is None:
             first_clean = e["elapsed"]
     last_ckpt = last_eval = time.perf_counter()
+    best = None  # (score, weights, evaluation) of the best evaluated policy so far
     sample_time = update_time = 0.0
     progress = None
     if config.progress:
@@ -267,7 +273,8 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
         (ckpt_dir / "checkpoint.tmp").replace(ckpt_dir / "checkpoint.pt")
 
     try:
-        while elapsed() < budget:
+        start_iteration = iteration
+        while iteration == start_iteration or elapsed() < budget:  # at least one iteration per run
             # --- 6. robust knobs for this iteration
             frac = min(1.0, elapsed() / budget)
             if shared is not None and config.curriculum:
@@ -334,7 +341,7 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
             b_ret, b_val = returns.reshape(-1)[keep], buf_val.reshape(-1)[keep]
             if config.anneal_lr:
                 for group in optimiser.param_groups:
-                    group["lr"] = config.lr * max(0.05, 1.0 - frac)
+                    group["lr"] = config.lr * max(0.1, 1.0 - frac)
             net.train()
             size = len(b_obs)
             mb = min(config.minibatch_size, size)
@@ -416,7 +423,10 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
                 evals.append({"iteration": iteration, "agent_steps": agent_steps,
                               "elapsed": round(spent + elapsed(), 1), "laps": car["laps"],
                               "target": config.eval_laps, "resets": car["resets"], "total_time": car["total_time"],
-                              "best_lap": car["best_lap"], "status": car["status"]})
+                              "best_lap": car["best_lap"], "status": car["status"], "reason": car["reason"]})
+                score = eval_score(evals[-1])
+                if best is None or score > best[0]:
+                    best = (score, {k: v.detach().clone() for k, v in net.state_dict().items()}, evals[-1])
                 if car["laps"] >= config.eval_laps and first_success is None:
                     first_success = evals[-1]["elapsed"]
                     snapshot_agent(ckpt_dir / "first_success.pt")
@@ -441,8 +451,22 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
                "first_clean_seconds": first_clean,
                "final_return": history[-1]["return"] if history else None,
                "final_laps_per_episode": history[-1]["laps_per_episode"] if history else None}
-    snapshot_agent(out, {"first_success_seconds": first_success, "first_clean_seconds": first_clean})
     save_checkpoint()
+    note = {"first_success_seconds": first_success, "first_clean_seconds": first_clean}
+    if best is not None and config.keep_best:
+        # the final weights get one last evaluation; the best evaluated policy is what we ship
+        final = snapshot_agent(ckpt_dir / "final.pt")
+        car = evaluate_time_trial(final, config.eval_track or str(config.tracks[0]), config.eval_laps)
+        final_eval = {"laps": car["laps"], "target": config.eval_laps, "resets": car["resets"],
+                      "total_time": car["total_time"], "iteration": iteration, "final": True}
+        if best[0] > eval_score(final_eval):
+            net.load_state_dict(best[1])
+            note["selected"] = f"best evaluation (iteration {best[2]['iteration']})"
+            summary["selected_eval"] = best[2]
+        else:
+            note["selected"] = "final weights"
+            summary["selected_eval"] = final_eval
+    snapshot_agent(out, note)
     plot_history(history, evals, out.with_suffix(".png"))
     out.with_suffix(".train.json").write_text(json.dumps({"summary": summary, "config": config.to_dict(),
                                                           "history": history, "evals": evals}, indent=1))
