@@ -1,13 +1,15 @@
 """Several race envs stepped in worker processes, as stacked numpy arrays.
 
 Each worker process owns one `RaceEnv` (built there from a picklable factory)
-and resets it automatically when its episode ends. Observations come back as
-one array (envs, cars, H, W, C); only the info keys asked for cross the pipe,
-since the full DeepRacer params (waypoint lists) are costly to send.
+and resets it automatically when its episode ends. Camera images travel
+through shared memory (each worker writes its cars' images into its own slot),
+so the pipe carries only rewards, flags and the info keys asked for; the full
+DeepRacer params (waypoint lists) are costly to send and stay behind.
 """
 from __future__ import annotations
 
 import multiprocessing as mp
+from multiprocessing import shared_memory
 from typing import Callable, Sequence
 
 import numpy as np
@@ -20,12 +22,20 @@ def _worker(remote, make_env, info_keys) -> None:
 
     cv2.setNumThreads(1)  # one core per worker; OpenCV's own threads only contend
     env = make_env()
+    agents = env.possible_agents
+    memory, images = None, None
     episode_seed = None
 
-    def pack(obs, infos):
-        stacked = np.stack([obs[a] for a in env.possible_agents])
-        small = [{k: infos[a][k] for k in info_keys if k in infos[a]} for a in env.possible_agents]
-        return stacked, small
+    def publish(obs, infos=None):
+        nonlocal memory, images
+        if images is None:  # first images: ask for a shared buffer of their size
+            remote.send(("shape", (len(agents),) + obs[agents[0]].shape))
+            memory = shared_memory.SharedMemory(name=remote.recv())
+            images = np.ndarray((len(agents),) + obs[agents[0]].shape, np.uint8, buffer=memory.buf)
+        for k, agent in enumerate(agents):
+            images[k] = obs[agent]
+        if infos is not None:
+            return [{key: infos[a][key] for key in info_keys if key in infos[a]} for a in agents]
 
     try:
         while True:
@@ -33,24 +43,25 @@ def _worker(remote, make_env, info_keys) -> None:
             if command == "reset":
                 episode_seed = payload
                 obs, infos = env.reset(seed=payload)
-                remote.send(pack(obs, infos))
+                small = publish(obs, infos)
+                remote.send(("infos", small))
             elif command == "step":
-                actions = {a: payload[k] for k, a in enumerate(env.possible_agents)}
-                obs, rewards, terms, truncs, infos = env.step(actions)
-                reward = np.array([rewards[a] for a in env.possible_agents], np.float32)
-                done = all(terms.values()) or all(truncs.values())
+                obs, rewards, terms, truncs, infos = env.step({a: payload[k] for k, a in enumerate(agents)})
+                reward = np.array([rewards[a] for a in agents], np.float32)
                 truncated = all(truncs.values())
-                final_obs, final_infos = pack(obs, infos)
+                done = all(terms.values()) or truncated
+                small = [{key: infos[a][key] for key in info_keys if key in infos[a]} for a in agents]
                 if done:
                     episode_seed = None if episode_seed is None else episode_seed + 1000
-                    obs, infos = env.reset(seed=episode_seed)
-                    obs, _ = pack(obs, infos)
-                else:
-                    obs = final_obs
-                remote.send((obs, reward, done, truncated, final_infos))
+                    obs, _ = env.reset(seed=episode_seed)
+                publish(obs)
+                remote.send(("step", (reward, done, truncated, small)))
             elif command == "close":
                 break
     finally:
+        images = None
+        if memory is not None:
+            memory.close()
         env.close()
         remote.close()
 
@@ -60,7 +71,7 @@ class SubprocVectorEnv:
 
     def __init__(self, make_envs: Sequence[Callable], info_keys: Sequence[str] = DEFAULT_INFO_KEYS):
         context = mp.get_context("spawn")  # PyBullet clients must not be forked
-        self.remotes, self.processes = [], []
+        self.remotes, self.processes, self.memories = [], [], []
         for make_env in make_envs:
             parent, child = context.Pipe()
             process = context.Process(target=_worker, args=(child, make_env, tuple(info_keys)), daemon=True)
@@ -69,14 +80,29 @@ class SubprocVectorEnv:
             self.remotes.append(parent)
             self.processes.append(process)
         self.num_envs = len(make_envs)
+        self.images = [None] * self.num_envs
+
+    def _receive(self, k: int):
+        """The next reply of worker k, first serving its request for a shared image buffer."""
+        kind, payload = self.remotes[k].recv()
+        if kind == "shape":  # one buffer per worker, sized by its first images
+            memory = shared_memory.SharedMemory(create=True, size=int(np.prod(payload)))
+            self.memories.append(memory)
+            self.images[k] = np.ndarray(payload, np.uint8, buffer=memory.buf)
+            self.remotes[k].send(memory.name)
+            kind, payload = self.remotes[k].recv()
+        return payload
+
+    def _observations(self) -> np.ndarray:
+        return np.stack(self.images)  # a copy: the workers overwrite their buffers next step
 
     def reset(self, seeds: Sequence[int | None] | None = None):
         """Reset every env; returns observations (E, A, H, W, C) and per-env lists of small infos."""
         seeds = list(seeds) if seeds is not None else [None] * self.num_envs
         for remote, seed in zip(self.remotes, seeds):
             remote.send(("reset", seed))
-        results = [remote.recv() for remote in self.remotes]
-        return np.stack([r[0] for r in results]), [r[1] for r in results]
+        infos = [self._receive(k) for k in range(self.num_envs)]
+        return self._observations(), infos
 
     def step(self, actions):
         """Step every env with `actions[e][car]`.
@@ -86,12 +112,11 @@ class SubprocVectorEnv:
         """
         for remote, action in zip(self.remotes, actions):
             remote.send(("step", action))
-        results = [remote.recv() for remote in self.remotes]
-        obs = np.stack([r[0] for r in results])
-        rewards = np.stack([r[1] for r in results])
-        dones = np.array([r[2] for r in results])
-        truncated = np.array([r[3] for r in results])
-        return obs, rewards, dones, truncated, [r[4] for r in results]
+        results = [self._receive(k) for k in range(self.num_envs)]
+        rewards = np.stack([r[0] for r in results])
+        dones = np.array([r[1] for r in results])
+        truncated = np.array([r[2] for r in results])
+        return self._observations(), rewards, dones, truncated, [r[3] for r in results]
 
     def close(self) -> None:
         for remote in self.remotes:
@@ -103,3 +128,8 @@ class SubprocVectorEnv:
             process.join(timeout=5)
             if process.is_alive():
                 process.kill()
+        self.images = []
+        for memory in self.memories:
+            memory.close()
+            memory.unlink()
+        self.memories = []

@@ -1,0 +1,33 @@
+"""Worker-process vector env: the same observations and rewards as the env stepped in-process."""
+import functools
+
+import numpy as np
+
+from multirace.env import RaceEnv
+from multirace.vector import SubprocVectorEnv
+
+
+def test_vector_env_matches_the_env_and_auto_resets():
+    make = functools.partial(RaceEnv, num_cars=2, obstacles=1, max_steps=30)
+    vec = SubprocVectorEnv([make, make], info_keys=("progress", "status"))
+    try:
+        obs, infos = vec.reset(seeds=[5, 6])
+        env = make()
+        expected, _ = env.reset(seed=5)
+        assert obs.shape == (2, 2, 120, 160, 1) and obs.dtype == np.uint8
+        assert np.array_equal(obs[0, 1], expected["car_1"]) and set(infos[0][0]) == {"progress", "status"}
+        dones = 0
+        for k in range(40):
+            actions = np.array([[k % 10, (3 * k) % 10]] * 2)
+            obs, rewards, done, truncated, infos = vec.step(actions)
+            expected, reward, _, truncs, _ = env.step({"car_0": actions[0, 0], "car_1": actions[0, 1]})
+            assert rewards[0, 0] == np.float32(reward["car_0"])
+            if done[0]:
+                dones += 1
+                assert truncated[0] and all(truncs.values())
+                assert infos[0][0]["status"] == "not_finished"
+                expected, _ = env.reset(seed=1005)  # the worker's next episode seed
+            assert np.array_equal(obs[0, 0], expected["car_0"]), k
+        assert dones == 1
+    finally:
+        vec.close()
