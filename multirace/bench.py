@@ -138,7 +138,7 @@ def run_bench(seconds: float = 3.0, replay_seconds: float = 60.0, progress=print
         cost = replay_cost(seconds=replay_seconds, repeats=1)
         figures["replay"] = cost
         progress(f"replay of a 4-car {replay_seconds:g} s race: {cost['replay_mb']} MB, "
-                 f"+{cost['overhead_percent']}% race time")
+                 f"race speed -{cost['speed_loss_percent']}%")
     if training_seconds:  # the full PPO loop (sampling + updates) on 2 worker processes
         from .train.throughput import training_throughput
 
@@ -165,5 +165,5 @@ def format_table(figures: dict) -> list[tuple[str, str]]:
     if "replay" in figures:
         replay = figures["replay"]
         rows.append((f"replay, 4 cars, {replay['steps'] / 15:g} s race", f"{replay['replay_mb']} MB, "
-                     f"+{replay['overhead_percent']}% time"))
+                     f"race speed -{replay['speed_loss_percent']}%"))
     return rows

@@ -43,7 +43,7 @@ import numpy as np
 from .world import CAR_COLOURS, OBSTACLE_SIZE
 
 APPLICATION_ID = "multirace"
-DEFAULT_IMAGE_EVERY = 2  # 7.5 Hz camera frames: a 4-car 4-minute race stays well under 50 MB
+DEFAULT_IMAGE_EVERY = 3  # 5 Hz camera frames: a 4-car 4-minute race makes about 9 MB
 SCALARS = ("speed", "progress", "reward", "rank")
 END_TEXT = {
     "finished": "finished",
@@ -483,6 +483,7 @@ def replay_cost(seconds: float = 240.0, image_every: int | None = DEFAULT_IMAGE_
     base_cpu, rec_cpu = min(plain_cpu), min(recorded_cpu)
     return {"replay_mb": round(size / 1e6, 2), "race_wall_s": round(base, 3), "race_with_replay_wall_s": round(rec, 3),
             "overhead_percent": round(100.0 * (rec - base) / base, 1),
+            "speed_loss_percent": round(100.0 * (1.0 - base / rec), 1),  # race steps/s lost to recording
             "race_cpu_s": round(base_cpu, 3), "race_with_replay_cpu_s": round(rec_cpu, 3),
             "overhead_cpu_percent": round(100.0 * (rec_cpu - base_cpu) / base_cpu, 1),
             "recorder_s": round(min(in_recorder), 3),
