@@ -84,3 +84,23 @@ def test_nature_prefers_the_worst_perturbation():
         Randomization.from_config(cfg)
     half = scale_randomization(Randomization.preset("strong"), 0.0)
     assert not half.enabled
+
+
+def test_evaluate_rows_with_perturbation_and_traffic(trained, tmp_path):
+    from multirace.train.evaluate import plot_report, race_agent, summarise
+
+    out, _ = trained
+    perturbed = race_agent(out, "Oval_track", laps=1, randomize="mild", max_steps=40)
+    traffic = race_agent(out, "Oval_track", laps=1, bots=("follow@0.8",), race="head_to_head", max_steps=40)
+    for row in (perturbed, traffic):
+        assert row["status"] != "forfeit", row["reason"]
+        assert 0.0 <= row["completion"] <= 1.0 and row["laps_driven"] >= 0
+    assert traffic["position"] in (1, 2)
+    report = {"agent": str(out), "reference_track": "Oval_track", "laps": 1, "trained_on": ["Oval_track"],
+              "held_out": [dict(perturbed, perturbation="x")], "perturbations": [dict(perturbed, perturbation="none"),
+                                                                                dict(perturbed, perturbation="mild")],
+              "traffic": [traffic]}
+    report["summary"] = summarise(report)
+    assert report["summary"]["completion_drop_points"] == 0.0
+    plot_report([report], tmp_path / "eval.png")
+    assert (tmp_path / "eval.png").stat().st_size > 1000

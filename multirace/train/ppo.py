@@ -142,9 +142,12 @@ def plot_history(history: list, evals: list, path) -> None:
     axes[0].plot(steps, [h["return"] for h in history], color="tab:blue")
     axes[0].set_ylabel("mean episode return")
     axes[1].plot(steps, [h["laps_per_episode"] for h in history], color="tab:green", label="laps per episode")
-    for e in evals:
-        axes[1].axvline(e["agent_steps"], color="tab:red" if e["laps"] >= e["target"] else "0.8", lw=0.8)
-    axes[1].set_ylabel("laps per training episode (red: eval finished)")
+    for e in evals:  # evaluations: green = every lap with no off-track, orange = every lap, grey = not
+        finished = e["laps"] >= e["target"]
+        colour = ("tab:green" if not e["resets"] else "tab:orange") if finished else "0.75"
+        axes[1].axvline(e["agent_steps"], color=colour, lw=1.0)
+    axes[1].set_ylabel("laps per training episode")
+    axes[1].set_title("evaluations: green clean 3/3, orange 3/3 with off-tracks, grey not", fontsize=8)
     for ax in axes:
         ax.set_xlabel("agent-steps")
         ax.grid(alpha=0.3)
