@@ -16,7 +16,7 @@ def add_train_parser(sub) -> None:
                    help="track(s), comma-separated (bundled names or .npy paths; default reinvent_base)")
     p.add_argument("--reverse", default="no", choices=("no", "yes", "both"), help="direction(s) (default no)")
     p.add_argument("--minutes", type=float, default=10.0, help="wall-clock budget (default 10)")
-    p.add_argument("--out", required=True, metavar="FILE.pt", help="agent file to write")
+    p.add_argument("--out", metavar="FILE.pt", help="agent file to write (required)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--config", default="fast", metavar="PRESET",
                    help="hyperparameter preset: fast (default), deepracer (the console's PPO defaults), tiny")
@@ -75,6 +75,8 @@ def cmd_train(args) -> int:
 
         print(describe())
         return 0
+    if not args.out:
+        raise ValueError("--out FILE.pt is required")
     if args.engine == "rllib":
         from .rllib import train_rllib
 
