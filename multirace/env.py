@@ -266,7 +266,7 @@ class RaceEnv(ParallelEnv):
         if race is not None and not race.racing:
             return None
         spec, track = self.car_spec, self.track
-        x, y, yaw = self.world.poses[i]
+        x, y, yaw = self.world.poses[i].tolist()  # plain floats: faster scalar maths than numpy's
         cos_y, sin_y = math.cos(yaw), math.sin(yaw)
         offset = spec.reported_point_offset
         px, py = x + offset * cos_y, y + offset * sin_y
@@ -407,9 +407,9 @@ class RaceEnv(ParallelEnv):
         cars = range(self.num_cars)
         draw = self._draw
         if draw is not None and self.randomization.camera_enabled:
-            poses = [camera_pose(self.camera, self.world.poses[i], draw.camera_jitter[i]) for i in cars]
+            poses = [camera_pose(self.camera, self.world.poses[i].tolist(), draw.camera_jitter[i]) for i in cars]
         else:
-            poses = [camera_pose(self.camera, self.world.poses[i]) for i in cars]
+            poses = [camera_pose(self.camera, self.world.poses[i].tolist()) for i in cars]
         images = self._renderer.render_many(self.world, list(cars), poses)
         if draw is not None and self.randomization.perception_enabled:
             images = [apply_image(image, self._randomizer_rng, draw) for image in images]
@@ -469,7 +469,7 @@ class RaceEnv(ParallelEnv):
         track = self.track
         rows = [row for row in table if row[0] != i]
         me = self._geometry[i]["proj"].s if self._geometry[i] is not None else self._s[i]
-        xi, yi, yaw_i = self.world.poses[i]
+        xi, yi, yaw_i = self.world.poses[i].tolist()
         cos_i, sin_i = math.cos(yaw_i), math.sin(yaw_i)
         tan_half_fov = math.tan(self.camera.hfov / 2)
         length = track.length

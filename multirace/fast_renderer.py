@@ -24,8 +24,6 @@ SUBPIXEL_BITS = 4
 # signs given by the bits of k (x = bit 0, y = bit 1, z = bit 2); the 12 edges are corner pairs
 _SIGN_ARRAY = np.array([[1.0 if k & bit else -1.0 for bit in (1, 2, 4)] for k in range(8)])
 _EDGES = tuple((i, i | bit) for i in range(8) for bit in (1, 2, 4) if not i & bit)
-_EDGE_START = np.array([i for i, _ in _EDGES])
-_EDGE_END = np.array([j for _, j in _EDGES])
 
 
 def _box(index: int, pose, size, colour):
@@ -91,9 +89,8 @@ class FastRenderer(Renderer):
 
     def horizon_row(self, pose: CameraPose) -> int:
         """First image row below the horizon (rows above it show sky)."""
-        forward = pose.rotation[2]
-        pitch_down = math.asin(max(-1.0, min(1.0, -forward[2])))
-        row = self.K[1, 2] - self.K[1, 1] * math.tan(pitch_down)
+        pitch_down = math.asin(max(-1.0, min(1.0, -float(pose.rotation[2, 2]))))
+        row = self._cy - self._focal * math.tan(pitch_down)
         return int(min(max(math.ceil(row), 0), self.spec.height))
 
     # ------------------------------------------------------------- render
@@ -195,15 +192,15 @@ class FastRenderer(Renderer):
 
     def _clipped_outline(self, corners_cam: np.ndarray, in_front: np.ndarray):
         """Projected vertices of a box cut by the near plane: front corners plus edge crossings."""
-        a, b = corners_cam[_EDGE_START], corners_cam[_EDGE_END]
-        crossing = in_front[_EDGE_START] != in_front[_EDGE_END]
-        a, b = a[crossing], b[crossing]
-        t = (NEAR_PLANE - a[:, 2:3]) / (b[:, 2:3] - a[:, 2:3])
-        poly = np.concatenate([corners_cam[in_front], a + t * (b - a)])
-        if len(poly) < 3:
+        corners, front = corners_cam.tolist(), in_front.tolist()
+        points = [corners[k] for k in range(8) if front[k]]
+        for i, j in _EDGES:
+            if front[i] != front[j]:
+                (ax, ay, az), (bx, by, bz) = corners[i], corners[j]
+                t = (NEAR_PLANE - az) / (bz - az)
+                points.append((ax + t * (bx - ax), ay + t * (by - ay), NEAR_PLANE))
+        if len(points) < 3:
             return None
-        f, cx, cy = self._focal, self._cx, self._cy
-        px = np.empty((len(poly), 2))
-        px[:, 0] = cx + f * poly[:, 0] / poly[:, 2]
-        px[:, 1] = cy + f * poly[:, 1] / poly[:, 2]
-        return (np.clip(px, -4096, 4096) * float(1 << SUBPIXEL_BITS)).astype(np.int32)
+        f, cx, cy, scale = self._focal, self._cx, self._cy, float(1 << SUBPIXEL_BITS)
+        return np.array([(min(max(cx + f * x / z, -4096.0), 4096.0) * scale,
+                          min(max(cy + f * y / z, -4096.0), 4096.0) * scale) for x, y, z in points], np.int32)

@@ -193,16 +193,18 @@ class World:
         cid = self.client
         step_time = self.physics_dt * self.substeps
         active = [i for i in range(self.num_cars) if not self.parked[i]]
+        commands = np.asarray(commands, dtype=np.float64).tolist()  # plain floats for the scalar maths
+        yaws, drive_speed = self.poses[:, 2].tolist(), self.drive_speed.tolist()
         for i in active:
             body = self.car_ids[i]
             (lvx, lvy, _), _ = pybullet.getBaseVelocity(body, cid)
-            yaw = float(self.poses[i][2])
+            yaw = yaws[i]
             # what a collision (or anything but our own command) changed since we set the velocity
             sx, sy, _ = self._set_velocity[i]
             push_x, push_y = lvx - sx, lvy - sy
             cos_y, sin_y = math.cos(yaw), math.sin(yaw)
             steer, target = commands[i]
-            speed = self.drive_speed[i] + push_x * cos_y + push_y * sin_y
+            speed = drive_speed[i] + push_x * cos_y + push_y * sin_y
             speed += (target - speed) * self._speed_blend
             self.drive_speed[i] = speed
             tan_steer = math.tan(steer)
