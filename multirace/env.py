@@ -157,7 +157,7 @@ class RaceEnv(ParallelEnv):
         track = self.track
         self.races = []
         self._s = [0.0] * self.total_cars
-        self._commands = np.zeros((self.total_cars, 2))
+        self._commands = [(0.0, 0.0)] * self.total_cars  # (steer rad, speed m/s) per car
         for i, (s, lateral) in enumerate(track.start_grid(self.total_cars)):
             # the grid slot is where DeepRacer's reported point (ahead of the body centre) starts
             self.world.place_car(i, *track.point_at(s - self.car_spec.reported_point_offset, lateral))
@@ -202,16 +202,17 @@ class RaceEnv(ParallelEnv):
     def step(self, actions):
         if not self.agents:
             raise RuntimeError("step() called on a finished episode; call reset() first")
-        spec, rng = self.car_spec, self._rng
+        spec = self.car_spec
+        noise = self._rng.standard_normal((self.num_cars, 2)).tolist()  # DeepRacer's action noise
         for i, agent in enumerate(self.possible_agents):
             if self.races[i].racing and agent in actions:
                 steer, speed = self.actions.command(actions[agent])
                 if self._draw is not None and self.randomization.dynamics_enabled:
                     steer, speed = apply_command(steer, speed, self._draw, self._randomizer_rng, i, spec)
                     steer = math.radians(steer)
-                else:  # DeepRacer's own action noise
-                    steer = math.radians(steer) + spec.steer_noise * rng.standard_normal()
-                    speed = speed + spec.speed_noise * rng.standard_normal()
+                else:
+                    steer = math.radians(steer) + spec.steer_noise * noise[i][0]
+                    speed = speed + spec.speed_noise * noise[i][1]
                 self._commands[i] = spec.clamp_command(steer, speed)
         for b, bot in enumerate(self.bots):
             i = self.num_cars + b
