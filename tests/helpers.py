@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from multirace.bots import PurePursuit
+from multirace.race import COMMAND_SPACE
 
 
 def drive_expert(env, speed=1.0, steps=None, lateral=0.0):
@@ -23,8 +24,7 @@ def drive_expert(env, speed=1.0, steps=None, lateral=0.0):
     return history
 
 
-CONTINUOUS = {"action_space": {"steering_angle": {"low": -30, "high": 30}, "speed": {"low": 0.1, "high": 4.0}},
-              "action_space_type": "continuous"}
+CONTINUOUS = COMMAND_SPACE  # the full continuous range of DeepRacer commands
 
 
 def place(env, i, x, y, yaw):
