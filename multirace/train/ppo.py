@@ -95,10 +95,29 @@ def training_runs(config: TrainConfig) -> list:
     return runs
 
 
+def check_reward_file(config: TrainConfig, runs) -> None:
+    """Load and call a reward .py file once here, so a bad file fails with its message, not a dead worker."""
+    if config.reward in ("progress", "centre", None):
+        return
+    from ..rewards import RewardFunctionError
+
+    probe = TrainEnv(runs[:1], num_cars=1, action_space=config.action_space, reward=config.reward,
+                     camera=config.camera, episode_steps=3)
+    try:
+        probe.reset(seed=0)
+        for _ in range(5):
+            probe.step({"car_0": probe.env.actions.space.sample()})
+    except RewardFunctionError as exc:
+        raise ValueError(f"--reward: {exc}") from None
+    finally:
+        probe.close()
+
+
 def make_vector_env(config: TrainConfig, shared=None, cars=None, bots=None):
     from ..vector import SubprocVectorEnv
 
     runs = training_runs(config)
+    check_reward_file(config, runs)
     factories = [functools.partial(
         TrainEnv, runs, num_cars=cars or config.cars_per_env, bots=config.bots if bots is None else bots,
         action_space=config.action_space, reward=config.reward, camera=config.camera,
@@ -441,6 +460,9 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
                 last_eval = time.perf_counter()
                 if config.stop_on_success and first_clean is not None:
                     break
+    except (EOFError, ConnectionError) as exc:
+        raise ValueError(f"an env worker process stopped ({type(exc).__name__}); its error is printed above "
+                         "(for example a reward function that raised or returned a bad value)") from None
     finally:
         if progress is not None:
             progress.close()
