@@ -27,7 +27,7 @@ from .car import CarSpec
 from .randomize import Randomization, apply_command, apply_image
 from .rewards import load_reward_function
 from .rules import CarRace, make_rules
-from .texture import TrackTexture
+from .texture import DEFAULT_PALETTE, TrackTexture
 from .tracks import Track, load_track
 from .world import World
 
@@ -144,11 +144,13 @@ class RaceEnv(ParallelEnv):
             self._randomizer_rng = np.random.default_rng([seed, 3])  # its own stream: same grid either way
         self.world.connect()
         self._draw = None
+        palette = DEFAULT_PALETTE
         if self.randomization.enabled:
             self._draw = self.randomization.draw_episode(self._randomizer_rng, self.total_cars)
-            if self.renderer_name == "fast" and self._draw.palette != self.texture.palette:
-                self._texture = TrackTexture(self.track, self._draw.palette)
-                self._renderer = None
+            palette = self._draw.palette
+        if self.renderer_name == "fast" and palette != self.texture.palette:  # (un)tinted track colours
+            self._texture = TrackTexture(self.track, palette)
+            self._renderer = None
         if self._renderer is None:
             self._renderer = make_renderer(self.renderer_name, self.camera, self.texture)
         self.steps = 0

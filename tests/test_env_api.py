@@ -118,3 +118,14 @@ def test_bad_randomisation_config_names_the_key():
         multirace.parallel_env(randomize={"brightnes": (0, 10)})
     with pytest.raises(ValueError, match="wild"):
         multirace.parallel_env(randomize="wild")
+
+
+def test_switching_randomisation_off_restores_the_plain_track():
+    from multirace.randomize import Randomization
+
+    plain = multirace.parallel_env(num_cars=1).reset(seed=2)[0]["car_0"]
+    env = multirace.parallel_env(num_cars=1, randomize={"texture_tint": 0.5})
+    tinted = env.reset(seed=2)[0]["car_0"]
+    env.randomization = Randomization.from_config(None)
+    again = env.reset(seed=2)[0]["car_0"]
+    assert not np.array_equal(tinted, plain) and np.array_equal(again, plain)
