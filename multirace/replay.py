@@ -34,6 +34,7 @@ laps, events, image counts and each car's pose per step.
 from __future__ import annotations
 
 import json
+from concurrent.futures import ThreadPoolExecutor
 import math
 from pathlib import Path
 
@@ -43,7 +44,7 @@ import numpy as np
 from .world import CAR_COLOURS, OBSTACLE_SIZE
 
 APPLICATION_ID = "multirace"
-DEFAULT_IMAGE_EVERY = 3  # 5 Hz camera frames: a 4-car 4-minute race makes about 9 MB
+DEFAULT_IMAGE_EVERY = 5  # 3 Hz camera frames: keeps recording under 30 % of race speed
 SCALARS = ("speed", "progress", "reward", "rank")
 END_TEXT = {
     "finished": "finished",
@@ -84,6 +85,7 @@ class ReplayRecorder:
     def start(self, env) -> None:
         rr = _rr()
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._encoder = ThreadPoolExecutor(max_workers=1)
         self.rec = rec = rr.RecordingStream(self.application_id, make_default=False, make_thread_default=False)
         rec.save(str(self.path))
         rec.set_log_time_enabled(False)  # wall-clock time says nothing about a simulated race
@@ -124,6 +126,9 @@ class ReplayRecorder:
         self.close()
 
     def close(self) -> None:
+        if getattr(self, "_encoder", None) is not None:
+            self._encoder.shutdown()
+            self._encoder = None
         if self.rec is not None:
             self.rec.flush()
             self.rec.disconnect()
@@ -201,9 +206,8 @@ class ReplayRecorder:
                         image = image[..., 0]
                     elif image.ndim == 3:
                         image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
-                    ok, jpg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
-                    if ok:
-                        self._buf_img[i].append((row, jpg.tobytes()))
+                    # JPEG encoding (OpenCV releases the GIL) runs on the other core meanwhile
+                    self._buf_img[i].append((row, self._encoder.submit(self._encode, image)))
             if infos is not None and (race.racing or just_ended):
                 prev = self._prev[i]
                 if (race.laps != prev["laps"] or race.resets != prev["resets"] or race.penalties != prev["penalties"]
@@ -212,6 +216,10 @@ class ReplayRecorder:
                     self._log_events(env, i, race, infos)
             if just_ended:
                 self._ended[i] = True
+
+    def _encode(self, image: np.ndarray) -> bytes | None:
+        ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
+        return jpeg.tobytes() if ok else None
 
     def _log_events(self, env, i: int, race, infos) -> None:
         """Text log entries for what changed in car i's race state this step."""
@@ -277,7 +285,8 @@ class ReplayRecorder:
                     arr = np.asarray(values, dtype=np.float64)
                     rec.send_columns(f"plots/{name}/{cid}", indexes=index(arr[:, 0]),
                                      columns=rr.Scalars.columns(scalars=arr[:, 1]))
-            images = self._buf_img[i]
+            images = [(row, job.result()) for row, job in self._buf_img[i]]
+            images = [(row, jpeg) for row, jpeg in images if jpeg is not None]
             if images:
                 rec.send_columns(f"cameras/{cid}", indexes=index([r for r, _ in images]),
                                  columns=rr.EncodedImage.columns(blob=[b for _, b in images],
