@@ -418,7 +418,7 @@ class RaceEnv(ParallelEnv):
             images = [apply_image(image, self._randomizer_rng, draw) for image in images]
         return dict(zip(self.possible_agents, images))
 
-    def _params(self, i: int, touched: set, table: list[tuple]) -> dict:
+    def _params(self, i: int, touched: set, table: tuple[list, ...]) -> dict:
         """The 27 DeepRacer reward params of car i, in DeepRacer's units."""
         geo = self._geometry[i] if self._geometry[i] is not None else self._last_params_geometry(i)
         race, track = self.races[i], self.track
@@ -453,10 +453,10 @@ class RaceEnv(ParallelEnv):
         x, y, yaw = self.world.poses[i]
         return {"x": x, "y": y, "yaw": yaw, "proj": self.track.project(x, y), "wheels_on": 4}
 
-    def _object_table(self) -> list[tuple]:
-        """Every object a car can see this step: boxes, then cars on track.
+    def _object_table(self) -> tuple[list, ...]:
+        """Every object a car can see this step (boxes, then cars on track), as columns:
 
-        Rows are (car index or -1, x, y, left_of_centre, speed, heading_deg, distance_from_centre, s).
+        (car index or -1, x, y, left_of_centre, speed, heading_deg, distance_from_centre, s).
         """
         rows = list(self._obstacle_rows)
         for j, geo in enumerate(self._geometry):
@@ -465,39 +465,43 @@ class RaceEnv(ParallelEnv):
             proj = geo["proj"]
             rows.append((j, geo["x"], geo["y"], proj.lateral > 0, float(self.world.drive_speed[j]),
                          math.degrees(geo["yaw"]), abs(proj.lateral), proj.s))
-        return rows
+        return tuple(list(column) for column in zip(*rows)) if rows else ([],) * 8
 
-    def _objects_for(self, i: int, table: list[tuple]) -> dict:
+    def _objects_for(self, i: int, table: tuple[list, ...]) -> dict:
         """DeepRacer's object params for car i: the boxes and every other car on track."""
-        track = self.track
-        rows = [row for row in table if row[0] != i]
+        owners = table[0]
+        if i in owners:  # leave car i itself out of every column
+            k = owners.index(i)
+            xs, ys, left, speed, heading, from_centre, along = (c[:k] + c[k + 1:] for c in table[1:])
+        else:
+            xs, ys, left, speed, heading, from_centre, along = (list(c) for c in table[1:])
         me = self._geometry[i]["proj"].s if self._geometry[i] is not None else self._s[i]
         xi, yi, yaw_i = self.world.poses[i].tolist()
         cos_i, sin_i = math.cos(yaw_i), math.sin(yaw_i)
         tan_half_fov = math.tan(self.camera.hfov / 2)
-        length = track.length
+        length = self.track.length
         in_camera = False
         closest = [0, 0]
         best_ahead = best_behind = math.inf
-        for k, row in enumerate(rows):
-            dx, dy = row[1] - xi, row[2] - yi
-            forward, left = dx * cos_i + dy * sin_i, dy * cos_i - dx * sin_i
-            if 0 < forward < CAMERA_RANGE and abs(left) < forward * tan_half_fov:
+        for k, (x, y, s) in enumerate(zip(xs, ys, along)):
+            dx, dy = x - xi, y - yi
+            forward, sideways = dx * cos_i + dy * sin_i, dy * cos_i - dx * sin_i
+            if 0 < forward < CAMERA_RANGE and abs(sideways) < forward * tan_half_fov:
                 in_camera = True
-            ahead = (row[7] - me) % length
+            ahead = (s - me) % length
             if ahead < best_ahead:
                 best_ahead, closest[1] = ahead, k
             if length - ahead < best_behind:
                 best_behind, closest[0] = length - ahead, k
         return {
             "closest_objects": closest,
-            "objects_location": [(row[1], row[2]) for row in rows],
-            "objects_left_of_center": [row[3] for row in rows],
+            "objects_location": list(zip(xs, ys)),
+            "objects_left_of_center": left,
             "object_in_camera": in_camera,
-            "objects_speed": [row[4] for row in rows],
-            "objects_heading": [row[5] for row in rows],
-            "objects_distance_from_center": [row[6] for row in rows],
-            "objects_distance": [row[7] for row in rows],
+            "objects_speed": speed,
+            "objects_heading": heading,
+            "objects_distance_from_center": from_centre,
+            "objects_distance": along,
         }
 
     def ranks(self) -> list[int]:
@@ -509,23 +513,24 @@ class RaceEnv(ParallelEnv):
         return positions
 
     def _info(self, i: int, params: dict, touched: set, ranks: list[int], events=()) -> dict:
+        """Car i's info: its reward params (the same dict, extended) plus its race state."""
         race = self.races[i]
         names = sorted(self.car_names[o[1]] if o[0] == "car" else f"obstacle_{o[1]}" for o in touched)
-        return {
-            **params,
-            "lap": race.laps + (1 if race.racing else 0),
-            "laps_completed": race.laps,
-            "lap_times": list(race.lap_times),
-            "race_time": race.clock(self.sim_time) if race.racing else race.finish_time,
-            "resets": race.resets,
-            "penalties": race.penalties,
-            "penalty_time": race.penalty_time,
-            "off_track": params["is_offtrack"],
-            "collisions": names,
-            "rank": ranks[i],
-            "status": race.status,
-            "events": list(events),
-        }
+        params.update(
+            lap=race.laps + (1 if race.racing else 0),
+            laps_completed=race.laps,
+            lap_times=list(race.lap_times),
+            race_time=race.clock(self.sim_time) if race.racing else race.finish_time,
+            resets=race.resets,
+            penalties=race.penalties,
+            penalty_time=race.penalty_time,
+            off_track=params["is_offtrack"],
+            collisions=names,
+            rank=ranks[i],
+            status=race.status,
+            events=list(events),
+        )
+        return params
 
     # ------------------------------------------------------------ render
     def render(self):
