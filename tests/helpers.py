@@ -34,3 +34,17 @@ def place(env, i, x, y, yaw):
     s = env._geometry[i]["proj"].s
     env.races[i].distance += env.track.wrap_ds(s - env._s[i])
     env._s[i] = s
+
+
+def overflow_on_camera_images(net) -> None:
+    """Make a camera net finite on the blank smoke-test image but NaN on real camera images."""
+    import torch
+
+    with torch.no_grad():
+        for module in net.conv:
+            if isinstance(module, torch.nn.Conv2d):
+                module.weight.abs_()
+                module.bias.zero_()
+        net.fc[0].weight.fill_(1e38)
+        net.fc[0].bias.zero_()
+        net.head.weight.copy_(torch.randn_like(net.head.weight).sign() * 1e38)

@@ -16,6 +16,7 @@ from multirace.agentfile import (AgentController, AgentFileError, inspect_agent,
 from multirace.cli import main as cli_main
 from multirace.nets import NETWORKS, SHALLOW, SMALL, CameraNet, build_net
 from multirace.race import Forfeit, RaceConfig, make_controller, run_race
+from helpers import overflow_on_camera_images
 
 REPO = Path(__file__).resolve().parents[1]
 SHIPPED = sorted((REPO / "agents").glob("*.pt"))
@@ -212,14 +213,7 @@ def _nan_on_real_images(path):
     """A net that is finite on the blank smoke-test image but overflows to NaN on camera images."""
     torch.manual_seed(0)
     net = build_net(SMALL, (120, 160, 1), SPACE)
-    with torch.no_grad():
-        for module in net.conv:
-            if isinstance(module, torch.nn.Conv2d):
-                module.weight.abs_()
-                module.bias.zero_()
-        net.fc[0].weight.fill_(1e38)
-        net.fc[0].bias.zero_()
-        net.head.weight.copy_(torch.randn_like(net.head.weight).sign() * 1e38)
+    overflow_on_camera_images(net)
     return save_agent(path, net, _good_metadata())
 
 

@@ -22,6 +22,7 @@ from multirace.league import (DEFAULT_TOML_TEXT, LeagueError, build_schedule, co
                               parse_config, run_league, submit)
 from multirace.league_table import compute_table, write_table
 from multirace.nets import SMALL, build_net
+from helpers import overflow_on_camera_images
 
 REPO = Path(__file__).resolve().parents[1]
 DAGGER = REPO / "agents" / "dagger_small.pt"
@@ -105,15 +106,9 @@ TAGS = {"exception": 1234.5, "crash": 2345.5, "hang": 3456.5, "sleepy": 4567.5}
 def _agent(path, seed=0, tag=None, name="agent", nan_on_images=False):
     torch.manual_seed(seed)
     net = build_net(SMALL, (120, 160, 1), SPACE)
+    if nan_on_images:
+        overflow_on_camera_images(net)
     with torch.no_grad():
-        if nan_on_images:  # finite on the blank smoke-test image, overflows to NaN on camera images
-            for module in net.conv:
-                if isinstance(module, torch.nn.Conv2d):
-                    module.weight.abs_()
-                    module.bias.zero_()
-            net.fc[0].weight.fill_(1e38)
-            net.fc[0].bias.zero_()
-            net.head.weight.copy_(torch.randn_like(net.head.weight).sign() * 1e38)
         if tag is not None:
             net.head.bias[0] = tag
     return save_agent(path, net, make_metadata(SPACE, SMALL, name))
