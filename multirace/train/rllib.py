@@ -9,10 +9,6 @@ and train one shared policy (``policy_mapping_fn=lambda agent_id, *a, **k:
 from __future__ import annotations
 
 
-class RLlibUnavailable(RuntimeError):
-    pass
-
-
 def train_rllib(args) -> int:
     try:
         import ray  # noqa: F401
