@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from multirace.bots import PurePursuit
-from multirace.race import COMMAND_SPACE
+from multirace.race import COMMAND_SPACE, BotController
 
 
 def drive_expert(env, speed=1.0, steps=None, lateral=0.0):
@@ -48,3 +48,16 @@ def overflow_on_camera_images(net) -> None:
         net.fc[0].weight.fill_(1e38)
         net.fc[0].bias.zero_()
         net.head.weight.copy_(torch.randn_like(net.head.weight).sign() * 1e38)
+
+
+class Wild(BotController):
+    """A bot that steers hard at full speed for a window of steps (to leave the track)."""
+
+    def __init__(self, spec, window=(30, 60), steer=30.0):
+        super().__init__(spec)
+        self.window, self.steer = window, steer
+
+    def act(self, observation, info):
+        steer, speed = super().act(observation, info)
+        lo, hi = self.window
+        return (self.steer, 2.0) if lo <= self.env.steps < hi else (steer, speed)

@@ -9,22 +9,10 @@ import pytest
 
 from multirace.cli import main
 from multirace.race import BotController, RaceConfig, run_race
+from helpers import Wild
 from multirace.replay import ReplayRecorder, read_chunks, replay_summary
 
 DT = 1.0 / 15
-
-
-class Wild(BotController):
-    """A bot that steers hard left at full speed for a window of steps (to leave the track)."""
-
-    def __init__(self, spec, window):
-        super().__init__(spec)
-        self.window = window
-
-    def act(self, observation, info):
-        steer, speed = super().act(observation, info)
-        lo, hi = self.window
-        return (-30.0, 2.0) if lo <= self.env.steps < hi else (steer, speed)
 
 
 class Blind(BotController):
@@ -73,7 +61,7 @@ class Capture:
 def recorded(tmp_path_factory):
     path = tmp_path_factory.mktemp("replay") / "race.rrd"
     capture = Capture()
-    controllers = [Wild("bot:follow@0.6", (200, 240)), Blind("bot:follow@2.0")]
+    controllers = [Wild("bot:follow@0.6", (200, 240), steer=-30.0), Blind("bot:follow@2.0")]
     result = run_race(controllers, RaceConfig(laps=1, race="head_to_head", seed=1),
                       recorders=[ReplayRecorder(path, image_every=2), capture])
     return path, capture, result

@@ -10,18 +10,11 @@ import pytest
 from multirace.cli import main
 from multirace.race import BotController, RaceConfig, run_race
 from multirace.simtrace import SimTraceRecorder, SimTraceWriter, read_simtrace
+from helpers import Wild
 
 COLUMNS = ["episode", "steps", "X", "Y", "yaw", "steer", "throttle", "action", "reward", "done",
            "all_wheels_on_track", "progress", "closest_waypoint", "track_len", "tstamp", "episode_status",
            "pause_duration"]
-
-
-class Wild(BotController):
-    """Steers hard for a window of steps, so the car leaves the track."""
-
-    def act(self, observation, info):
-        steer, speed = super().act(observation, info)
-        return (30.0, 2.0) if 30 <= self.env.steps < 60 else (steer, speed)
 
 
 class Capture:
