@@ -37,7 +37,11 @@ def add_train_parser(sub) -> None:
                         "procedural tracks")
     p.add_argument("--stop-on-success", action="store_true",
                    help="stop at the first evaluation that finishes every lap with no off-track")
-    p.add_argument("--engine", default="local", choices=("local", "rllib"), help="local (default) or rllib")
+    p.add_argument("--engine", default="local", choices=("local", "rllib"),
+                   help="local (default) or rllib (Ray RLlib PPO, one shared policy; pip install -e \".[rllib]\")")
+    p.add_argument("--address", "--ray-address", dest="address", default=None, metavar="ADDR",
+                   help="--engine rllib: Ray cluster to run on, passed to ray.init(address=...) "
+                        "(e.g. auto, or ray://HEAD:10001); default: a local Ray")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_train)
 

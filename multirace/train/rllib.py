@@ -1,20 +1,391 @@
-"""`multirace train --engine rllib`: not built yet.
+"""`multirace train --engine rllib`: the training env under Ray RLlib (PPO, one shared policy).
 
-The plan (see multirace/train/README.md): wrap the env with
-``ray.rllib.env.wrappers.pettingzoo_env.ParallelPettingZooEnv``, register it,
-and train one shared policy (``policy_mapping_fn=lambda agent_id, *a, **k:
-"shared"``) with PPO and ``num_env_runners`` workers; pointing
-``ray.init(address=...)`` at a cluster scales it out.
+The same `TrainEnv` as the local engine (tracks, directions, cars, bots,
+reward, action space, camera, domain randomisation, all from `TrainConfig`)
+is exposed as a PettingZoo ParallelEnv, wrapped in RLlib's
+``ParallelPettingZooEnv`` and trained by RLlib's PPO (new API stack) with
+``num_env_runners`` sampling actors. Every car maps to one shared RLModule
+(parameter sharing, as the local engine). The RLModule *is* multirace's
+`nets.CameraNet` (policy head plus value head on one trunk), so at the end its
+weights are written as an ordinary agent file that `multirace race` accepts,
+next to the RLlib checkpoint:
+
+    multirace train --engine rllib --minutes 10 --out agent.pt            # local Ray, 2 env runners
+    multirace train --engine rllib --address auto --envs 16 --out a.pt    # on a running Ray cluster
+
+Outputs: ``FILE.pt`` (agent file), ``FILE.rllib/`` (RLlib checkpoint:
+``Algorithm.from_checkpoint`` resumes or serves it) and ``FILE.train.json``
+(config, per-iteration history).
+
+Differences from the local engine (RLlib's PPO, not ours): an off-track does
+not end the car's training episode (an RLlib multi-agent episode cannot bring a
+terminated agent back, and the car keeps driving after the race rules put it
+back on the centre line), it is only penalised by the reward; the learning rate
+is constant (no wall-clock annealing); no periodic time-trial evaluations and no
+robust options (opponent pool, nature adversary, curriculum) - only the
+env-level ones (``randomize``, procedural tracks). Needs ``pip install -e
+".[rllib]"``.
 """
 from __future__ import annotations
 
+import json
+import os
+import time
+from pathlib import Path
 
-def train_rllib(args) -> int:
+import numpy as np
+
+MODULE_ID = "shared"  # the one policy every car maps to
+ENV_NAME = "multirace_train"
+INSTALL_HINT = 'pip install -e ".[rllib]"'
+
+
+def require_rllib():
+    """Import Ray RLlib or stop with the install command."""
     try:
         import ray  # noqa: F401
+        from ray.rllib.algorithms.ppo import PPOConfig  # noqa: F401
         from ray.rllib.env.wrappers.pettingzoo_env import ParallelPettingZooEnv  # noqa: F401
-    except ImportError:
-        raise ValueError("--engine rllib needs Ray RLlib, which is not installed here "
-                         "(pip install 'ray[rllib]'); use --engine local (the default)") from None
-    raise ValueError("--engine rllib: the RLlib trainer is not implemented yet in this version; "
-                     "use --engine local (the default)")
+    except ImportError as exc:
+        raise ValueError(f"--engine rllib needs Ray RLlib, which is not installed here ({exc}); install it with "
+                         f"`{INSTALL_HINT}` (or pip install 'ray[rllib]'), or use --engine local "
+                         "(the default)") from None
+
+
+# ------------------------------------------------------------------ the env
+def _parallel_env_class():
+    from pettingzoo import ParallelEnv
+
+    class RaceTrainParallelEnv(ParallelEnv):
+        """`TrainEnv` (training rewards, several tracks) as a PettingZoo ParallelEnv for RLlib."""
+
+        metadata = {"name": "multirace_train_v0", "render_modes": []}
+
+        def __init__(self, train_env):
+            self.train_env = train_env
+            self.possible_agents = list(train_env.possible_agents)
+            self.agents = list(self.possible_agents)
+            probe = train_env._env_for(0)
+            self._obs_space = probe.observation_space(self.possible_agents[0])
+            self._act_space = probe.action_space(self.possible_agents[0])
+
+        def observation_space(self, agent):
+            return self._obs_space
+
+        def action_space(self, agent):
+            return self._act_space
+
+        def reset(self, seed=None, options=None):
+            obs, infos = self.train_env.reset(seed=seed, options=options)
+            self.agents = list(self.possible_agents)
+            return obs, infos
+
+        def step(self, actions):
+            if self._act_space.__class__.__name__ == "Box":  # RLlib's Gaussian is unbounded; keep to the box
+                actions = {a: np.clip(np.asarray(v, np.float32), self._act_space.low, self._act_space.high)
+                           for a, v in actions.items()}
+            obs, rewards, terms, truncs, infos = self.train_env.step(actions)
+            if not self.train_env.agents:  # the env episode is over (episode_steps): every car truncated
+                truncs = {a: not terms.get(a, False) for a in self.possible_agents}
+                self.agents = []
+            return obs, rewards, terms, truncs, infos
+
+        def close(self):
+            self.train_env.close()
+
+    return RaceTrainParallelEnv
+
+
+def make_rllib_env(env_config: dict):
+    """RLlib env creator: `TrainEnv` -> ParallelEnv -> `ParallelPettingZooEnv`. Plain-data config."""
+    from ray.rllib.env.wrappers.pettingzoo_env import ParallelPettingZooEnv
+
+    from .envs import TrainEnv
+
+    config = dict(env_config)
+    worker = int(getattr(env_config, "worker_index", 0)) * 1000 + int(getattr(env_config, "vector_index", 0))
+    train_env = TrainEnv(worker=worker, **config)
+    return ParallelPettingZooEnv(_parallel_env_class()(train_env))
+
+
+def env_config_for(config, runs) -> dict:
+    return {"runs": runs, "num_cars": config.cars_per_env, "bots": tuple(config.bots),
+            "action_space": config.action_space, "reward": config.reward, "camera": tuple(config.camera),
+            "episode_steps": config.episode_steps, "terminate_off_track": False,
+            "off_track_penalty": config.off_track_penalty, "progress_weight": config.progress_weight,
+            "centre_weight": config.centre_weight, "randomize": config.randomize,
+            **_optional_env_settings(config)}
+
+
+def _optional_env_settings(config) -> dict:
+    """Settings TrainEnv accepts only in newer versions (e.g. collision_penalty), passed when both sides know them."""
+    import inspect
+
+    from .envs import TrainEnv
+
+    params = inspect.signature(TrainEnv.__init__).parameters
+    return {key: getattr(config, key) for key in ("collision_penalty",) if key in params and hasattr(config, key)}
+
+
+# --------------------------------------------------------------- the module
+def _module_class():
+    """The RLModule class, built once per process (Ray is imported only when the rllib engine runs)."""
+    if "CameraRLModule" in globals():
+        return globals()["CameraRLModule"]
+    from ray.rllib.core.columns import Columns
+    from ray.rllib.core.rl_module.apis import ValueFunctionAPI
+    from ray.rllib.core.rl_module.torch import TorchRLModule
+
+    class CameraRLModule(TorchRLModule, ValueFunctionAPI):
+        """multirace's `CameraNet` (with value head) as an RLlib RLModule: weights map 1:1 onto an agent file.
+
+        Discrete actions: the net's logits feed RLlib's Categorical. Continuous: its
+        [mean steer, mean speed, log-std steer, log-std speed] feed RLlib's DiagGaussian,
+        which takes exactly that layout.
+        """
+
+        def setup(self):
+            import gymnasium as gym
+            import torch
+
+            from ..nets import CONTINUOUS_OUTPUTS, TINY, CameraNet
+
+            network = (self.model_config or {}).get("network", TINY)
+            discrete = isinstance(self.action_space, gym.spaces.Discrete)
+            outputs = int(self.action_space.n) if discrete else CONTINUOUS_OUTPUTS
+            self.net = CameraNet(network, tuple(self.observation_space.shape), outputs, value_head=True)
+            if not discrete:  # start in the middle of the action box with a quarter-range spread (as ppo.py)
+                low = np.asarray(self.action_space.low, np.float64)
+                high = np.asarray(self.action_space.high, np.float64)
+                with torch.no_grad():
+                    self.net.head.weight.mul_(0.01)
+                    self.net.head.bias.copy_(torch.tensor(
+                        [*((low + high) / 2), *np.log(np.maximum((high - low) / 4, 1e-3))], dtype=torch.float32))
+
+        def _forward(self, batch, **kwargs):
+            return {Columns.ACTION_DIST_INPUTS: self.net(batch[Columns.OBS])}
+
+        def _forward_train(self, batch, **kwargs):
+            features = self.net.features(batch[Columns.OBS])
+            return {Columns.ACTION_DIST_INPUTS: self.net.head(features), Columns.EMBEDDINGS: features}
+
+        def compute_values(self, batch, embeddings=None):
+            if embeddings is None:
+                embeddings = self.net.features(batch[Columns.OBS])
+            return self.net.value_head(embeddings).squeeze(-1)
+
+    CameraRLModule.__module__ = __name__
+    CameraRLModule.__qualname__ = "CameraRLModule"
+    globals()["CameraRLModule"] = CameraRLModule  # so pickle finds it by name in every process
+    return CameraRLModule
+
+
+def __getattr__(name):  # `multirace.train.rllib.CameraRLModule` without importing Ray at module import
+    if name == "CameraRLModule":
+        return _module_class()
+    raise AttributeError(name)
+
+
+def net_state_from_module(module_state: dict) -> dict:
+    """A `CameraNet` state dict from an RLModule state dict (keys ``net.*``; numpy or torch values)."""
+    import torch
+
+    state = {k[len("net."):]: torch.as_tensor(np.asarray(v)) for k, v in module_state.items() if k.startswith("net.")}
+    if not state:
+        raise ValueError(f"RLlib module state has no 'net.*' weights (keys: {sorted(module_state)[:5]})")
+    return state
+
+
+# -------------------------------------------------------------- algorithm
+def build_ppo_config(config, runs, num_env_runners: int):
+    """The RLlib `PPOConfig` of a `TrainConfig` (same env, same PPO knobs where RLlib has them)."""
+    from ray.rllib.algorithms.ppo import PPOConfig
+    from ray.rllib.core.rl_module.multi_rl_module import MultiRLModuleSpec
+    from ray.rllib.core.rl_module.rl_module import RLModuleSpec
+
+    # counted in agent-steps, as TrainConfig.batch_size: rollout_steps env steps x cars per env runner
+    train_batch = max(1, num_env_runners) * config.rollout_steps * config.cars_per_env
+    cfg = (
+        PPOConfig()
+        .environment(ENV_NAME, env_config=env_config_for(config, runs), normalize_actions=False,
+                     clip_actions=False, disable_env_checking=True)
+        .framework("torch")
+        .env_runners(num_env_runners=num_env_runners, num_envs_per_env_runner=1, num_cpus_per_env_runner=1,
+                     rollout_fragment_length="auto", sample_timeout_s=600.0)
+        .learners(num_learners=0)
+        .multi_agent(policies={MODULE_ID}, policy_mapping_fn=_map_to_shared, policies_to_train=[MODULE_ID],
+                     count_steps_by="agent_steps")
+        .rl_module(rl_module_spec=MultiRLModuleSpec(rl_module_specs={MODULE_ID: RLModuleSpec(
+            module_class=_module_class(), model_config={"network": config.network})}))
+        .training(train_batch_size_per_learner=train_batch,
+                  minibatch_size=min(int(config.minibatch_size), train_batch),
+                  num_epochs=int(config.epochs), lr=float(config.lr), gamma=float(config.gamma),
+                  lambda_=float(config.gae_lambda), clip_param=float(config.clip),
+                  entropy_coeff=float(config.ent_coef), vf_loss_coeff=float(config.vf_coef),
+                  grad_clip=float(config.max_grad_norm), grad_clip_by="global_norm", use_kl_loss=False,
+                  vf_clip_param=float(config.clip) if config.clip_value else 1e9)
+        .debugging(seed=int(config.seed), log_level="ERROR")
+    )
+    return cfg
+
+
+def _map_to_shared(agent_id, *args, **kwargs):
+    return MODULE_ID
+
+
+def _metric(result: dict, *keys, default=None):
+    node = result
+    for key in keys:
+        if not isinstance(node, dict) or key not in node:
+            return default
+        node = node[key]
+    return node
+
+
+def _total(value) -> float:
+    """A step counter of a result: a number, or a {agent or module id: number} dict summed."""
+    if isinstance(value, dict):
+        return float(sum(_total(v) for v in value.values()))
+    try:
+        return float(value or 0.0)
+    except (TypeError, ValueError):
+        return 0.0
+
+
+def _finite_mean(values):
+    values = [float(v) for v in values if v is not None and np.isfinite(float(v))]
+    return float(np.mean(values)) if values else None
+
+
+def iteration_stats(result: dict, cars: int) -> dict:
+    """The figures of one `algo.train()` result we log (RLlib new-API-stack result keys).
+
+    ``car_return_mean``: the mean return of one car over an env episode (episode_steps
+    steps), from RLlib's ``agent_episode_returns_mean``; None until an env episode ends.
+    """
+    runners = result.get("env_runners", {})
+    per_car = _finite_mean((runners.get("agent_episode_returns_mean") or {}).values())
+    if per_car is None:
+        total = _finite_mean([runners.get("episode_return_mean")])
+        per_car = None if total is None else total / max(1, cars)
+    return {
+        "iteration": int(result.get("training_iteration", 0)),
+        "env_steps": int(_total(runners.get("num_env_steps_sampled_lifetime"))),
+        "agent_steps": int(_total(runners.get("num_agent_steps_sampled_lifetime"))),
+        "episodes": int(_total(runners.get("num_episodes_lifetime"))),
+        "car_return_mean": None if per_car is None else round(per_car, 3),
+        "policy_loss": _metric(result, "learners", MODULE_ID, "policy_loss"),
+        "vf_loss": _metric(result, "learners", MODULE_ID, "vf_loss"),
+        "entropy": _metric(result, "learners", MODULE_ID, "entropy"),
+    }
+
+
+def _float(v):
+    try:
+        return round(float(v), 5)
+    except (TypeError, ValueError):
+        return None
+
+
+def default_env_runners(config, explicit_envs) -> int:
+    """--envs if given, else the config's num_envs capped at cores - 1 (at least 1)."""
+    if explicit_envs is not None:
+        return max(0, int(explicit_envs))
+    return max(1, min(int(config.num_envs), (os.cpu_count() or 2) - 1))
+
+
+def train_rllib(args, log=print) -> int:
+    """`multirace train --engine rllib`: see the module docstring."""
+    require_rllib()
+    import ray
+    import torch
+    from ray.tune.registry import register_env
+
+    from ..actions import load_action_space
+    from ..agentfile import make_metadata, save_agent
+    from ..nets import CameraNet, num_outputs_for
+    from .cli import config_from_args
+    from .ppo import check_reward_file, training_runs
+
+    if getattr(args, "resume", None) or getattr(args, "init", None):
+        raise ValueError("--engine rllib: --resume and --init are local-engine options (resume an RLlib run with "
+                         "ray.rllib.algorithms.Algorithm.from_checkpoint(FILE.rllib))")
+    config = config_from_args(args)
+    if config.opponent_pool or config.nature or config.curriculum:
+        log("note: --engine rllib ignores the opponent pool, nature adversary and curriculum "
+            "(env randomisation and procedural tracks are kept)")
+    num_env_runners = default_env_runners(config, getattr(args, "envs", None))
+    out = Path(args.out)
+    ckpt_dir = out.with_name(out.stem + ".rllib").resolve()
+    runs = training_runs(config)
+    check_reward_file(config, runs)
+    space = load_action_space(config.action_space)
+    try:  # a network / camera mismatch fails here with our message, not deep inside a Ray actor
+        CameraNet(config.network, (*config.camera, 1), num_outputs_for(space), value_head=True)
+    except ValueError as exc:
+        raise ValueError(f"--set camera / --network: {exc}") from None
+
+    address = getattr(args, "address", None)
+    started = time.perf_counter()
+    own_ray = not ray.is_initialized()
+    if own_ray:
+        if address:
+            ray.init(address=address, log_to_driver=False)
+        else:
+            ray.init(num_cpus=max(os.cpu_count() or 1, num_env_runners + 1), include_dashboard=False,
+                     log_to_driver=False, configure_logging=True, logging_level="ERROR")
+    register_env(ENV_NAME, make_rllib_env)
+    torch.set_num_threads(int(config.threads))
+    algo = build_ppo_config(config, runs, num_env_runners).build_algo()
+    setup_seconds = time.perf_counter() - started
+    log(f"rllib: Ray {ray.__version__} at {address or 'local'}, {num_env_runners} env runner(s) x "
+        f"{config.cars_per_env} cars, shared policy '{MODULE_ID}' ({config.network}), set-up {setup_seconds:.1f} s")
+
+    budget = 60.0 * float(config.minutes)
+    train_start = time.perf_counter()
+    history = []
+    try:
+        while True:
+            result = algo.train()
+            stats = iteration_stats(result, config.cars_per_env)
+            stats["elapsed"] = round(time.perf_counter() - train_start, 2)
+            stats["agent_steps_per_s"] = round(stats["agent_steps"] / max(stats["elapsed"], 1e-9), 1)
+            for key in ("policy_loss", "vf_loss", "entropy"):
+                stats[key] = _float(stats[key])
+            history.append(stats)
+            if config.progress:
+                ret = stats["car_return_mean"]
+                log(f"rllib iter {stats['iteration']:4d} {stats['elapsed']:7.1f}/{budget:.0f} s  "
+                    f"return/car {'-' if ret is None else f'{ret:8.2f}'}  agent-steps {stats['agent_steps']:8d}  "
+                    f"{stats['agent_steps_per_s']:7.1f} agent-steps/s  episodes {stats['episodes']}")
+            if stats["elapsed"] >= budget:
+                break
+        wall = time.perf_counter() - train_start
+        checkpoint = algo.save_to_path(str(ckpt_dir))
+        weights = algo.learner_group.get_weights(module_ids=[MODULE_ID])[MODULE_ID]
+        obs_space = algo.get_module(MODULE_ID).observation_space
+    finally:
+        algo.stop()
+        if own_ray:
+            ray.shutdown()
+    obs_shape = tuple(int(v) for v in obs_space.shape)
+    net = CameraNet(config.network, obs_shape, num_outputs_for(space), value_head=True)
+    net.load_state_dict(net_state_from_module(weights), strict=True)
+    last = history[-1]
+    returns = [h["car_return_mean"] for h in history if h["car_return_mean"] is not None]
+    training = {"engine": "rllib", "ray": ray.__version__, "iterations": last["iteration"],
+                "agent_steps": last["agent_steps"], "wall_seconds": round(wall, 1),
+                "env_runners": num_env_runners, "rllib_checkpoint": str(checkpoint),
+                "car_return_first": returns[0] if returns else None, "car_return_last": returns[-1] if returns else None}
+    metadata = make_metadata(space, net.network, out.stem, obs_shape, training_algorithm="clipped_ppo",
+                             training=training)
+    save_agent(out, net, metadata)
+    summary = {"engine": "rllib", "out": str(out), "rllib_checkpoint": str(checkpoint), **training,
+               "steps_per_s": round(last["agent_steps"] / max(wall, 1e-9), 1), "setup_seconds": round(setup_seconds, 1),
+               "config": config.to_dict(), "history": history}
+    summary["config"]["runs"] = None
+    out.with_suffix(".train.json").write_text(json.dumps(summary, indent=1, default=str))
+    log(f"wrote {out} (agent file) and {checkpoint} (RLlib checkpoint): {last['iteration']} iterations, "
+        f"{last['agent_steps']} agent-steps in {wall:.0f} s ({summary['steps_per_s']} agent-steps/s), "
+        f"return/car per env episode {training['car_return_first']} (first) -> {training['car_return_last']} (last)")
+    return 0
