@@ -20,10 +20,11 @@ from .texture import TrackTexture
 from .world import CAR_COLOURS, OBSTACLE_COLOUR, OBSTACLE_SIZE
 
 SUBPIXEL_BITS = 4
+PIXEL_LIMIT = 4096.0 * (1 << SUBPIXEL_BITS)  # fixed-point coordinates are clamped to +-4096 pixels
 # Corner k of a box is centre + sx * half-axis x + sy * half-axis y + sz * half-axis z, with the
 # signs given by the bits of k (x = bit 0, y = bit 1, z = bit 2); the 12 edges are corner pairs
 _SIGN_ARRAY = np.array([[1.0 if k & bit else -1.0 for bit in (1, 2, 4)] for k in range(8)])
-_EDGES = tuple((i, i | bit) for i in range(8) for bit in (1, 2, 4) if not i & bit)
+_EDGE_FROM, _EDGE_TO = np.array([(i, i | bit) for i in range(8) for bit in (1, 2, 4) if not i & bit]).T
 
 
 def _box(index: int, pose, size, colour):
@@ -49,6 +50,7 @@ class FastRenderer(Renderer):
         self.K = spec.intrinsics()
         self._metres_per_texel = 1.0 / texture.ppm
         self._focal, self._cx, self._cy = float(self.K[0, 0]), float(self.K[0, 2]), float(self.K[1, 2])
+        self._principal_point = np.array([self._cx, self._cy]) * float(1 << SUBPIXEL_BITS)
         palette = texture.palette
         if spec.grayscale:
             self._ground = texture.gray
@@ -68,8 +70,12 @@ class FastRenderer(Renderer):
         self._obstacle_boxes = []
 
     # ------------------------------------------------------------- ground
-    def ground_homography(self, pose: CameraPose) -> np.ndarray:
-        """3x3 map from texture pixels to image pixels (the ground plane z = 0)."""
+    def ground_homography(self, pose: CameraPose, first_row: int = 0) -> np.ndarray:
+        """3x3 map from texture pixels to image pixels (the ground plane z = 0).
+
+        With `first_row`, pixel rows are counted from that image row (for warping
+        only the part of the image below the horizon).
+        """
         # K [r1 r2 t] A, with A the texture-to-world affine map, in plain floats (tiny
         # numpy matrix products cost more in call overhead than they compute)
         (r11, r12, r13), (r21, r22, r23), (r31, r32, r33) = pose.rotation.tolist()
@@ -82,7 +88,7 @@ class FastRenderer(Renderer):
         for a, b, t in ((r11, r12, t1), (r21, r22, t2), (r31, r32, t3)):
             rows.append((a * scale, -b * scale, a * x0 + b * y0 + t))
         (a1, a2, a3), (b1, b2, b3), (c1, c2, c3) = rows
-        f, cx, cy = self._focal, self._cx, self._cy
+        f, cx, cy = self._focal, self._cx, self._cy - first_row
         return np.array([[f * a1 + cx * c1, f * a2 + cx * c2, f * a3 + cx * c3],
                          [f * b1 + cy * c1, f * b2 + cy * c2, f * b3 + cy * c3],
                          [c1, c2, c3]])
@@ -100,19 +106,16 @@ class FastRenderer(Renderer):
     def render_many(self, world, cars: list[int], poses: list[CameraPose]) -> list[np.ndarray]:
         """Images of several cameras at once; the box projection is batched over cameras."""
         spec = self.spec
-        images = []
-        for pose in poses:
-            image = np.empty((spec.height, spec.width, spec.channels), np.uint8)
+        images = list(np.empty((len(poses), spec.height, spec.width, spec.channels), np.uint8))
+        for image, pose in zip(images, poses):
             horizon = self.horizon_row(pose)
             image[:horizon] = self._sky
             if horizon < spec.height:  # warp only the rows below the horizon
-                homography = self.ground_homography(pose)
-                homography[:2] -= horizon * homography[2] * np.array([[0.0], [1.0]])
+                homography = self.ground_homography(pose, first_row=horizon)
                 ground = image[horizon:, :, 0] if spec.grayscale else image[horizon:]
                 cv2.warpPerspective(self._ground, homography, (spec.width, spec.height - horizon), dst=ground,
                                     flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
                                     borderValue=self._floor)
-            images.append(image)
         self._draw_boxes(images, world, cars, poses)
         return images
 
@@ -142,10 +145,10 @@ class FastRenderer(Renderer):
         """Fill every box each camera sees, far to near.
 
         Culling runs per camera in plain Python on bounding spheres; the corners of
-        all (camera, box) pairs that survive are then projected in one numpy pass.
+        all (camera, box) pairs that survive are then projected and clipped in one numpy pass.
         """
         boxes = self._scene_boxes(world)
-        f, cx, cy = self._focal, self._cx, self._cy
+        f = self._focal
         limit = (self.spec.width / 2 + 1) / f
         spread = math.sqrt(1 + limit * limit)
         pairs, centres, rotations, axes = [], [], [], []
@@ -172,35 +175,36 @@ class FastRenderer(Renderer):
         if not pairs:
             return
         # camera-frame corners of every pair: centre + signs . (R @ half-axes)
-        axes_cam = np.einsum("pij,pkj->pki", np.array(rotations), np.array(axes))
-        cam = np.array(centres)[:, None, :] + np.einsum("sk,pki->psi", _SIGN_ARRAY, axes_cam)
-        z = cam[..., 2]
-        zc = np.maximum(z, NEAR_PLANE)
-        pixels = np.empty(cam.shape[:2] + (2,))
-        pixels[..., 0] = cx + f * cam[..., 0] / zc
-        pixels[..., 1] = cy + f * cam[..., 1] / zc
-        pixels = (np.clip(pixels, -4096, 4096) * float(1 << SUBPIXEL_BITS)).astype(np.int32)
-        in_front = z >= NEAR_PLANE
-        all_in_front = in_front.all(axis=1).tolist()
+        axes_cam = np.array(axes) @ np.array(rotations).transpose(0, 2, 1)
+        corners = np.array(centres)[:, None, :] + _SIGN_ARRAY @ axes_cam
+        pixels, keep, whole = self._outlines(corners)
         for p, (c, colour) in enumerate(pairs):
             # flat-shaded convex box: its silhouette is the hull of its (near-clipped) corners
-            points = pixels[p] if all_in_front[p] else self._clipped_outline(cam[p], in_front[p])
-            if points is None:
+            points = pixels[p, :8] if whole[p] else pixels[p][keep[p]]
+            if len(points) < 3:
                 continue
             cv2.fillConvexPoly(images[c], cv2.convexHull(points), colour, lineType=cv2.LINE_8,
                                shift=SUBPIXEL_BITS)
 
-    def _clipped_outline(self, corners_cam: np.ndarray, in_front: np.ndarray):
-        """Projected vertices of a box cut by the near plane: front corners plus edge crossings."""
-        corners, front = corners_cam.tolist(), in_front.tolist()
-        points = [corners[k] for k in range(8) if front[k]]
-        for i, j in _EDGES:
-            if front[i] != front[j]:
-                (ax, ay, az), (bx, by, bz) = corners[i], corners[j]
-                t = (NEAR_PLANE - az) / (bz - az)
-                points.append((ax + t * (bx - ax), ay + t * (by - ay), NEAR_PLANE))
-        if len(points) < 3:
-            return None
-        f, cx, cy, scale = self._focal, self._cx, self._cy, float(1 << SUBPIXEL_BITS)
-        return np.array([(min(max(cx + f * x / z, -4096.0), 4096.0) * scale,
-                          min(max(cy + f * y / z, -4096.0), 4096.0) * scale) for x, y, z in points], np.int32)
+    def _outlines(self, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[bool]]:
+        """Outlines of boxes (P, 8 corners, camera-frame xyz) clipped at the near plane, in one numpy pass.
+
+        A box's outline is its corners in front of the plane plus the points
+        where its edges cross the plane. Returns fixed-point pixels (P, 8 + 12, 2)
+        of the corners then the crossings, which of them to keep (P, 20), and
+        whether each box is wholly in front (its first 8 points are its outline).
+        """
+        in_front = corners[..., 2] >= NEAR_PLANE
+        start, end = corners[:, _EDGE_FROM], corners[:, _EDGE_TO]
+        crosses = in_front[:, _EDGE_FROM] != in_front[:, _EDGE_TO]
+        t = (NEAR_PLANE - start[..., 2]) / np.where(crosses, end[..., 2] - start[..., 2], 1.0)
+        points = np.concatenate([corners, start + t[..., None] * (end - start)], axis=1)
+        keep = np.concatenate([in_front, crosses], axis=1)
+        return self._project(points), keep, np.logical_and.reduce(in_front, axis=1).tolist()
+
+    def _project(self, points: np.ndarray) -> np.ndarray:
+        """Camera-frame points (..., 3) to fixed-point pixels (..., 2) int32; z is floored at the near plane."""
+        scale = float(1 << SUBPIXEL_BITS)
+        pixels = points[..., :2] * (self._focal * scale / np.maximum(points[..., 2], NEAR_PLANE))[..., None]
+        pixels += self._principal_point
+        return np.maximum(np.minimum(pixels, PIXEL_LIMIT, out=pixels), -PIXEL_LIMIT, out=pixels).astype(np.int32)
