@@ -57,17 +57,27 @@ def _parallel_env_class():
     from pettingzoo import ParallelEnv
 
     class RaceTrainParallelEnv(ParallelEnv):
-        """`TrainEnv` (training rewards, several tracks) as a PettingZoo ParallelEnv for RLlib."""
+        """`TrainEnv` (training rewards, several tracks) as a PettingZoo ParallelEnv for RLlib.
+
+        Per-car training episodes, as the local engine: when a car's training episode
+        ends (an off-track with ``terminate_off_track``), that agent id is *terminated*
+        (value target 0) and the car - which the race rules have put back on the centre
+        line - goes on under a fresh id, ``car_2`` -> ``car_2.1`` -> ``car_2.2`` ...,
+        because an RLlib multi-agent episode cannot bring a terminated agent back. Every
+        id maps to the one shared policy. At ``episode_steps`` every car is truncated.
+        """
 
         metadata = {"name": "multirace_train_v0", "render_modes": []}
 
         def __init__(self, train_env):
             self.train_env = train_env
-            self.possible_agents = list(train_env.possible_agents)
+            self.cars = list(train_env.possible_agents)
+            self.possible_agents = list(self.cars)
+            self._lives = [0] * len(self.cars)
             self.agents = list(self.possible_agents)
             probe = train_env._env_for(0)
-            self._obs_space = probe.observation_space(self.possible_agents[0])
-            self._act_space = probe.action_space(self.possible_agents[0])
+            self._obs_space = probe.observation_space(self.cars[0])
+            self._act_space = probe.action_space(self.cars[0])
 
         def observation_space(self, agent):
             return self._obs_space
@@ -75,20 +85,33 @@ def _parallel_env_class():
         def action_space(self, agent):
             return self._act_space
 
+        def _id(self, i: int) -> str:
+            return self.cars[i] if self._lives[i] == 0 else f"{self.cars[i]}.{self._lives[i]}"
+
         def reset(self, seed=None, options=None):
             obs, infos = self.train_env.reset(seed=seed, options=options)
-            self.agents = list(self.possible_agents)
+            self._lives = [0] * len(self.cars)
+            self.agents = list(self.cars)
             return obs, infos
 
         def step(self, actions):
+            by_car = {self.cars[i]: actions[self._id(i)] for i in range(len(self.cars)) if self._id(i) in actions}
             if self._act_space.__class__.__name__ == "Box":  # RLlib's Gaussian is unbounded; keep to the box
-                actions = {a: np.clip(np.asarray(v, np.float32), self._act_space.low, self._act_space.high)
-                           for a, v in actions.items()}
-            obs, rewards, terms, truncs, infos = self.train_env.step(actions)
-            if not self.train_env.agents:  # the env episode is over (episode_steps): every car truncated
-                truncs = {a: not terms.get(a, False) for a in self.possible_agents}
-                self.agents = []
-            return obs, rewards, terms, truncs, infos
+                by_car = {c: np.clip(np.asarray(v, np.float32), self._act_space.low, self._act_space.high)
+                          for c, v in by_car.items()}
+            obs, rewards, _, _, infos = self.train_env.step(by_car)
+            over = not self.train_env.agents  # the env episode is over (episode_steps): every car truncated
+            o, r, te, tr, inf = {}, {}, {}, {}, {}
+            for i, car in enumerate(self.cars):
+                aid = self._id(i)
+                o[aid], r[aid], inf[aid] = obs[car], float(rewards[car]), infos[car]
+                te[aid], tr[aid] = (False, True) if over else (bool(infos[car].get("train_done")), False)
+                if te[aid]:  # the car drives on (back on the centre line) as a new agent
+                    self._lives[i] += 1
+                    o[self._id(i)], inf[self._id(i)] = obs[car], infos[car]
+                    te[self._id(i)], tr[self._id(i)] = False, False
+            self.agents = [] if over else [self._id(i) for i in range(len(self.cars))]
+            return o, r, te, tr, inf
 
         def close(self):
             self.train_env.close()
@@ -111,7 +134,7 @@ def make_rllib_env(env_config: dict):
 def env_config_for(config, runs) -> dict:
     return {"runs": runs, "num_cars": config.cars_per_env, "bots": tuple(config.bots),
             "action_space": config.action_space, "reward": config.reward, "camera": tuple(config.camera),
-            "episode_steps": config.episode_steps, "terminate_off_track": False,
+            "episode_steps": config.episode_steps, "terminate_off_track": bool(config.terminate_off_track),
             "off_track_penalty": config.off_track_penalty, "progress_weight": config.progress_weight,
             "centre_weight": config.centre_weight, "randomize": config.randomize,
             **_optional_env_settings(config)}
@@ -203,8 +226,10 @@ def build_ppo_config(config, runs, num_env_runners: int):
     from ray.rllib.core.rl_module.multi_rl_module import MultiRLModuleSpec
     from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 
-    # counted in agent-steps, as TrainConfig.batch_size: rollout_steps env steps x cars per env runner
-    train_batch = max(1, num_env_runners) * config.rollout_steps * config.cars_per_env
+    # counted in env steps (RLlib's default; its agent-step counting breaks on agents that come and go):
+    # rollout_steps per env runner, i.e. rollout_steps x cars agent-steps each, as TrainConfig.batch_size.
+    # RLlib's minibatches are in agent-steps but must not exceed the env-step batch (its config check).
+    train_batch = max(1, num_env_runners) * config.rollout_steps
     cfg = (
         PPOConfig()
         .environment(ENV_NAME, env_config=env_config_for(config, runs), normalize_actions=False,
@@ -213,8 +238,7 @@ def build_ppo_config(config, runs, num_env_runners: int):
         .env_runners(num_env_runners=num_env_runners, num_envs_per_env_runner=1, num_cpus_per_env_runner=1,
                      rollout_fragment_length="auto", sample_timeout_s=600.0)
         .learners(num_learners=0)
-        .multi_agent(policies={MODULE_ID}, policy_mapping_fn=_map_to_shared, policies_to_train=[MODULE_ID],
-                     count_steps_by="agent_steps")
+        .multi_agent(policies={MODULE_ID}, policy_mapping_fn=_map_to_shared, policies_to_train=[MODULE_ID])
         .rl_module(rl_module_spec=MultiRLModuleSpec(rl_module_specs={MODULE_ID: RLModuleSpec(
             module_class=_module_class(), model_config={"network": config.network})}))
         .training(train_batch_size_per_learner=train_batch,
@@ -247,9 +271,10 @@ def _total(value) -> float:
     if isinstance(value, dict):
         return float(sum(_total(v) for v in value.values()))
     try:
-        return float(value or 0.0)
+        value = float(value or 0.0)
     except (TypeError, ValueError):
         return 0.0
+    return value if np.isfinite(value) else 0.0
 
 
 def _finite_mean(values):
@@ -261,19 +286,19 @@ def iteration_stats(result: dict, cars: int) -> dict:
     """The figures of one `algo.train()` result we log (RLlib new-API-stack result keys).
 
     ``car_return_mean``: the mean return of one car over an env episode (episode_steps
-    steps), from RLlib's ``agent_episode_returns_mean``; None until an env episode ends.
+    steps, all its training episodes together): RLlib's ``episode_return_mean`` (the
+    sum over every agent id of the env episode) / cars; None until an env episode ends.
     """
     runners = result.get("env_runners", {})
-    per_car = _finite_mean((runners.get("agent_episode_returns_mean") or {}).values())
-    if per_car is None:
-        total = _finite_mean([runners.get("episode_return_mean")])
-        per_car = None if total is None else total / max(1, cars)
+    total = _finite_mean([runners.get("episode_return_mean")])
+    per_car = None if total is None else total / max(1, cars)
     return {
         "iteration": int(result.get("training_iteration", 0)),
         "env_steps": int(_total(runners.get("num_env_steps_sampled_lifetime"))),
         "agent_steps": int(_total(runners.get("num_agent_steps_sampled_lifetime"))),
         "episodes": int(_total(runners.get("num_episodes_lifetime"))),
         "car_return_mean": None if per_car is None else round(per_car, 3),
+        "agent_ids": len(runners.get("agent_episode_returns_mean") or {}),  # car_N.LIFE ids RLlib tracks
         "policy_loss": _metric(result, "learners", MODULE_ID, "policy_loss"),
         "vf_loss": _metric(result, "learners", MODULE_ID, "vf_loss"),
         "entropy": _metric(result, "learners", MODULE_ID, "entropy"),
