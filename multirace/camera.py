@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import numba
 import numpy as np
 
 NEAR_PLANE = 0.01
@@ -68,20 +69,36 @@ class CameraPose:
 
 def camera_pose(spec: CameraSpec, car_pose, jitter=(0.0, 0.0, 0.0)) -> CameraPose:
     """Pose of the camera on a car at (x, y, yaw); `jitter` adds (yaw, pitch, height) offsets."""
-    x, y, yaw = car_pose
-    d_yaw, d_pitch, d_height = jitter
-    cam_yaw = yaw + d_yaw
-    pitch = spec.pitch + d_pitch
-    eye = np.array([x + spec.forward * math.cos(yaw), y + spec.forward * math.sin(yaw),
-                    spec.mount_height + d_height])
-    cp, sp = math.cos(pitch), math.sin(pitch)
-    cy, sy = math.cos(cam_yaw), math.sin(cam_yaw)
-    rotation = np.array([
-        [sy, -cy, 0.0],  # right
-        [-sp * cy, -sp * sy, -cp],  # down = forward x right
-        [cp * cy, cp * sy, -sp],  # forward
-    ])
-    return CameraPose(eye=eye, rotation=rotation)
+    eyes, rotations = camera_poses(spec, np.asarray([car_pose], dtype=float), np.asarray([jitter], dtype=float))
+    return CameraPose(eye=eyes[0], rotation=rotations[0])
+
+
+def camera_poses(spec: CameraSpec, car_poses: np.ndarray, jitter: np.ndarray | None = None):
+    """Cameras of several cars at once: eyes (n, 3) and rotations (n, 3, 3) (rows: right, down, forward).
+
+    `car_poses` is (n, 3) of (x, y, yaw); `jitter`, if given, (n, 3) of (yaw,
+    pitch, height) offsets.
+    """
+    if jitter is None:
+        jitter = np.zeros((len(car_poses), 3))
+    return _camera_poses(car_poses, jitter, spec.forward, spec.mount_height, spec.pitch)
+
+
+@numba.njit(cache=True)
+def _camera_poses(car_poses, jitter, forward, mount_height, pitch):
+    n = car_poses.shape[0]
+    eyes, rotations = np.empty((n, 3)), np.empty((n, 3, 3))
+    for k in range(n):
+        x, y, yaw = car_poses[k, 0], car_poses[k, 1], car_poses[k, 2]
+        cam_yaw, cam_pitch = yaw + jitter[k, 0], pitch + jitter[k, 1]
+        eyes[k, 0], eyes[k, 1] = x + forward * math.cos(yaw), y + forward * math.sin(yaw)
+        eyes[k, 2] = mount_height + jitter[k, 2]
+        cp, sp = math.cos(cam_pitch), math.sin(cam_pitch)
+        cy, sy = math.cos(cam_yaw), math.sin(cam_yaw)
+        rotations[k, 0, 0], rotations[k, 0, 1], rotations[k, 0, 2] = sy, -cy, 0.0  # right
+        rotations[k, 1, 0], rotations[k, 1, 1], rotations[k, 1, 2] = -sp * cy, -sp * sy, -cp  # down = forward x right
+        rotations[k, 2, 0], rotations[k, 2, 1], rotations[k, 2, 2] = cp * cy, cp * sy, -sp  # forward
+    return eyes, rotations
 
 
 class Renderer:
@@ -94,9 +111,10 @@ class Renderer:
         """uint8 image (H, W, C) seen from `pose` by car `car` (which is not drawn)."""
         raise NotImplementedError
 
-    def render_many(self, world, cars: list[int], poses: list[CameraPose]) -> list[np.ndarray]:
-        """Images of several cars' cameras (renderers may batch this)."""
-        return [self.render(world, car, pose) for car, pose in zip(cars, poses)]
+    def render_many(self, world, cars: list[int], eyes: np.ndarray, rotations: np.ndarray) -> list[np.ndarray]:
+        """Images of several cars' cameras, posed as `camera_poses` returns (renderers may batch this)."""
+        return [self.render(world, car, CameraPose(eye=eye, rotation=rotation))
+                for car, eye, rotation in zip(cars, eyes, rotations)]
 
     def close(self) -> None:
         """Release what the renderer holds."""

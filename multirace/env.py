@@ -22,7 +22,7 @@ from pettingzoo.utils import OrderEnforcingWrapper, parallel_to_aec
 
 from .actions import load_action_space
 from .bots import parse_bot
-from .camera import CameraSpec, camera_pose, make_renderer
+from .camera import CameraSpec, camera_poses, make_renderer
 from .car import CarSpec
 from .randomize import Randomization, apply_command, apply_image
 from .rewards import load_reward_function
@@ -71,6 +71,7 @@ class RaceEnv(ParallelEnv):
             raise ValueError(f"num_cars: need 1 to {MAX_CARS} cars in all, got {num_cars} "
                              f"learning cars and {len(self.bots)} bots")
         self.num_cars = int(num_cars)
+        self._camera_cars = np.arange(self.num_cars)
         self.total_cars = self.num_cars + len(self.bots)
         self.actions = load_action_space(action_space)
         self.reward_function = load_reward_function(reward_function)
@@ -407,13 +408,12 @@ class RaceEnv(ParallelEnv):
 
     # ----------------------------------------------------------- outputs
     def _observe(self) -> dict:
-        cars = range(self.num_cars)
         draw = self._draw
+        jitter = None
         if draw is not None and self.randomization.camera_enabled:
-            poses = [camera_pose(self.camera, self.world.poses[i].tolist(), draw.camera_jitter[i]) for i in cars]
-        else:
-            poses = [camera_pose(self.camera, self.world.poses[i].tolist()) for i in cars]
-        images = self._renderer.render_many(self.world, list(cars), poses)
+            jitter = np.array(draw.camera_jitter[:self.num_cars])
+        eyes, rotations = camera_poses(self.camera, self.world.poses[:self.num_cars], jitter)
+        images = self._renderer.render_many(self.world, self._camera_cars, eyes, rotations)
         if draw is not None and self.randomization.perception_enabled:
             images = [apply_image(image, self._randomizer_rng, draw) for image in images]
         return dict(zip(self.possible_agents, images))

@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 
 import cv2
+import numba
 import numpy as np
 
 from .box_raster import draw_boxes
@@ -57,50 +58,64 @@ class FastRenderer(Renderer):
         With `first_row`, pixel rows are counted from that image row (for warping
         only the part of the image below the horizon).
         """
-        # K [r1 r2 t] A, with A the texture-to-world affine map, in plain floats (tiny
-        # numpy matrix products cost more in call overhead than they compute)
-        (r11, r12, r13), (r21, r22, r23), (r31, r32, r33) = pose.rotation.tolist()
-        ex, ey, ez = pose.eye.tolist()
-        t1 = -(r11 * ex + r12 * ey + r13 * ez)
-        t2 = -(r21 * ex + r22 * ey + r23 * ez)
-        t3 = -(r31 * ex + r32 * ey + r33 * ez)
-        scale, (x0, y0) = self._metres_per_texel, self.texture.origin
-        rows = []
-        for a, b, t in ((r11, r12, t1), (r21, r22, t2), (r31, r32, t3)):
-            rows.append((a * scale, -b * scale, a * x0 + b * y0 + t))
-        (a1, a2, a3), (b1, b2, b3), (c1, c2, c3) = rows
-        f, cx, cy = self._focal, self._cx, self._cy - first_row
-        return np.array([[f * a1 + cx * c1, f * a2 + cx * c2, f * a3 + cx * c3],
-                         [f * b1 + cy * c1, f * b2 + cy * c2, f * b3 + cy * c3],
-                         [c1, c2, c3]])
+        return self._ground_maps(pose.eye[None], pose.rotation[None], np.array([first_row]))[0][0]
 
     def horizon_row(self, pose: CameraPose) -> int:
         """First image row below the horizon (rows above it show sky)."""
-        pitch_down = math.asin(max(-1.0, min(1.0, -float(pose.rotation[2, 2]))))
-        row = self._cy - self._focal * math.tan(pitch_down)
-        return int(min(max(math.ceil(row), 0), self.spec.height))
+        return int(self._ground_maps(pose.eye[None], pose.rotation[None])[1][0])
+
+    def _ground_maps(self, eyes: np.ndarray, rotations: np.ndarray, first_rows: np.ndarray | None = None):
+        """Homographies (n, 3, 3) from texture pixels to image pixels and horizon rows (n,) of n cameras.
+
+        Each homography counts rows from `first_rows[k]`, by default from the camera's horizon.
+        """
+        x0, y0 = self.texture.origin
+        return _ground_maps(eyes, rotations, first_rows, self._metres_per_texel, float(x0), float(y0),
+                            self._focal, self._cx, self._cy, self.spec.height)
 
     # ------------------------------------------------------------- render
     def render(self, world, car: int, pose: CameraPose) -> np.ndarray:
-        return self.render_many(world, [car], [pose])[0]
+        return self.render_many(world, [car], pose.eye[None], pose.rotation[None])[0]
 
-    def render_many(self, world, cars: list[int], poses: list[CameraPose]) -> list[np.ndarray]:
+    def render_many(self, world, cars: list[int], eyes: np.ndarray, rotations: np.ndarray) -> list[np.ndarray]:
         """Images of several cameras at once: one ground warp each, then all boxes in one compiled call."""
         spec = self.spec
-        images = np.empty((len(poses), spec.height, spec.width, spec.channels), np.uint8)
-        for image, pose in zip(images, poses):
-            horizon = self.horizon_row(pose)
+        images = np.empty((len(cars), spec.height, spec.width, spec.channels), np.uint8)
+        homographies, horizons = self._ground_maps(eyes, rotations)
+        for image, horizon, homography in zip(images, horizons.tolist(), homographies):
             image[:horizon] = self._sky
             if horizon < spec.height:  # warp only the rows below the horizon
-                homography = self.ground_homography(pose, first_row=horizon)
                 ground = image[horizon:, :, 0] if spec.grayscale else image[horizon:]
                 cv2.warpPerspective(self._ground, homography, (spec.width, spec.height - horizon), dst=ground,
                                     flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
                                     borderValue=self._floor)
         car = world.spec
-        draw_boxes(images, np.array([pose.eye for pose in poses]), np.array([pose.rotation for pose in poses]),
+        draw_boxes(images, eyes, rotations,
                    np.asarray(cars, dtype=np.int64), world.poses, world.parked,
                    np.array((car.length, car.width, car.height)), self._car_colours,
                    world.obstacle_poses, self._obstacle_size, self._obstacle_colour,
                    self._focal, self._cx, self._cy, NEAR_PLANE)
         return list(images)
+
+
+@numba.njit(cache=True)
+def _ground_maps(eyes, rotations, first_rows, metres_per_texel, x0, y0, focal, cx, cy, height):
+    """K [r1 r2 t] A per camera, with r1, r2 the rotation's first two columns, t = -R eye and A
+    the texture-to-world map (x = x0 + u * metres_per_texel, y = y0 - v * metres_per_texel)."""
+    n = eyes.shape[0]
+    homographies, horizons = np.empty((n, 3, 3)), np.empty(n, np.int64)
+    for k in range(n):
+        r, eye = rotations[k], eyes[k]
+        pitch_down = math.asin(max(-1.0, min(1.0, -r[2, 2])))
+        horizons[k] = min(max(math.ceil(cy - focal * math.tan(pitch_down)), 0), height)
+        first_row = horizons[k] if first_rows is None else first_rows[k]
+        ground = np.empty((3, 3))
+        for i in range(3):
+            t = -(r[i, 0] * eye[0] + r[i, 1] * eye[1] + r[i, 2] * eye[2])
+            ground[i, 0], ground[i, 1] = r[i, 0] * metres_per_texel, -r[i, 1] * metres_per_texel
+            ground[i, 2] = r[i, 0] * x0 + r[i, 1] * y0 + t
+        for j in range(3):
+            homographies[k, 0, j] = focal * ground[0, j] + cx * ground[2, j]
+            homographies[k, 1, j] = focal * ground[1, j] + (cy - first_row) * ground[2, j]
+            homographies[k, 2, j] = ground[2, j]
+    return homographies, horizons
