@@ -24,6 +24,7 @@ from .actions import load_action_space
 from .bots import parse_bot
 from .camera import CameraSpec, camera_poses, make_renderer
 from .car import CarSpec
+from .objects import objects_seen
 from .randomize import Randomization, apply_command, apply_image
 from .rewards import load_reward_function
 from .rules import CarRace, make_rules
@@ -418,7 +419,7 @@ class RaceEnv(ParallelEnv):
             images = [apply_image(image, self._randomizer_rng, draw) for image in images]
         return dict(zip(self.possible_agents, images))
 
-    def _params(self, i: int, touched: set, table: tuple[list, ...]) -> dict:
+    def _params(self, i: int, touched: set, table: tuple) -> dict:
         """The 27 DeepRacer reward params of car i, in DeepRacer's units."""
         geo = self._geometry[i] if self._geometry[i] is not None else self._last_params_geometry(i)
         race, track = self.races[i], self.track
@@ -453,10 +454,11 @@ class RaceEnv(ParallelEnv):
         x, y, yaw = self.world.poses[i]
         return {"x": x, "y": y, "yaw": yaw, "proj": self.track.project(x, y), "wheels_on": 4}
 
-    def _object_table(self) -> tuple[list, ...]:
+    def _object_table(self) -> tuple:
         """Every object a car can see this step (boxes, then cars on track), as columns:
 
-        (car index or -1, x, y, left_of_centre, speed, heading_deg, distance_from_centre, s).
+        (car index or -1, x, y, left_of_centre, speed, heading_deg, distance_from_centre, s),
+        then per learning car `object_in_camera` and `closest_objects` (see `objects.objects_seen`).
         """
         rows = list(self._obstacle_rows)
         for j, geo in enumerate(self._geometry):
@@ -465,39 +467,29 @@ class RaceEnv(ParallelEnv):
             proj = geo["proj"]
             rows.append((j, geo["x"], geo["y"], proj.lateral > 0, float(self.world.drive_speed[j]),
                          math.degrees(geo["yaw"]), abs(proj.lateral), proj.s))
-        return tuple(list(column) for column in zip(*rows)) if rows else ([],) * 8
+        columns = tuple(list(column) for column in zip(*rows)) if rows else ([],) * 8
+        car_s = [geo["proj"].s if geo is not None else self._s[i]
+                 for i, geo in enumerate(self._geometry[:self.num_cars])]
+        in_camera, closest = objects_seen(np.array(columns[0], np.int64), np.array(columns[1], float),
+                                          np.array(columns[2], float), np.array(columns[7], float),
+                                          self.world.poses[:self.num_cars], np.array(car_s), self.track.length,
+                                          math.tan(self.camera.hfov / 2), CAMERA_RANGE)
+        return columns, in_camera.tolist(), closest.tolist()
 
-    def _objects_for(self, i: int, table: tuple[list, ...]) -> dict:
+    def _objects_for(self, i: int, table: tuple) -> dict:
         """DeepRacer's object params for car i: the boxes and every other car on track."""
-        owners = table[0]
+        columns, in_camera, closest = table
+        owners = columns[0]
         if i in owners:  # leave car i itself out of every column
             k = owners.index(i)
-            xs, ys, left, speed, heading, from_centre, along = (c[:k] + c[k + 1:] for c in table[1:])
+            xs, ys, left, speed, heading, from_centre, along = (c[:k] + c[k + 1:] for c in columns[1:])
         else:
-            xs, ys, left, speed, heading, from_centre, along = (list(c) for c in table[1:])
-        me = self._geometry[i]["proj"].s if self._geometry[i] is not None else self._s[i]
-        xi, yi, yaw_i = self.world.poses[i].tolist()
-        cos_i, sin_i = math.cos(yaw_i), math.sin(yaw_i)
-        tan_half_fov = math.tan(self.camera.hfov / 2)
-        length = self.track.length
-        in_camera = False
-        closest = [0, 0]
-        best_ahead = best_behind = math.inf
-        for k, (x, y, s) in enumerate(zip(xs, ys, along)):
-            dx, dy = x - xi, y - yi
-            forward, sideways = dx * cos_i + dy * sin_i, dy * cos_i - dx * sin_i
-            if 0 < forward < CAMERA_RANGE and abs(sideways) < forward * tan_half_fov:
-                in_camera = True
-            ahead = (s - me) % length
-            if ahead < best_ahead:
-                best_ahead, closest[1] = ahead, k
-            if length - ahead < best_behind:
-                best_behind, closest[0] = length - ahead, k
+            xs, ys, left, speed, heading, from_centre, along = (list(c) for c in columns[1:])
         return {
-            "closest_objects": closest,
+            "closest_objects": closest[i],
             "objects_location": list(zip(xs, ys)),
             "objects_left_of_center": left,
-            "object_in_camera": in_camera,
+            "object_in_camera": in_camera[i],
             "objects_speed": speed,
             "objects_heading": heading,
             "objects_distance_from_center": from_centre,
