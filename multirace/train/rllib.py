@@ -10,21 +10,25 @@ is exposed as a PettingZoo ParallelEnv, wrapped in RLlib's
 weights are written as an ordinary agent file that `multirace race` accepts,
 next to the RLlib checkpoint:
 
-    multirace train --engine rllib --minutes 10 --out agent.pt            # local Ray, 2 env runners
+    multirace train --engine rllib --minutes 10 --out agent.pt            # local Ray, cores-1 env runners
     multirace train --engine rllib --address auto --envs 16 --out a.pt    # on a running Ray cluster
 
-Outputs: ``FILE.pt`` (agent file), ``FILE.rllib/`` (RLlib checkpoint:
-``Algorithm.from_checkpoint`` resumes or serves it) and ``FILE.train.json``
-(config, per-iteration history).
+Outputs: ``FILE.pt`` (agent file, the final weights), ``FILE.rllib/`` (RLlib
+checkpoint: ``Algorithm.from_checkpoint`` resumes or serves it),
+``FILE.train.json`` (config, per-iteration history) and ``FILE.snapshots/``
+(an agent file every ``eval_every`` seconds, to race or evaluate afterwards).
 
-Differences from the local engine (RLlib's PPO, not ours): an off-track does
-not end the car's training episode (an RLlib multi-agent episode cannot bring a
-terminated agent back, and the car keeps driving after the race rules put it
-back on the centre line), it is only penalised by the reward; the learning rate
-is constant (no wall-clock annealing); no periodic time-trial evaluations and no
-robust options (opponent pool, nature adversary, curriculum) - only the
-env-level ones (``randomize``, procedural tracks). Needs ``pip install -e
-".[rllib]"``.
+Per-car training episodes as the local engine: an off-track ends the car's
+RLlib agent (terminated, value target 0) and the car drives on under a fresh
+agent id (``car_2.1``, ``car_2.2``, ...), all mapped to the shared policy.
+
+Differences from the local engine (this is RLlib's PPO, not ours): the
+learning rate is constant (no wall-clock annealing); minibatches are capped at
+the env-step batch (RLlib's check), so with one env runner they are smaller;
+no periodic time-trial evaluations or best-policy selection (the agent file
+holds the final weights); no opponent pool, nature adversary or curriculum
+(the env-level options ``randomize`` and procedural tracks are kept). Needs
+``pip install -e ".[rllib]"``.
 """
 from __future__ import annotations
 
@@ -355,7 +359,11 @@ def train_rllib(args, log=print) -> int:
     own_ray = not ray.is_initialized()
     if own_ray:
         if address:
-            ray.init(address=address, log_to_driver=False)
+            try:
+                ray.init(address=address, log_to_driver=False)
+            except (ConnectionError, RuntimeError, ValueError) as exc:
+                raise ValueError(f"--address {address}: could not connect to a Ray cluster there ({exc}); "
+                                 "start one with `ray start --head` or leave --address out for a local Ray") from None
         else:
             ray.init(num_cpus=max(os.cpu_count() or 1, num_env_runners + 1), include_dashboard=False,
                      log_to_driver=False, configure_logging=True, logging_level="ERROR")
@@ -366,8 +374,20 @@ def train_rllib(args, log=print) -> int:
     log(f"rllib: Ray {ray.__version__} at {address or 'local'}, {num_env_runners} env runner(s) x "
         f"{config.cars_per_env} cars, shared policy '{MODULE_ID}' ({config.network}), set-up {setup_seconds:.1f} s")
 
+    obs_shape = tuple(int(v) for v in algo.get_module(MODULE_ID).observation_space.shape)
+
+    def write_agent(path, training: dict) -> Path:
+        """The learner's current shared-module weights as an agent file."""
+        weights = algo.learner_group.get_weights(module_ids=[MODULE_ID])[MODULE_ID]
+        net = CameraNet(config.network, obs_shape, num_outputs_for(space), value_head=True)
+        net.load_state_dict(net_state_from_module(weights), strict=True)
+        metadata = make_metadata(space, net.network, Path(path).stem, obs_shape, training_algorithm="clipped_ppo",
+                                 training={"engine": "rllib", "ray": ray.__version__, **training})
+        return save_agent(path, net, metadata)
+
     budget = 60.0 * float(config.minutes)
-    train_start = time.perf_counter()
+    snapshots = out.with_name(out.stem + ".snapshots")
+    train_start = last_snapshot = time.perf_counter()
     history = []
     try:
         while True:
@@ -385,27 +405,26 @@ def train_rllib(args, log=print) -> int:
                     f"{stats['agent_steps_per_s']:7.1f} agent-steps/s  episodes {stats['episodes']}")
             if stats["elapsed"] >= budget:
                 break
+            if config.eval_every and time.perf_counter() - last_snapshot >= config.eval_every:
+                # an agent-file snapshot to race or `multirace evaluate` later (no in-loop evaluation here)
+                last_snapshot = time.perf_counter()
+                write_agent(snapshots / f"{int(stats['elapsed']):05d}s.pt",
+                            {"iterations": stats["iteration"], "agent_steps": stats["agent_steps"],
+                             "wall_seconds": stats["elapsed"]})
         wall = time.perf_counter() - train_start
         checkpoint = algo.save_to_path(str(ckpt_dir))
-        weights = algo.learner_group.get_weights(module_ids=[MODULE_ID])[MODULE_ID]
-        obs_space = algo.get_module(MODULE_ID).observation_space
+        last = history[-1]
+        returns = [h["car_return_mean"] for h in history if h["car_return_mean"] is not None]
+        training = {"iterations": last["iteration"], "agent_steps": last["agent_steps"], "wall_seconds": round(wall, 1),
+                    "env_runners": num_env_runners, "rllib_checkpoint": str(checkpoint),
+                    "car_return_first": returns[0] if returns else None,
+                    "car_return_last": returns[-1] if returns else None}
+        write_agent(out, training)
     finally:
         algo.stop()
         if own_ray:
             ray.shutdown()
-    obs_shape = tuple(int(v) for v in obs_space.shape)
-    net = CameraNet(config.network, obs_shape, num_outputs_for(space), value_head=True)
-    net.load_state_dict(net_state_from_module(weights), strict=True)
-    last = history[-1]
-    returns = [h["car_return_mean"] for h in history if h["car_return_mean"] is not None]
-    training = {"engine": "rllib", "ray": ray.__version__, "iterations": last["iteration"],
-                "agent_steps": last["agent_steps"], "wall_seconds": round(wall, 1),
-                "env_runners": num_env_runners, "rllib_checkpoint": str(checkpoint),
-                "car_return_first": returns[0] if returns else None, "car_return_last": returns[-1] if returns else None}
-    metadata = make_metadata(space, net.network, out.stem, obs_shape, training_algorithm="clipped_ppo",
-                             training=training)
-    save_agent(out, net, metadata)
-    summary = {"engine": "rllib", "out": str(out), "rllib_checkpoint": str(checkpoint), **training,
+    summary = {"engine": "rllib", "ray": ray.__version__, "out": str(out), **training,
                "steps_per_s": round(last["agent_steps"] / max(wall, 1e-9), 1), "setup_seconds": round(setup_seconds, 1),
                "config": config.to_dict(), "history": history}
     summary["config"]["runs"] = None
