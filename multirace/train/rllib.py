@@ -368,8 +368,12 @@ def train_rllib(args, log=print) -> int:
             ray.init(num_cpus=max(os.cpu_count() or 1, num_env_runners + 1), include_dashboard=False,
                      log_to_driver=False, configure_logging=True, logging_level="ERROR")
     register_env(ENV_NAME, make_rllib_env)
+    import logging
+
+    logging.getLogger("ray.rllib").setLevel(logging.ERROR)  # e.g. "You are running PPO on the new API stack!"
     torch.set_num_threads(int(config.threads))
-    algo = build_ppo_config(config, runs, num_env_runners).build_algo()
+    ppo_config = build_ppo_config(config, runs, num_env_runners)
+    algo = ppo_config.build_algo() if hasattr(ppo_config, "build_algo") else ppo_config.build()
     setup_seconds = time.perf_counter() - started
     log(f"rllib: Ray {ray.__version__} at {address or 'local'}, {num_env_runners} env runner(s) x "
         f"{config.cars_per_env} cars, shared policy '{MODULE_ID}' ({config.network}), set-up {setup_seconds:.1f} s")
