@@ -91,6 +91,7 @@ class RaceEnv(ParallelEnv):
             raise ValueError(f"renderer: unknown renderer {renderer!r}; choose 'fast' or 'pybullet'")
         self.renderer_name = renderer
         self.car_spec = CarSpec()
+        self._wheels = np.array(self.car_spec.wheel_offsets())
         self.dt = 1.0 / ACTION_HZ
         self.world = World(self.car_spec, self.total_cars, self.rules.obstacles, physics_hz, ACTION_HZ)
         self.max_steps = int(max_steps) if max_steps is not None else self._default_max_steps()
@@ -263,30 +264,30 @@ class RaceEnv(ParallelEnv):
 
     # ------------------------------------------------------- measurement
     def _measure_all(self) -> None:
-        """Project every car on the track and test its wheels."""
-        self._geometry = [self._measure(i) for i in range(self.total_cars)]
+        """Project every racing car on the track and test its wheels."""
+        self._geometry = [None] * self.total_cars
+        cars = [i for i in range(self.total_cars) if i >= len(self.races) or self.races[i].racing]
+        if cars:
+            for i, geo in zip(cars, self._locate(cars)):
+                self._geometry[i] = geo
 
     def _measure(self, i: int) -> dict | None:
-        race = self.races[i] if i < len(self.races) else None
-        if race is not None and not race.racing:
-            return None
-        spec, track = self.car_spec, self.track
-        x, y, yaw = self.world.poses[i].tolist()  # plain floats: faster scalar maths than numpy's
-        cos_y, sin_y = math.cos(yaw), math.sin(yaw)
-        offset = spec.reported_point_offset
-        px, py = x + offset * cos_y, y + offset * sin_y
-        proj = track.project(px, py, race.segment_hint if race else None)
-        if race is not None:
-            race.segment_hint = proj.segment
-        # wheels: lateral offsets in the local track frame of the projection
-        nx, ny = -math.sin(proj.heading), math.cos(proj.heading)
-        wheels_on = 0
-        for fwd, left in spec.wheel_offsets():
-            fx = fwd - offset
-            wx, wy = fx * cos_y - left * sin_y, fx * sin_y + left * cos_y
-            lateral = proj.lateral + wx * nx + wy * ny
-            wheels_on += -proj.right_width <= lateral <= proj.left_width
-        return {"x": float(px), "y": float(py), "yaw": float(yaw), "proj": proj, "wheels_on": wheels_on}
+        """Car i's geometry (None when its run is over)."""
+        racing = i >= len(self.races) or self.races[i].racing
+        return self._locate([i])[0] if racing else None
+
+    def _locate(self, cars: list[int]) -> list[dict]:
+        """Geometry of these cars: reported point, heading, projection and wheels on track."""
+        hints = [self.races[i].segment_hint if i < len(self.races) else None for i in cars]
+        hints = np.array([-1 if hint is None else hint for hint in hints], np.int64)
+        poses = self.world.poses[cars]
+        located = self.track.locate_cars(poses, hints, self.car_spec.reported_point_offset, self._wheels)
+        geometry = []
+        for i, yaw, (px, py, proj, wheels_on) in zip(cars, poses[:, 2].tolist(), located):
+            if i < len(self.races):
+                self.races[i].segment_hint = proj.segment
+            geometry.append({"x": px, "y": py, "yaw": yaw, "proj": proj, "wheels_on": wheels_on})
+        return geometry
 
     def _advance_distances(self) -> None:
         """Add what each car drove along the centre line since the last step to its race distance."""

@@ -18,6 +18,7 @@ import dataclasses
 import math
 from pathlib import Path
 
+import numba
 import numpy as np
 
 TRACKS_DIR = Path(__file__).resolve().parent.parent / "tracks"
@@ -126,11 +127,6 @@ class Track:
         self.seg_vec = seg
         self.seg_len = seg_len
         self.seg_len2 = np.maximum(seg_len**2, 1e-12)
-        # plain-Python copies for the per-step local search
-        self._n_segments = len(seg_len)
-        self._sx, self._sy = self.seg_start[:, 0].tolist(), self.seg_start[:, 1].tolist()
-        self._vx, self._vy = seg[:, 0].tolist(), seg[:, 1].tolist()
-        self._l2 = self.seg_len2.tolist()
         self.cum_s = np.concatenate([[0.0], np.cumsum(seg_len)])
         self.length = float(self.cum_s[-1])
         # unit direction per segment; zero-length segments borrow the next one
@@ -154,10 +150,9 @@ class Track:
         self.left_width = np.maximum(inner_off, outer_off)
         self.right_width = -np.minimum(inner_off, outer_off)
         self.width = np.linalg.norm(self.inner - self.outer, axis=1)
-        self._left, self._right = self.left_width.tolist(), self.right_width.tolist()
-        self._dir_x, self._dir_y = self.seg_dir[:, 0].tolist(), self.seg_dir[:, 1].tolist()
-        self._heading = self.seg_heading.tolist()
-        self._cum_s, self._seg_len = self.cum_s.tolist(), self.seg_len.tolist()
+        self._segments = np.column_stack([  # one row per segment, columns as _project_point reads them
+            self.seg_start, self.seg_vec, self.seg_len2, self.seg_dir, self.cum_s[:-1], self.seg_len,
+            self.seg_heading, self.left_width[:-1], self.left_width[1:], self.right_width[:-1], self.right_width[1:]])
         if np.any(self.left_width + self.right_width < 0.05):
             bad = int(np.argmin(self.left_width + self.right_width))
             raise TrackError(f"track file {source}: zero width at waypoint {bad}")
@@ -215,55 +210,22 @@ class Track:
         """Project a world point on the centre line.
 
         With `hint` (the segment found last time) only a few segments around it
-        are searched, in plain Python, which is what makes per-step projection
-        cheap; the whole track is searched when the local answer is at the edge
-        of that window or far away.
+        are searched, which is what makes per-step projection cheap; the whole
+        track is searched when the local answer is at the edge of that window or
+        far away.
         """
-        if hint is not None:
-            best, best_t, best_d2 = -1, 0.0, math.inf
-            n = self._n_segments
-            for k in range(hint - 3, hint + 6):
-                i = k % n
-                dx, dy = x - self._sx[i], y - self._sy[i]
-                vx, vy = self._vx[i], self._vy[i]
-                t = (dx * vx + dy * vy) / self._l2[i]
-                t = 0.0 if t < 0.0 else (1.0 if t > 1.0 else t)
-                ex, ey = dx - t * vx, dy - t * vy
-                d2 = ex * ex + ey * ey
-                if d2 < best_d2:
-                    best, best_t, best_d2, best_k = i, t, d2, k
-            if hint - 3 < best_k < hint + 5 and best_d2 < 4.0:
-                return self._projection(x, y, best, best_t)
-        i, t, _ = self._nearest(x, y)
-        return self._projection(x, y, i, t)
+        return Projection(*_project_point(x, y, -1 if hint is None else hint, self._segments))
 
-    def _nearest(self, x, y):
-        """Nearest segment over the whole track (vectorised): (segment, t, squared distance)."""
-        dx = x - self.seg_start[:, 0]
-        dy = y - self.seg_start[:, 1]
-        vec = self.seg_vec
-        t = np.clip((dx * vec[:, 0] + dy * vec[:, 1]) / self.seg_len2, 0.0, 1.0)
-        ex = dx - t * vec[:, 0]
-        ey = dy - t * vec[:, 1]
-        d2 = ex * ex + ey * ey
-        k = int(np.argmin(d2))
-        return k, float(t[k]), float(d2[k])
+    def locate_cars(self, poses: np.ndarray, hints: np.ndarray, offset: float, wheels: np.ndarray) -> list[tuple]:
+        """Where cars are on the track: per car (x, y) of its reported point, its Projection and wheels on track.
 
-    def _projection(self, x, y, i, t) -> Projection:
-        fx = self._sx[i] + t * self._vx[i]
-        fy = self._sy[i] + t * self._vy[i]
-        dx, dy = self._dir_x[i], self._dir_y[i]
-        dist = math.hypot(x - fx, y - fy)
-        lateral = math.copysign(dist, (x - fx) * -dy + (y - fy) * dx)
-        lw, rw = self._left, self._right
-        return Projection(
-            s=self._cum_s[i] + t * self._seg_len[i],
-            lateral=lateral,
-            segment=i,
-            heading=self._heading[i],
-            left_width=lw[i] + t * (lw[i + 1] - lw[i]),
-            right_width=rw[i] + t * (rw[i + 1] - rw[i]),
-        )
+        poses (n, 3) of (x, y, yaw) at the body centre; the reported point is
+        `offset` metres ahead of it; hints (n,) segment hints (-1 for none);
+        wheels (4, 2) the (forward, left) wheel contact points from the centre.
+        """
+        rows = _locate_cars(poses, hints, offset, wheels, self._segments).tolist()
+        return [(px, py, Projection(s, lateral, int(segment), heading, left, right), int(wheels_on))
+                for px, py, s, lateral, segment, heading, left, right, wheels_on in rows]
 
     def closest_waypoints(self, proj: Projection) -> tuple[int, int]:
         """DeepRacer's `closest_waypoints`: indices of the waypoints behind and ahead."""
@@ -307,3 +269,61 @@ class Track:
     def __repr__(self) -> str:
         rev = ", reverse" if self.reverse else ""
         return f"Track({self.name!r}{rev}, length={self.length:.2f} m, {len(self.center)} waypoints)"
+
+
+@numba.njit(cache=True)
+def _project_point(x, y, hint, segments):
+    """(s, lateral, segment, heading, left width, right width) of a point; `hint` < 0 searches the whole track.
+
+    `segments` rows: start x, y, vector x, y, squared length, unit direction
+    x, y, arc length at the start, length, heading, left width at both ends,
+    right width at both ends.
+    """
+    n = segments.shape[0]
+    best, best_t, best_d2, best_k = -1, 0.0, math.inf, 0
+    if hint >= 0:  # a few segments around the hint
+        for k in range(hint - 3, hint + 6):
+            t, d2 = _foot(x, y, segments[k % n])
+            if d2 < best_d2:
+                best, best_t, best_d2, best_k = k % n, t, d2, k
+    if not (hint - 3 < best_k < hint + 5 and best_d2 < 4.0):  # no hint, or the answer may lie outside the window
+        best, best_t, best_d2 = -1, 0.0, math.inf
+        for i in range(n):
+            t, d2 = _foot(x, y, segments[i])
+            if d2 < best_d2:
+                best, best_t, best_d2 = i, t, d2
+    seg = segments[best]
+    fx, fy = seg[0] + best_t * seg[2], seg[1] + best_t * seg[3]
+    lateral = math.copysign(math.hypot(x - fx, y - fy), (x - fx) * -seg[6] + (y - fy) * seg[5])
+    return (seg[7] + best_t * seg[8], lateral, best, seg[9],
+            seg[10] + best_t * (seg[11] - seg[10]), seg[12] + best_t * (seg[13] - seg[12]))
+
+
+@numba.njit(cache=True)
+def _foot(x, y, seg):
+    """Position t (0..1) of the foot point on a segment, and the squared distance to it."""
+    dx, dy = x - seg[0], y - seg[1]
+    t = min(max((dx * seg[2] + dy * seg[3]) / seg[4], 0.0), 1.0)
+    ex, ey = dx - t * seg[2], dy - t * seg[3]
+    return t, ex * ex + ey * ey
+
+
+@numba.njit(cache=True)
+def _locate_cars(poses, hints, offset, wheels, segments):
+    out = np.empty((poses.shape[0], 9))
+    for c in range(poses.shape[0]):
+        x, y, yaw = poses[c, 0], poses[c, 1], poses[c, 2]
+        cos_y, sin_y = math.cos(yaw), math.sin(yaw)
+        px, py = x + offset * cos_y, y + offset * sin_y
+        s, lateral, segment, heading, left, right = _project_point(px, py, hints[c], segments)
+        # wheels: lateral offsets in the local track frame of the projection
+        nx, ny = -math.sin(heading), math.cos(heading)
+        wheels_on = 0
+        for w in range(wheels.shape[0]):
+            fx, side = wheels[w, 0] - offset, wheels[w, 1]
+            wx, wy = fx * cos_y - side * sin_y, fx * sin_y + side * cos_y
+            if -right <= lateral + wx * nx + wy * ny <= left:
+                wheels_on += 1
+        out[c, 0], out[c, 1], out[c, 2], out[c, 3], out[c, 4] = px, py, s, lateral, segment
+        out[c, 5], out[c, 6], out[c, 7], out[c, 8] = heading, left, right, wheels_on
+    return out
