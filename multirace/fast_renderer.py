@@ -2,8 +2,9 @@
 
 The ground is flat, so the camera's view of it is a homography of the track's
 top-down texture: one `cv2.warpPerspective` per frame, nearest-texel like
-PyBullet's TinyRenderer (2.5x cheaper than bilinear; the texture has 1 cm texels). Above the horizon the
-sky is filled in. Other cars and the obstacles are flat-coloured boxes, as in
+PyBullet's TinyRenderer (2.5x cheaper than bilinear; the texture has 1 cm
+texels), with the homographies of all cameras computed in one compiled call.
+Above the horizon the sky is filled in. Other cars and the obstacles are flat-coloured boxes, as in
 the PyBullet reference: a box's silhouette is the convex hull of its corners
 (clipped at the near plane), filled far to near so nearer boxes hide farther
 ones, all in one compiled call (`box_raster.draw_boxes`). The camera's own car
@@ -21,6 +22,7 @@ from .box_raster import draw_boxes
 from .camera import NEAR_PLANE, CameraPose, CameraSpec, Renderer
 from .texture import TrackTexture
 from .world import CAR_COLOURS, OBSTACLE_COLOUR, OBSTACLE_SIZE
+
 
 def _gray(rgb) -> int:
     r, g, b = rgb
@@ -104,12 +106,12 @@ def _ground_maps(eyes, rotations, first_rows, metres_per_texel, x0, y0, focal, c
     the texture-to-world map (x = x0 + u * metres_per_texel, y = y0 - v * metres_per_texel)."""
     n = eyes.shape[0]
     homographies, horizons = np.empty((n, 3, 3)), np.empty(n, np.int64)
+    ground = np.empty((3, 3))  # [r1 r2 t] A of one camera
     for k in range(n):
         r, eye = rotations[k], eyes[k]
         pitch_down = math.asin(max(-1.0, min(1.0, -r[2, 2])))
         horizons[k] = min(max(math.ceil(cy - focal * math.tan(pitch_down)), 0), height)
         first_row = horizons[k] if first_rows is None else first_rows[k]
-        ground = np.empty((3, 3))
         for i in range(3):
             t = -(r[i, 0] * eye[0] + r[i, 1] * eye[1] + r[i, 2] * eye[2])
             ground[i, 0], ground[i, 1] = r[i, 0] * metres_per_texel, -r[i, 1] * metres_per_texel
