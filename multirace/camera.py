@@ -1,7 +1,9 @@
 """The front camera: its mounting, its optics, and the renderer interface.
 
-A renderer turns the world's current state into one car's camera image:
-``renderer.render(world, car_index) -> uint8 (H, W, C)``. Two implement it:
+A renderer turns the world's current state into a car's camera image,
+``renderer.render(world, car, pose) -> uint8 (H, W, C)``, or the images of
+several cars at once from the batched poses of `camera_poses`
+(``renderer.render_many(world, cars, eyes, rotations)``). Two implement it:
 `pybullet_renderer.PyBulletRenderer` (TinyRenderer, the reference) and
 `fast_renderer.FastRenderer` (a perspective warp of the flat track, the default).
 
