@@ -104,3 +104,44 @@ def test_evaluate_rows_with_perturbation_and_traffic(trained, tmp_path):
     assert report["summary"]["completion_drop_points"] == 0.0
     plot_report([report], tmp_path / "eval.png")
     assert (tmp_path / "eval.png").stat().st_size > 1000
+
+
+def _ram(collision_penalty, terminate_collision=False):
+    """Three cars on the start grid: car_2 (last) drives at 2 m/s into the cars ahead, which crawl at 0.1 m/s."""
+    from multirace.train.envs import TrainEnv
+
+    space = {"action_space_type": "discrete",
+             "action_space": [{"steering_angle": 0, "speed": 0.1}, {"steering_angle": 0, "speed": 2.0}]}
+    env = TrainEnv([("reinvent_base", False)], num_cars=3, action_space=space, camera=(30, 40),
+                   collision_penalty=collision_penalty, terminate_collision=terminate_collision)
+    env.reset(seed=0)
+    steps = []
+    for _ in range(12):
+        _, rewards, _, _, infos = env.step({"car_0": 0, "car_1": 0, "car_2": 1})
+        steps.append((rewards, infos))
+    record = [race.collisions for race in env.env.races]
+    env.close()
+    return steps, record
+
+
+def test_collision_penalty_hits_the_striker_only():
+    plain, _ = _ram(0.0)
+    penalised, record = _ram(10.0, terminate_collision=True)
+    caused = [k for k, (_, infos) in enumerate(penalised) if infos["car_2"]["caused"]]
+    assert caused, f"car_2 never struck a car: {record}"
+    assert any(c["caused"] for c in record[2]) and not any(c["caused"] for c in record[0] + record[1])
+    hit = [k for k, (_, infos) in enumerate(penalised) if infos["car_0"]["collisions"] or infos["car_1"]["collisions"]]
+    assert hit, "the rammed car saw no contact"
+    for (r0, i0), (r1, i1) in zip(plain, penalised):  # same seed, same drive: rewards differ by the penalty only
+        for car in ("car_0", "car_1"):
+            assert r1[car] == pytest.approx(r0[car]) and not i1[car]["caused"]
+        assert r1["car_2"] == pytest.approx(r0["car_2"] - 10.0 * i1["car_2"]["caused"])
+        # terminate_collision: the striker's training episode ends with the strike, nobody else's
+        assert i1["car_2"]["train_done"] == bool(i1["car_2"]["caused"]) and not i0["car_2"]["train_done"]
+        assert not i1["car_0"]["train_done"] and not i1["car_1"]["train_done"]
+
+
+def test_race_preset_trains_in_traffic():
+    race = make_config("race")
+    assert race.bots and race.opponent_pool and race.collision_penalty > 0 and race.eval_bots
+    assert make_config("fast").collision_penalty == 0.0 and not make_config("fast").bots  # the default is unchanged

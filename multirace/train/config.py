@@ -9,6 +9,12 @@
 - ``deepracer``: the AWS DeepRacer console's PPO defaults: batch 64, lr 3e-4,
   entropy 0.01, discount 0.999, 10 epochs, clip 0.2, GAE lambda 0.95, its
   shallow CNN and its default (centre-line) reward.
+- ``race``: head-to-head racing: trains in traffic (a ``follow`` and a
+  ``lanes`` bot in every env, a quarter of the cars driven by the opponent
+  pool, which holds the shipped imitation agents and past snapshots), with a
+  penalty on every collision the car causes, DeepRacer's faster sample action
+  space (1 and 2 m/s), and evaluations in traffic. Meant with
+  ``--init agents/dagger_fast.pt`` (see multirace/train/README.md).
 - ``tiny``: one worker, about a second per iteration, for tests and smoke runs
   (returns rise visibly on Oval_track within 45 s).
 """
@@ -16,8 +22,11 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 from ..nets import SHALLOW, TINY
+
+SHIPPED_AGENTS = Path(__file__).resolve().parents[2] / "agents"
 
 
 @dataclasses.dataclass
@@ -39,6 +48,8 @@ class TrainConfig:
     episode_steps: int = 1500  # env steps before the env is reset to the start grid (100 s at 15 Hz)
     terminate_off_track: bool = True  # an off-track ends that car's training episode (value target 0)
     off_track_penalty: float = 1.0  # reward subtracted on an off-track step
+    collision_penalty: float = 0.0  # reward subtracted per collision the car causes (it struck a car or box)
+    terminate_collision: bool = False  # a collision the car causes ends its training episode (like an off-track)
     progress_weight: float = 1.0  # "progress" reward: metres along the centre line per step / (1 m/s * dt)
     centre_weight: float = 0.1  # "progress" reward: bonus of up to this for staying near the centre line
     randomize: object = None  # env domain randomisation: None, "mild", "strong" or a dict (see randomize.py)
@@ -57,6 +68,7 @@ class TrainConfig:
     max_grad_norm: float = 0.5  # gradient norm clip
     target_kl: float | None = None  # stop an iteration's epochs early above this approximate KL
     norm_adv: bool = True  # normalise advantages per minibatch
+    value_warmup: int = 0  # with --init: first iterations train only the (new) value head, policy frozen
     # ---- budget, logging, outputs
     minutes: float = 10.0  # wall-clock budget, including evaluations and checkpoints
     seed: int = 0  # seeds torch, the envs and sampling
@@ -65,6 +77,7 @@ class TrainConfig:
     eval_every: float = 60.0  # seconds between greedy time-trial evaluations (0 = never)
     eval_track: str | None = None  # track of the evaluation (default: the first training track)
     eval_laps: int = 3  # laps of the evaluation time trial
+    eval_bots: tuple = ()  # bots to race in the evaluation (head-to-head, collisions caused count like off-tracks)
     keep_best: bool = True  # write the best-evaluated policy (laps, then off-tracks, then time) as the agent file
     stop_on_success: bool = False  # end training at the first evaluation that finishes every lap with no off-track
     progress: bool = True  # show a progress bar
@@ -94,6 +107,9 @@ PRESETS: dict[str, dict] = {
     "fast": {},
     "deepracer": {"anneal_lr": False, "minibatch_size": 64, "lr": 3e-4, "ent_coef": 0.01, "gamma": 0.999, "epochs": 10, "clip": 0.2,
                   "gae_lambda": 0.95, "network": SHALLOW, "reward": "centre"},
+    "race": {"bots": ("follow@1.0", "lanes@1.0"), "opponent_pool": True, "collision_penalty": 20.0,
+             "action_space": str(SHIPPED_AGENTS / "action_space_fast.json"), "eval_bots": ("follow@1.0", "lanes@1.0"),
+             "value_warmup": 5},
     "tiny": {"num_envs": 1, "cars_per_env": 4, "rollout_steps": 128, "minibatch_size": 128, "epochs": 4,
              "lr": 1e-3, "gamma": 0.95, "anneal_lr": False, "episode_steps": 300, "eval_every": 0,
              "checkpoint_every": 1e9},

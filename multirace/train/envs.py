@@ -13,7 +13,11 @@ adds what training needs on top of the race env:
 - per-car training episodes: an off-track ends that car's episode (the race
   rules have already put it back on the centre line where it left, which is
   where its next episode starts), so there is no need to end the whole race;
-- per-car episode statistics in the infos (return, length, laps driven);
+- a penalty on every collision the car causes (the env's contact record
+  names the striker of each new contact: the car that drove into the other
+  or into a box; the car that was hit is not penalised);
+- per-car episode statistics in the infos (return, length, laps driven,
+  collisions caused);
 - robust options read per episode from shared memory the learner writes:
   a domain-randomisation scale (curriculum) and nature's perturbation weights.
 """
@@ -23,7 +27,8 @@ import math
 
 import numpy as np
 
-INFO_KEYS = ("train_done", "ep_return", "ep_length", "ep_laps", "off_track", "collisions", "perturbation")
+INFO_KEYS = ("train_done", "ep_return", "ep_length", "ep_laps", "ep_caused", "off_track", "collisions", "caused",
+             "perturbation")
 
 
 class TrainEnv:
@@ -31,7 +36,8 @@ class TrainEnv:
 
     def __init__(self, runs, num_cars=4, bots=(), action_space=None, reward="progress", camera=(120, 160),
                  episode_steps=1500, terminate_off_track=True, off_track_penalty=1.0, progress_weight=1.0,
-                 centre_weight=0.1, randomize=None, shared=None, worker=0):
+                 centre_weight=0.1, randomize=None, shared=None, worker=0, collision_penalty=0.0,
+                 terminate_collision=False):
         self.runs = list(runs)  # [(track name/path or Track rows, reverse)]
         self.num_cars = int(num_cars)
         self.bots = tuple(bots)
@@ -41,6 +47,8 @@ class TrainEnv:
         self.episode_steps = int(episode_steps)
         self.terminate_off_track = bool(terminate_off_track)
         self.off_track_penalty = float(off_track_penalty)
+        self.collision_penalty = float(collision_penalty)
+        self.terminate_collision = bool(terminate_collision)
         self.progress_weight = float(progress_weight)
         self.centre_weight = float(centre_weight)
         self.randomize = randomize
@@ -69,26 +77,24 @@ class TrainEnv:
         return self._envs[k]
 
     def _episode_randomization(self):
-        """This episode's randomisation: the configured one scaled by the curriculum, or nature's pick."""
+        """This episode's randomisation: the configured one or nature's pick, scaled by the curriculum."""
         from ..randomize import Randomization
+        from .nature import scale_randomization
 
         self.perturbation = -1
+        scale = float(self.shared["scale"].value) if self.shared is not None and "scale" in self.shared else 1.0
         use_nature = self.randomize is None or self._rng.random() < 0.5  # with a curriculum too: half the episodes
         if self.shared is not None and "nature" in self.shared and use_nature:
             from .nature import UNCERTAINTY_SET, sample_perturbation
 
             weights = np.frombuffer(self.shared["nature"].get_obj(), dtype=np.float64).copy()
             self.perturbation = sample_perturbation(weights, self._rng)
-            return Randomization.from_config(UNCERTAINTY_SET[self.perturbation][1])
-        if self.randomize is None:
+            base = Randomization.from_config(UNCERTAINTY_SET[self.perturbation][1])
+        elif self.randomize is None:
             return Randomization.from_config(None)
-        base = Randomization.from_config(self.randomize)
-        scale = float(self.shared["scale"].value) if self.shared is not None and "scale" in self.shared else 1.0
-        if scale >= 1.0:
-            return base
-        from .nature import scale_randomization
-
-        return scale_randomization(base, scale)
+        else:
+            base = Randomization.from_config(self.randomize)
+        return base if scale >= 1.0 else scale_randomization(base, scale)
 
     def reset(self, seed=None, options=None):
         if seed is not None:
@@ -104,16 +110,24 @@ class TrainEnv:
         self._ep_length = [0] * self.num_cars
         self._ep_dist = [0.0] * self.num_cars
         self._ep_collisions = [0] * self.num_cars
+        self._ep_caused = [0] * self.num_cars
         self._collisions_seen = [0] * self.num_cars
         self.agents = list(self.possible_agents)
         return obs, {a: self._small(infos[a], False, None) for a in self.possible_agents}
 
-    def _small(self, info, done, episode):
+    def _small(self, info, done, episode, caused=0):
         small = {"train_done": done, "off_track": bool(info.get("off_track", False)),
-                 "collisions": len(info.get("collisions", ())), "perturbation": self.perturbation}
+                 "collisions": len(info.get("collisions", ())), "caused": caused, "perturbation": self.perturbation}
         if episode is not None:
             small.update(episode)
         return small
+
+    def _new_collisions_caused(self, i: int) -> int:
+        """Collisions car i caused since the last step (new contacts in which it was the striker)."""
+        record = self.env.races[i].collisions
+        new = record[self._collisions_seen[i]:]
+        self._collisions_seen[i] = len(record)
+        return sum(1 for c in new if c["caused"])
 
     def step(self, actions):
         env = self.env
@@ -135,18 +149,21 @@ class TrainEnv:
                     r -= self.off_track_penalty
             else:
                 r = float(rewards[agent])
+            caused = self._new_collisions_caused(i)
+            r -= self.collision_penalty * caused
+            self._ep_caused[i] += caused
             self._ep_return[i] += r
             self._ep_length[i] += 1
             self._ep_dist[i] += ds
             self._ep_collisions[i] += len(info["collisions"]) > 0
-            done = (off and self.terminate_off_track) or truncated
+            done = (off and self.terminate_off_track) or (caused and self.terminate_collision) or truncated
             episode = None
             if done:
                 episode = {"ep_return": self._ep_return[i], "ep_length": self._ep_length[i],
-                           "ep_laps": self._ep_dist[i] / self.track_length}
-                self._ep_return[i], self._ep_length[i], self._ep_dist[i] = 0.0, 0, 0.0
+                           "ep_laps": self._ep_dist[i] / self.track_length, "ep_caused": self._ep_caused[i]}
+                self._ep_return[i], self._ep_length[i], self._ep_dist[i], self._ep_caused[i] = 0.0, 0, 0.0, 0
             out_rewards[agent] = r
-            out_infos[agent] = self._small(info, done, episode)
+            out_infos[agent] = self._small(info, done, episode, caused)
         if truncated:
             self.agents = []
         return obs, out_rewards, terms, truncs, out_infos

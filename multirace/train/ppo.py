@@ -123,17 +123,29 @@ def make_vector_env(config: TrainConfig, shared=None, cars=None, bots=None):
         action_space=config.action_space, reward=config.reward, camera=config.camera,
         episode_steps=config.episode_steps, terminate_off_track=config.terminate_off_track,
         off_track_penalty=config.off_track_penalty, progress_weight=config.progress_weight,
-        centre_weight=config.centre_weight, randomize=config.randomize, shared=shared, worker=w)
+        centre_weight=config.centre_weight, randomize=config.randomize, shared=shared, worker=w,
+        collision_penalty=config.collision_penalty, terminate_collision=config.terminate_collision)
         for w in range(config.num_envs)]
     return SubprocVectorEnv(factories, info_keys=INFO_KEYS)
 
 
 # ------------------------------------------------------------- evaluation
-def evaluate_time_trial(agent_path, track: str, laps: int = 3, seed: int = 0, reverse: bool = False) -> dict:
-    """Race the agent file alone (as `multirace race FILE --format time_trial`); its result row."""
+def evaluate_time_trial(agent_path, track: str, laps: int = 3, seed: int = 0, reverse: bool = False,
+                        bots=()) -> dict:
+    """Race the agent file alone (as `multirace race FILE --format time_trial`); its result row.
+
+    With `bots`: a head-to-head race against them instead, in which each collision the agent caused
+    counts like an off-track reset in the row's "resets" (so the best-policy choice avoids both).
+    """
     from ..agentfile import AgentController
     from ..race import RaceConfig, run_race
 
+    if bots:
+        from .evaluate import race_agent
+
+        row = race_agent(agent_path, track, reverse=reverse, laps=laps, seed=seed, bots=tuple(bots),
+                         race="head_to_head", step_budget=5.0)
+        return {**row, "resets": row["resets"] + row["collisions_caused"]}
     # a generous step budget: the evaluation measures driving, not how busy the machine is
     result = run_race([AgentController(agent_path, step_budget=5.0)], RaceConfig(track=track, reverse=reverse, race="time_trial",
                                                                laps=laps, seed=seed))
@@ -333,6 +345,7 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
                         if info["train_done"]:
                             episodes.append({"return": info["ep_return"], "laps": info["ep_laps"],
                                              "length": info["ep_length"], "learner": bool(learner_mask[e, a]),
+                                             "caused": info.get("ep_caused", 0),
                                              "perturbation": info["perturbation"]})
                         if pool is not None:
                             pool.observe(e, a, info, float(reward[e, a]))
@@ -365,6 +378,7 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
                 for group in optimiser.param_groups:
                     group["lr"] = config.lr * max(0.1, 1.0 - frac)
             net.train()
+            warmup = bool(init) and iteration - start_iteration < config.value_warmup and checkpoint is None
             size = len(b_obs)
             mb = min(config.minibatch_size, size)
             clip_fracs, approx_kl, pg_loss, v_loss, entropy = [], 0.0, 0.0, 0.0, 0.0
@@ -392,7 +406,13 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
                     ent = policy.entropy(dist).mean()
                     loss = pg - config.ent_coef * ent + config.vf_coef * vl
                     optimiser.zero_grad()
+                    if warmup:  # a fresh value head under an --init policy: fit values first, policy frozen
+                        loss = config.vf_coef * vl
                     loss.backward()
+                    if warmup:
+                        for name, param in net.named_parameters():
+                            if not name.startswith("value_head."):
+                                param.grad = None
                     nn.utils.clip_grad_norm_(net.parameters(), config.max_grad_norm)
                     optimiser.step()
                     pg_loss, v_loss, entropy = pg.item(), vl.item(), ent.item()
@@ -414,6 +434,8 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
                    "laps_per_episode": float(np.mean([ep["laps"] for ep in mine])) if mine else
                    (history[-1]["laps_per_episode"] if history else 0.0),
                    "lap_completion": float(np.mean([ep["laps"] >= 1.0 for ep in mine])) if mine else 0.0,
+                   "caused_per_lap": (float(sum(ep["caused"] for ep in mine) / max(sum(ep["laps"] for ep in mine),
+                                                                                    0.25)) if mine else 0.0),
                    "mean_reward": float(buf_rew.mean()), "policy_loss": round(pg_loss, 4),
                    "value_loss": round(v_loss, 4), "entropy": round(entropy, 4), "approx_kl": round(approx_kl, 5),
                    "clip_frac": round(float(np.mean(clip_fracs)) if clip_fracs else 0.0, 4),
@@ -441,7 +463,8 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
                 last_ckpt = time.perf_counter()
             if config.eval_every and time.perf_counter() - last_eval >= config.eval_every:
                 latest = snapshot_agent(ckpt_dir / "latest.pt")
-                car = evaluate_time_trial(latest, config.eval_track or str(config.tracks[0]), config.eval_laps)
+                car = evaluate_time_trial(latest, config.eval_track or str(config.tracks[0]), config.eval_laps,
+                                          bots=config.eval_bots)
                 evals.append({"iteration": iteration, "agent_steps": agent_steps,
                               "elapsed": round(spent + elapsed(), 1), "laps": car["laps"],
                               "target": config.eval_laps, "resets": car["resets"], "total_time": car["total_time"],
@@ -481,7 +504,8 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
     if best is not None and config.keep_best:
         # the final weights get one last evaluation; the best evaluated policy is what we ship
         final = snapshot_agent(ckpt_dir / "final.pt")
-        car = evaluate_time_trial(final, config.eval_track or str(config.tracks[0]), config.eval_laps)
+        car = evaluate_time_trial(final, config.eval_track or str(config.tracks[0]), config.eval_laps,
+                                  bots=config.eval_bots)
         final_eval = {"laps": car["laps"], "target": config.eval_laps, "resets": car["resets"],
                       "total_time": car["total_time"], "iteration": iteration, "final": True}
         if best[0] > eval_score(final_eval):

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-SHIPPED_DIR = Path(__file__).resolve().parents[2] / "agents"
+from .config import SHIPPED_AGENTS as SHIPPED_DIR
 
 
 class Opponent:
