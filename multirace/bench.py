@@ -20,32 +20,36 @@ from .camera import camera_pose
 from .env import RaceEnv
 
 CAR_COUNTS = (1, 2, 4, 8)
-WINDOWS = 5  # each figure is the best of this many equal time windows
+WINDOWS = 15  # each figure is the best of this many equal time windows, taken in turns
 OBSTACLES = 3
 
 
-def _best_rate(step, agents_per_step: int, seconds: float, windows: int = WINDOWS) -> tuple[float, float]:
-    """Agent-steps per second of `step()`: per wall-clock second and per CPU second of this thread.
+def _interleaved_rates(workloads: dict, seconds: float, windows: int = WINDOWS) -> dict:
+    """Agent-steps per wall-clock second and per CPU second of this thread, of each workload.
 
-    Each is the best of several short windows: other processes on a 2-core
-    machine slow some windows down, and the best window is the closest to what
-    the code itself costs. The CPU figure does not count time spent waiting for
-    a core, so it stays meaningful on a busy machine.
+    `workloads` maps a name to (step function, agents per step). Each figure is
+    the best of several short windows (other processes on a 2-core machine slow
+    some windows down, and the best is the closest to what the code costs), and
+    the windows of all workloads take turns, so that a slow patch of the
+    machine hits them alike and their ratios stay meaningful. The CPU figure
+    does not count time spent waiting for a core.
     """
-    best_wall = best_cpu = 0.0
+    best = {name: (0.0, 0.0) for name in workloads}
     for _ in range(windows):
-        steps, start, start_cpu = 0, time.perf_counter(), time.thread_time()
-        while time.perf_counter() - start < seconds / windows:
-            step()
-            steps += 1
-        wall, cpu = time.perf_counter() - start, time.thread_time() - start_cpu
-        best_wall = max(best_wall, agents_per_step * steps / wall)
-        best_cpu = max(best_cpu, agents_per_step * steps / max(cpu, 1e-9))
-    return best_wall, best_cpu
+        for name, (step, agents_per_step) in workloads.items():
+            steps, start, start_cpu = 0, time.perf_counter(), time.thread_time()
+            while time.perf_counter() - start < seconds / windows:
+                step()
+                steps += 1
+            wall, cpu = time.perf_counter() - start, time.thread_time() - start_cpu
+            best_wall, best_cpu = best[name]
+            best[name] = (max(best_wall, agents_per_step * steps / wall),
+                          max(best_cpu, agents_per_step * steps / max(cpu, 1e-9)))
+    return best
 
 
-def _bench_env(num_cars: int, renderer: str, seconds: float, seed: int = 0) -> tuple[float, float]:
-    """Agent-steps per wall and per CPU second of the env with random actions (resetting when done)."""
+def _env_stepper(num_cars: int, renderer: str, seed: int = 0):
+    """(step, close) of the env with random actions, resetting when an episode ends."""
     env = RaceEnv(num_cars=num_cars, obstacles=OBSTACLES, renderer=renderer, max_steps=2000)
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)
@@ -57,13 +61,11 @@ def _bench_env(num_cars: int, renderer: str, seconds: float, seed: int = 0) -> t
         env.step({a: int(rng.integers(n_actions)) for a in env.agents})
 
     step()  # warm-up
-    rate = _best_rate(step, num_cars, seconds)
-    env.close()
-    return rate
+    return step, env.close
 
 
-def _bench_floor(num_cars: int, seconds: float, seed: int = 0) -> tuple[float, float]:
-    """Agent-steps per wall and CPU second of the bare minimum: physics plus one texture warp per camera.
+def _floor_stepper(num_cars: int, seed: int = 0):
+    """(step, close) of the bare minimum: physics plus one texture warp per camera.
 
     The cars get random commands like the env benchmark's, and are put back on
     the grid every 60 steps (by the world alone, not an env reset) so that they
@@ -89,52 +91,69 @@ def _bench_floor(num_cars: int, seconds: float, seed: int = 0) -> tuple[float, f
             for i, pose in enumerate(grid):
                 world.place_car(i, *pose)
 
-    rate = _best_rate(step, num_cars, seconds)
-    env.close()
-    return rate
+    return step, env.close
 
 
-def _bench_workers(num_workers: int, num_cars: int, seconds: float) -> float:
-    """Agent-steps per second of `num_workers` env processes stepped in lock-step."""
+def _workers_stepper(num_workers: int, num_cars: int):
+    """(step, close) of `num_workers` env processes stepped in lock-step."""
     from .vector import SubprocVectorEnv
 
     make = functools.partial(RaceEnv, num_cars=num_cars, obstacles=OBSTACLES, max_steps=2000)
     vec = SubprocVectorEnv([make] * num_workers, info_keys=())
     rng = np.random.default_rng(0)
-    try:
-        vec.reset(seeds=list(range(num_workers)))
+    vec.reset(seeds=list(range(num_workers)))
+
+    def step():
         vec.step(rng.integers(10, size=(num_workers, num_cars)))
-        wall, _ = _best_rate(lambda: vec.step(rng.integers(10, size=(num_workers, num_cars))),
-                             num_workers * num_cars, seconds)
-        return wall
-    finally:
-        vec.close()
+
+    step()
+    return step, vec.close
+
+
+def _resident_mb() -> float:
+    """This process's resident memory now, MB (Linux)."""
+    with open("/proc/self/statm") as statm:
+        return int(statm.read().split()[1]) * resource.getpagesize() / 2**20
 
 
 def run_bench(seconds: float = 3.0, replay_seconds: float = 60.0, progress=print,
               training_seconds: float = 40.0) -> dict:
     """All figures of the benchmark; `seconds` is the time spent per measurement."""
     cv2.setNumThreads(1)  # one core per process, as in training workers
+    steppers = {("fast", 1): _env_stepper(1, "fast")}  # loads the compiled kernels once
+    before = _resident_mb()
+    steppers[("fast", 4)] = _env_stepper(4, "fast")
+    env_mb = _resident_mb() - before
+    steppers.update({("fast", n): _env_stepper(n, "fast") for n in CAR_COUNTS if n not in (1, 4)})
+    steppers.update({("pybullet", n): _env_stepper(n, "pybullet") for n in (1, 4)})
+    steppers.update({("floor", n): _floor_stepper(n) for n in (1, 4)})
+    steppers.update({("workers", n): _workers_stepper(n, 4) for n in (1, 2)})
+    try:
+        workloads = {key: (step, key[1] * 4 if key[0] == "workers" else key[1])
+                     for key, (step, _) in steppers.items()}
+        progress(f"measuring {len(workloads)} workloads, {WINDOWS} interleaved windows each ...")
+        rates = _interleaved_rates(workloads, seconds)
+    finally:
+        for _, close in steppers.values():
+            close()
     figures: dict = {"agent_steps_per_s": {"fast": {}, "pybullet": {}, "floor": {}},
                      "agent_steps_per_cpu_s": {"fast": {}, "pybullet": {}, "floor": {}}}
     per_s, per_cpu_s = figures["agent_steps_per_s"], figures["agent_steps_per_cpu_s"]
-    runs = [("fast", n, functools.partial(_bench_env, n, "fast")) for n in CAR_COUNTS]
-    runs += [("pybullet", n, functools.partial(_bench_env, n, "pybullet")) for n in (1, 4)]
-    runs += [("floor", n, functools.partial(_bench_floor, n)) for n in (1, 4)]
-    for kind, n, bench in runs:
-        wall, cpu = bench(seconds)
-        per_s[kind][str(n)], per_cpu_s[kind][str(n)] = round(wall, 1), round(cpu, 1)
-        progress(f"{kind}, {n} cars: {wall:.0f} agent-steps/s ({cpu:.0f} per CPU second)")
-    for suffix, rates in (("", per_s), ("_cpu", per_cpu_s)):
-        figures["fast_over_pybullet_4" + suffix] = round(rates["fast"]["4"] / rates["pybullet"]["4"], 1)
-        figures["fast_over_floor_4" + suffix] = round(rates["fast"]["4"] / rates["floor"]["4"], 3)
+    for kind in ("fast", "pybullet", "floor"):
+        for (name, n), (wall, cpu) in sorted(rates.items()):
+            if name == kind:
+                per_s[kind][str(n)], per_cpu_s[kind][str(n)] = round(wall, 1), round(cpu, 1)
+                progress(f"{kind}, {n} cars: {wall:.0f} agent-steps/s ({cpu:.0f} per CPU second)")
+    for suffix, rates_of in (("", per_s), ("_cpu", per_cpu_s)):
+        figures["fast_over_pybullet_4" + suffix] = round(rates_of["fast"]["4"] / rates_of["pybullet"]["4"], 1)
+        figures["fast_over_floor_4" + suffix] = round(rates_of["fast"]["4"] / rates_of["floor"]["4"], 3)
     per_agent_us = {n: 1e6 / per_cpu_s["fast"][str(n)] for n in CAR_COUNTS}
     figures["per_agent_cost_growth_1_to_8"] = round(per_agent_us[8] / per_agent_us[1], 3)
-    one = _bench_workers(1, 4, seconds)
-    two = _bench_workers(2, 4, seconds)
+    one, two = rates[("workers", 1)][0], rates[("workers", 2)][0]
     figures["workers_agent_steps_per_s"] = {"1": round(one, 1), "2": round(two, 1)}
     figures["workers_speedup_2"] = round(two / one, 3)
     progress(f"worker processes, 4 cars each: 1 -> {one:.0f}, 2 -> {two:.0f} agent-steps/s")
+    figures["env_memory_mb_4_cars"] = round(env_mb, 1)
     if replay_seconds:
         from .replay import replay_cost
 
@@ -163,7 +182,8 @@ def format_table(figures: dict) -> list[tuple[str, str]]:
         ("fast / floor, 4 cars (wall; CPU)", f"{figures['fast_over_floor_4']}; {figures['fast_over_floor_4_cpu']}"),
         ("per-agent CPU cost, 8 cars / 1 car", f"{figures['per_agent_cost_growth_1_to_8']}x"),
         ("2 workers / 1 worker", f"{figures['workers_speedup_2']}x"),
-        ("peak RSS (MB)", f"{figures['peak_rss_mb']}"),
+        ("memory of one 4-car env (MB)", f"{figures['env_memory_mb_4_cars']}"),
+        ("peak RSS of the bench process (MB)", f"{figures['peak_rss_mb']}"),
     ]
     if "replay" in figures:
         replay = figures["replay"]
