@@ -268,8 +268,8 @@ def build_parser() -> argparse.ArgumentParser:
                                        "memory and replay cost, all from one run.")
     bench.add_argument("--json", metavar="FILE", help="write the figures as JSON")
     bench.add_argument("--seconds", type=float, default=3.0, help="time per measurement (default 3)")
-    bench.add_argument("--replay-seconds", type=float, default=60.0,
-                       help="race time of the replay-cost race (0 skips it; default 60)")
+    bench.add_argument("--replay-seconds", type=float, default=240.0,
+                       help="race time of the replay-cost race (0 skips it; default 240, the reset-rule window)")
     bench.set_defaults(func=cmd_bench)
 
     from .train.cli import add_evaluate_parser, add_train_parser

@@ -73,7 +73,7 @@ class ReplayRecorder:
     """
 
     def __init__(self, path, image_every: int | None = DEFAULT_IMAGE_EVERY, jpeg_quality: int = 75,
-                 flush_every: int = 150, application_id: str = APPLICATION_ID):
+                 flush_every: int = 600, application_id: str = APPLICATION_ID):
         self.path = Path(path)
         self.image_every = int(image_every or 0)
         self.jpeg_quality = int(jpeg_quality)
@@ -91,6 +91,7 @@ class ReplayRecorder:
         rec.set_log_time_enabled(False)  # wall-clock time says nothing about a simulated race
         self.n = n = env.total_cars if hasattr(env, "total_cars") else len(env.races)
         self.ids = [car_id(i) for i in range(n)]
+        self._agents = [env.possible_agents[i] if i < len(env.possible_agents) else None for i in range(n)]
         self._prev = [self._race_state(race) for race in env.races]
         self._ended = [not race.racing for race in env.races]
         self._buffer_reset()
@@ -173,48 +174,48 @@ class ReplayRecorder:
         )
 
     def _buffer_reset(self) -> None:
-        self._buf_steps, self._buf_times = [], []
-        self._buf_pose = [[] for _ in range(self.n)]  # (row index, x, y, yaw)
-        self._buf_scalar = [{k: [] for k in SCALARS} for _ in range(self.n)]  # (row index, value)
-        self._buf_img = [[] for _ in range(self.n)]  # (row index, jpeg bytes)
+        """Per buffered step: its step and time, which cars are recorded, their poses and scalars."""
+        self._buf_steps, self._buf_times, self._buf_active, self._buf_pose = [], [], [], []
+        self._buf_scalar = {k: [] for k in SCALARS}  # per step, one value per car (NaN: none)
+        self._buf_img = [[] for _ in range(self.n)]  # (row index, jpeg job)
 
     def _record_step(self, env, observations, rewards, infos) -> None:
         row = len(self._buf_steps)
-        step, sim_time = int(env.steps), float(env.sim_time)
+        step = int(env.steps)
         self._buf_steps.append(step)
-        self._buf_times.append(sim_time)
+        self._buf_times.append(float(env.sim_time))
+        races, n = env.races, self.n
+        # a car is recorded while it races, on the step its run ends, and on the grid at step 0
+        active = [race.racing or not ended or step == 0 for race, ended in zip(races, self._ended)]
+        self._buf_active.append(active)
+        self._buf_pose.append(env.world.poses[:n].copy())
+        self._buf_scalar["speed"].append(env.world.drive_speed[:n].copy())
+        agents = self._agents
+        infos, rewards = infos or {}, rewards or {}
+        for name in ("progress", "rank"):
+            self._buf_scalar[name].append([float(infos[a][name]) if a in infos else math.nan for a in agents])
+        self._buf_scalar["reward"].append([float(rewards[a]) if a in rewards else math.nan for a in agents])
         take_image = bool(self.image_every) and observations is not None and step % self.image_every == 0
-        poses = env.world.poses
         self._time_set = False
-        for i, race in enumerate(env.races):
-            just_ended = not race.racing and not self._ended[i]
-            if race.racing or just_ended or step == 0:
-                x, y, yaw = (float(v) for v in poses[i])
-                self._buf_pose[i].append((row, x, y, yaw))
-                agent = env.possible_agents[i] if i < len(env.possible_agents) else None
-                info = infos.get(agent) if infos and agent else None
-                scal = self._buf_scalar[i]
-                scal["speed"].append((row, float(env.world.drive_speed[i])))
-                if info is not None:
-                    scal["progress"].append((row, float(info["progress"])))
-                    scal["rank"].append((row, float(info["rank"])))
-                if rewards and agent in rewards:
-                    scal["reward"].append((row, float(rewards[agent])))
-                if take_image and agent in observations and (race.racing or just_ended):
-                    image = np.asarray(observations[agent])
-                    if image.ndim == 3 and image.shape[2] == 1:
-                        image = image[..., 0]
-                    elif image.ndim == 3:
-                        image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
-                    # JPEG encoding (OpenCV releases the GIL) runs on the other core meanwhile
-                    self._buf_img[i].append((row, self._encoder.submit(self._encode, image)))
-            if infos is not None and (race.racing or just_ended):
+        for i, race in enumerate(races):
+            if self._ended[i]:  # its run ended on an earlier step
+                continue
+            agent = agents[i]
+            if take_image and agent in observations:
+                image = np.asarray(observations[agent])
+                if image.ndim == 3 and image.shape[2] == 1:
+                    image = image[..., 0]
+                elif image.ndim == 3:
+                    image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+                # JPEG encoding (OpenCV releases the GIL) runs on the other core meanwhile
+                self._buf_img[i].append((row, self._encoder.submit(self._encode, image)))
+            if infos:
                 prev = self._prev[i]
                 if (race.laps != prev["laps"] or race.resets != prev["resets"] or race.penalties != prev["penalties"]
                         or len(race.collisions) != prev["collisions"] or race.status != prev["status"]
-                        or (i < len(env.possible_agents) and infos.get(env.possible_agents[i], {}).get("events"))):
+                        or infos.get(agent, {}).get("events")):
                     self._log_events(env, i, race, infos)
-            if just_ended:
+            if not race.racing:
                 self._ended[i] = True
 
     def _encode(self, image: np.ndarray) -> bytes | None:
@@ -271,20 +272,23 @@ class ReplayRecorder:
             rows = np.asarray(rows, dtype=np.int64)
             return [rr.TimeColumn("step", sequence=steps[rows]), rr.TimeColumn("race_time", duration=times[rows])]
 
+        active = np.asarray(self._buf_active, dtype=bool)
+        poses = np.asarray(self._buf_pose, dtype=np.float64)
+        scalars = {name: np.asarray(values, dtype=np.float64) for name, values in self._buf_scalar.items()}
         for i, cid in enumerate(self.ids):
-            poses = self._buf_pose[i]
-            if poses:
-                arr = np.asarray(poses, dtype=np.float64)
-                z = np.full(len(arr), self._z)
-                half = arr[:, 3] / 2
-                quats = np.column_stack([np.zeros_like(half), np.zeros_like(half), np.sin(half), np.cos(half)])
-                rec.send_columns(f"world/cars/{cid}", indexes=index(arr[:, 0]), columns=rr.Transform3D.columns(
-                    translation=np.column_stack([arr[:, 1], arr[:, 2], z]), quaternion=quats))
-            for name, values in self._buf_scalar[i].items():
-                if values:
-                    arr = np.asarray(values, dtype=np.float64)
-                    rec.send_columns(f"plots/{name}/{cid}", indexes=index(arr[:, 0]),
-                                     columns=rr.Scalars.columns(scalars=arr[:, 1]))
+            rows = np.flatnonzero(active[:, i])
+            if len(rows):
+                x, y, yaw = poses[rows, i].T
+                half = yaw / 2
+                zero = np.zeros_like(half)
+                rec.send_columns(f"world/cars/{cid}", indexes=index(rows), columns=rr.Transform3D.columns(
+                    translation=np.column_stack([x, y, np.full(len(rows), self._z)]),
+                    quaternion=np.column_stack([zero, zero, np.sin(half), np.cos(half)])))
+            for name, values in scalars.items():
+                with_value = rows[~np.isnan(values[rows, i])]
+                if len(with_value):
+                    rec.send_columns(f"plots/{name}/{cid}", indexes=index(with_value),
+                                     columns=rr.Scalars.columns(scalars=values[with_value, i]))
             images = [(row, job.result()) for row, job in self._buf_img[i]]
             images = [(row, jpeg) for row, jpeg in images if jpeg is not None]
             if images:
