@@ -3,8 +3,8 @@
 Measures agent-steps per second (one car's observation, reward and info per
 15 Hz step) of the full env (cameras, physics with collisions, obstacles,
 random actions, full reward params and infos) for 1, 2, 4 and 8 cars with the
-fast renderer and with the PyBullet renderer; the floor (the physics steps
-alone plus one bare texture warp per camera); the speed-up of two worker
+fast renderer and with the PyBullet renderer; the floor (the same run's
+physics steps alone, replayed, plus one bare texture warp per camera); the speed-up of two worker
 processes over one; peak memory; and the cost of recording a replay.
 """
 from __future__ import annotations
@@ -64,32 +64,67 @@ def _env_stepper(num_cars: int, renderer: str, seed: int = 0):
     return step, env.close
 
 
-def _floor_stepper(num_cars: int, seed: int = 0):
-    """(step, close) of the bare minimum: physics plus one texture warp per camera.
+def _floor_stepper(num_cars: int, seed: int = 0, steps: int = 900):
+    """(step, close) of the bare minimum of the env benchmark's run: its physics alone plus one texture warp per camera.
 
-    The cars get random commands like the env benchmark's, and are put back on
-    the grid every 60 steps (by the world alone, not an env reset) so that they
-    keep touching as often.
+    A run of the env benchmark (same cars, obstacles, random actions and seed)
+    is recorded first: the commands of every physics step, and every time a car
+    or box is put somewhere (an off-track car reset onto the track, say). The
+    floor replays exactly that into the world alone, in a loop, so its PyBullet
+    work, collisions included, is the env's; each step then warps one bare
+    image per camera.
     """
     env = RaceEnv(num_cars=num_cars, obstacles=OBSTACLES, max_steps=2000)
+    rng = np.random.default_rng(seed)
     env.reset(seed=seed)
-    world, renderer = env.world, env._renderer
-    grid = world.poses.tolist()
+    world = env.world
+    start = (world.poses.tolist(), world.obstacle_poses.tolist())
+    actions = {name: getattr(world, name) for name in ("place_car", "park", "place_obstacle", "step")}
+    script, moves = [], []  # per step: (moves since the last physics step, commands)
+
+    def recorder(name):
+        def record(*args):
+            if name == "step":
+                script.append((list(moves), np.array(args[0])))
+                moves.clear()
+            else:
+                moves.append((name, args))
+            return actions[name](*args)
+        return record
+
+    for name in actions:
+        setattr(world, name, recorder(name))
+    for _ in range(steps):
+        if not env.agents:
+            env.reset()
+        env.step({a: int(rng.integers(env.actions.space.n)) for a in env.agents})
+    for name in actions:
+        delattr(world, name)  # the world's own methods again
+
+    def restart():
+        car_poses, obstacle_poses = start
+        for i, pose in enumerate(car_poses):
+            world.place_car(i, *pose)
+        for k, pose in enumerate(obstacle_poses):
+            world.place_obstacle(k, *pose)
+
+    renderer = env._renderer
     ground = renderer._ground
     size = (env.camera.width, env.camera.height)
     homographies = [renderer.ground_homography(camera_pose(env.camera, world.poses[i])) for i in range(num_cars)]
-    rng = np.random.default_rng(seed)
-    table = np.array([(np.radians(s), v) for s, v in env.actions.actions])
-    count = [0]
+    position = [0]
+    restart()
 
     def step():
-        world.step(table[rng.integers(len(table), size=env.total_cars)])
+        placements, commands = script[position[0]]
+        for name, args in placements:
+            getattr(world, name)(*args)
+        world.step(commands)
         for homography in homographies:
             cv2.warpPerspective(ground, homography, size, flags=cv2.INTER_NEAREST)
-        count[0] += 1
-        if count[0] % 60 == 0:
-            for i, pose in enumerate(grid):
-                world.place_car(i, *pose)
+        position[0] = (position[0] + 1) % len(script)
+        if position[0] == 0:
+            restart()
 
     return step, env.close
 
