@@ -4,8 +4,9 @@ Measures agent-steps per second (one car's observation, reward and info per
 15 Hz step) of the full env (cameras, physics with collisions, obstacles,
 random actions, full reward params and infos) for 1, 2, 4 and 8 cars with the
 fast renderer and with the PyBullet renderer; the floor (the same run's
-physics steps alone, replayed, plus one bare texture warp per camera); the speed-up of two worker
-processes over one; peak memory; and the cost of recording a replay.
+physics steps alone, replayed, plus one bare texture warp per camera); the
+speed-up of two worker processes over one; memory; and the cost of recording
+a replay.
 """
 from __future__ import annotations
 
