@@ -177,7 +177,7 @@ class ReplayRecorder:
         """Per buffered step: its step and time, which cars are recorded, their poses and scalars."""
         self._buf_steps, self._buf_times, self._buf_active, self._buf_pose = [], [], [], []
         self._buf_scalar = {k: [] for k in SCALARS}  # per step, one value per car (NaN: none)
-        self._buf_img = [[] for _ in range(self.n)]  # (row index, jpeg job)
+        self._buf_img = []  # (row index, cars, one job encoding all their camera images)
 
     def _record_step(self, env, observations, rewards, infos) -> None:
         row = len(self._buf_steps)
@@ -197,6 +197,7 @@ class ReplayRecorder:
         self._buf_scalar["reward"].append([float(rewards[a]) if a in rewards else math.nan for a in agents])
         take_image = bool(self.image_every) and observations is not None and step % self.image_every == 0
         self._time_set = False
+        cameras = []  # (car, image) to encode this step
         for i, race in enumerate(races):
             if self._ended[i]:  # its run ended on an earlier step
                 continue
@@ -207,8 +208,7 @@ class ReplayRecorder:
                     image = image[..., 0]
                 elif image.ndim == 3:
                     image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
-                # JPEG encoding (OpenCV releases the GIL) runs on the other core meanwhile
-                self._buf_img[i].append((row, self._encoder.submit(self._encode, image)))
+                cameras.append((i, image))
             if infos:
                 prev = self._prev[i]
                 if (race.laps != prev["laps"] or race.resets != prev["resets"] or race.penalties != prev["penalties"]
@@ -217,6 +217,12 @@ class ReplayRecorder:
                     self._log_events(env, i, race, infos)
             if not race.racing:
                 self._ended[i] = True
+        if cameras:  # JPEG encoding (OpenCV releases the GIL) runs on the other core meanwhile, one job a step
+            cars, images = zip(*cameras)
+            self._buf_img.append((row, cars, self._encoder.submit(self._encode_all, images)))
+
+    def _encode_all(self, images) -> list:
+        return [self._encode(image) for image in images]
 
     def _encode(self, image: np.ndarray) -> bytes | None:
         ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
@@ -275,6 +281,10 @@ class ReplayRecorder:
         active = np.asarray(self._buf_active, dtype=bool)
         poses = np.asarray(self._buf_pose, dtype=np.float64)
         scalars = {name: np.asarray(values, dtype=np.float64) for name, values in self._buf_scalar.items()}
+        camera_frames = [[] for _ in self.ids]  # per car: (row, jpeg)
+        for row, cars, job in self._buf_img:
+            for car, jpeg in zip(cars, job.result()):
+                camera_frames[car].append((row, jpeg))
         for i, cid in enumerate(self.ids):
             rows = np.flatnonzero(active[:, i])
             if len(rows):
@@ -289,8 +299,7 @@ class ReplayRecorder:
                 if len(with_value):
                     rec.send_columns(f"plots/{name}/{cid}", indexes=index(with_value),
                                      columns=rr.Scalars.columns(scalars=values[with_value, i]))
-            images = [(row, job.result()) for row, job in self._buf_img[i]]
-            images = [(row, jpeg) for row, jpeg in images if jpeg is not None]
+            images = [(row, jpeg) for row, jpeg in camera_frames[i] if jpeg is not None]
             if images:
                 rec.send_columns(f"cameras/{cid}", indexes=index([r for r, _ in images]),
                                  columns=rr.EncodedImage.columns(blob=[b for _, b in images],
