@@ -19,7 +19,8 @@ def add_train_parser(sub) -> None:
     p.add_argument("--out", metavar="FILE.pt", help="agent file to write (required)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--config", default="fast", metavar="PRESET",
-                   help="hyperparameter preset: fast (default), deepracer (the console's PPO defaults), tiny")
+                   help="hyperparameter preset: fast (default), deepracer (the console's PPO defaults), "
+                        "race (traffic, opponent pool, collision penalty; use with --init), tiny")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override one setting (JSON value), e.g. --set epochs=4 --set gamma=0.995; "
                         "see `multirace train --list-settings`")
