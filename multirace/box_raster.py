@@ -19,8 +19,8 @@ import numba
 import numpy as np
 
 PIXEL_LIMIT = 4096.0  # projected points are clamped to +-4096 pixels
-# corner k of a box is centre + sx * half-length + sy * half-width + sz * half-height with the
-# signs given by the bits of k (x = bit 0, y = bit 1, z = bit 2); edges join corners one bit apart
+# corner k of a box lies on the side given by the bits of k (along = bit 0, across = bit 1,
+# up = bit 2) of its centre; the 12 edges join corners one bit apart
 _SIGNS = np.array([[1.0 if k & bit else -1.0 for bit in (1, 2, 4)] for k in range(8)])
 _EDGES = np.array([(i, i | bit) for i in range(8) for bit in (1, 2, 4) if not i & bit], dtype=np.int64)
 
