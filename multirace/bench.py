@@ -23,6 +23,7 @@ from .env import RaceEnv
 CAR_COUNTS = (1, 2, 4, 8)
 WINDOWS = 15  # each figure is the best of this many equal time windows, taken in turns
 OBSTACLES = 3
+CARS_PER_WORKER = 4  # cars in each env of the worker-process figures
 
 
 def _interleaved_rates(workloads: dict, seconds: float, windows: int = WINDOWS) -> dict:
@@ -49,8 +50,8 @@ def _interleaved_rates(workloads: dict, seconds: float, windows: int = WINDOWS) 
     return best
 
 
-def _env_stepper(num_cars: int, renderer: str, seed: int = 0):
-    """(step, close) of the env with random actions, resetting when an episode ends."""
+def _random_driving(num_cars: int, renderer: str = "fast", seed: int = 0):
+    """The benchmark's env, reset, and a step function driving it with random actions (resetting when done)."""
     env = RaceEnv(num_cars=num_cars, obstacles=OBSTACLES, renderer=renderer, max_steps=2000)
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)
@@ -61,6 +62,12 @@ def _env_stepper(num_cars: int, renderer: str, seed: int = 0):
             env.reset()
         env.step({a: int(rng.integers(n_actions)) for a in env.agents})
 
+    return env, step
+
+
+def _env_stepper(num_cars: int, renderer: str, seed: int = 0):
+    """(step, close) of the env with random actions."""
+    env, step = _random_driving(num_cars, renderer, seed)
     step()  # warm-up
     return step, env.close
 
@@ -75,9 +82,7 @@ def _floor_stepper(num_cars: int, seed: int = 0, steps: int = 900):
     work, collisions included, is the env's; each step then warps one bare
     image per camera.
     """
-    env = RaceEnv(num_cars=num_cars, obstacles=OBSTACLES, max_steps=2000)
-    rng = np.random.default_rng(seed)
-    env.reset(seed=seed)
+    env, drive = _random_driving(num_cars, seed=seed)
     world = env.world
     start = (world.poses.tolist(), world.obstacle_poses.tolist())
     actions = {name: getattr(world, name) for name in ("place_car", "park", "place_obstacle", "step")}
@@ -96,9 +101,7 @@ def _floor_stepper(num_cars: int, seed: int = 0, steps: int = 900):
     for name in actions:
         setattr(world, name, recorder(name))
     for _ in range(steps):
-        if not env.agents:
-            env.reset()
-        env.step({a: int(rng.integers(env.actions.space.n)) for a in env.agents})
+        drive()
     for name in actions:
         delattr(world, name)  # the world's own methods again
 
@@ -163,9 +166,9 @@ def run_bench(seconds: float = 3.0, replay_seconds: float = 240.0, progress=prin
     steppers.update({("fast", n): _env_stepper(n, "fast") for n in CAR_COUNTS if n not in (1, 4)})
     steppers.update({("pybullet", n): _env_stepper(n, "pybullet") for n in (1, 4)})
     steppers.update({("floor", n): _floor_stepper(n) for n in (1, 4)})
-    steppers.update({("workers", n): _workers_stepper(n, 4) for n in (1, 2)})
+    steppers.update({("workers", n): _workers_stepper(n, CARS_PER_WORKER) for n in (1, 2)})
     try:
-        workloads = {key: (step, key[1] * 4 if key[0] == "workers" else key[1])
+        workloads = {key: (step, key[1] * CARS_PER_WORKER if key[0] == "workers" else key[1])
                      for key, (step, _) in steppers.items()}
         progress(f"measuring {len(workloads)} workloads, {WINDOWS} interleaved windows each ...")
         rates = _interleaved_rates(workloads, seconds)

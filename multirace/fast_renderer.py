@@ -4,11 +4,11 @@ The ground is flat, so the camera's view of it is a homography of the track's
 top-down texture: one `cv2.warpPerspective` per frame, nearest-texel like
 PyBullet's TinyRenderer (2.5x cheaper than bilinear; the texture has 1 cm
 texels), with the homographies of all cameras computed in one compiled call.
-Above the horizon the sky is filled in. Other cars and the obstacles are flat-coloured boxes, as in
-the PyBullet reference: a box's silhouette is the convex hull of its corners
-(clipped at the near plane), filled far to near so nearer boxes hide farther
-ones, all in one compiled call (`box_raster.draw_boxes`). The camera's own car
-is never drawn.
+Above the horizon the sky is filled in. Other cars and the obstacles are
+flat-coloured boxes, as in the PyBullet reference: a box's silhouette is the
+convex hull of its corners (clipped at the near plane), filled far to near so
+nearer boxes hide farther ones, all in one compiled call
+(`box_raster.draw_boxes`). The camera's own car is never drawn.
 """
 from __future__ import annotations
 

@@ -286,7 +286,7 @@ def _project_point(x, y, hint, segments):
             t, d2 = _foot(x, y, segments[k % n])
             if d2 < best_d2:
                 best, best_t, best_d2, best_k = k % n, t, d2, k
-    if not (hint - 3 < best_k < hint + 5 and best_d2 < 4.0):  # no hint, or the answer may lie outside the window
+    if hint < 0 or not (hint - 3 < best_k < hint + 5 and best_d2 < 4.0):  # the answer may lie outside the window
         best, best_t, best_d2 = -1, 0.0, math.inf
         for i in range(n):
             t, d2 = _foot(x, y, segments[i])

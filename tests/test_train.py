@@ -82,8 +82,8 @@ def test_nature_prefers_the_worst_perturbation():
     assert int(np.argmax(w)) == 3 and w.sum() == pytest.approx(1.0) and w.min() > 0
     for _, cfg in UNCERTAINTY_SET:
         Randomization.from_config(cfg)
-    half = scale_randomization(Randomization.preset("strong"), 0.0)
-    assert not half.enabled
+    off = scale_randomization(Randomization.preset("strong"), 0.0)
+    assert not off.enabled
 
 
 def test_evaluate_rows_with_perturbation_and_traffic(trained, tmp_path):
@@ -141,7 +141,7 @@ def test_collision_penalty_hits_the_striker_only():
         assert not i1["car_0"]["train_done"] and not i1["car_1"]["train_done"]
 
 
-def test_race_preset_trains_in_traffic():
+def test_race_preset_sets_traffic_and_penalty_and_leaves_the_default_alone():
     race = make_config("race")
     assert race.bots and race.opponent_pool and race.collision_penalty > 0 and race.eval_bots
     assert make_config("fast").collision_penalty == 0.0 and not make_config("fast").bots  # the default is unchanged
