@@ -30,6 +30,7 @@ loaded into it as plain tensors.
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 SMALL = "MULTIRACE_SMALL_CNN"
@@ -37,6 +38,21 @@ SHALLOW = "DEEP_CONVOLUTIONAL_NETWORK_SHALLOW"
 TINY = "MULTIRACE_TINY_CNN"
 DEFAULT_NETWORK = SMALL
 CONTINUOUS_OUTPUTS = 4  # mean steer, mean speed, log-std steer, log-std speed
+
+
+class AveragePool(nn.AvgPool2d):
+    """`nn.AvgPool2d(k)` computed as a fixed depthwise convolution: the same numbers, faster on CPU.
+
+    (torch's CPU average pool takes about 0.9 ms for 8 single-channel 120x160 images, the convolution
+    about 0.2 ms.) The kernel is not saved with the weights, so agent files are unchanged.
+    """
+
+    def __init__(self, kernel: int, channels: int):
+        super().__init__(kernel)
+        self.register_buffer("weight", torch.full((channels, 1, kernel, kernel), 1.0 / kernel**2), persistent=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.conv2d(x, self.weight, stride=self.kernel_size, groups=self.weight.shape[0])
 
 
 def _shallow_trunk(channels: int) -> tuple[nn.Module, int]:
@@ -51,7 +67,7 @@ def _shallow_trunk(channels: int) -> tuple[nn.Module, int]:
 
 def _small_trunk(channels: int) -> tuple[nn.Module, int]:
     trunk = nn.Sequential(
-        nn.AvgPool2d(2),
+        AveragePool(2, channels),
         nn.Conv2d(channels, 16, 5, stride=2), nn.ReLU(),
         nn.Conv2d(16, 32, 3, stride=2), nn.ReLU(),
         nn.Conv2d(32, 32, 3, stride=2), nn.ReLU(),
@@ -63,7 +79,7 @@ def _small_trunk(channels: int) -> tuple[nn.Module, int]:
 
 def _tiny_trunk(channels: int) -> tuple[nn.Module, int]:
     trunk = nn.Sequential(
-        nn.AvgPool2d(4),
+        AveragePool(4, channels),
         nn.Conv2d(channels, 16, 5, stride=2), nn.ReLU(),
         nn.Conv2d(16, 32, 3, stride=2), nn.ReLU(),
         nn.Conv2d(32, 32, 3, stride=1), nn.ReLU(),
@@ -110,7 +126,7 @@ class CameraNet(nn.Module):
         x = torch.as_tensor(obs)
         if x.dim() == 3:
             x = x.unsqueeze(0)
-        x = x.permute(0, 3, 1, 2).float() / 255.0
+        x = x.permute(0, 3, 1, 2).float().div_(255.0)
         return self.fc(self.conv(x))
 
     def forward(self, obs) -> torch.Tensor:

@@ -1,6 +1,7 @@
 """Agent files: round trip, refusal of unsafe pickles, validation errors, forfeits in real races."""
 from __future__ import annotations
 
+import copy
 import json
 import os
 import pickle
@@ -14,7 +15,7 @@ from multirace.actions import load_action_space
 from multirace.agentfile import (AgentController, AgentFileError, inspect_agent, load_agent, make_metadata,
                                  save_agent)
 from multirace.cli import main as cli_main
-from multirace.nets import NETWORKS, SHALLOW, SMALL, CameraNet, build_net
+from multirace.nets import NETWORKS, SHALLOW, SMALL, TINY, CameraNet, build_net
 from multirace.race import Forfeit, RaceConfig, make_controller, run_race
 from helpers import overflow_on_camera_images
 
@@ -75,6 +76,17 @@ def test_networks_and_continuous_outputs():
     assert shallow.fc[0].out_features == 512
     with pytest.raises(ValueError, match="unknown network"):
         CameraNet("NOPE", (120, 160, 1), 10)
+
+
+@pytest.mark.parametrize("network", [SMALL, TINY])
+def test_pooling_nets_compute_what_torch_average_pooling_does(network):
+    """The pooled trunks run a faster pool; a net must still give what it gave with nn.AvgPool2d (shipped agents)."""
+    net = CameraNet(network, (120, 160, 3), 10)
+    reference = copy.deepcopy(net)
+    reference.conv[0] = torch.nn.AvgPool2d(net.conv[0].kernel_size)
+    images = torch.randint(0, 256, (5, 120, 160, 3), dtype=torch.uint8)
+    with torch.no_grad():
+        assert torch.allclose(net(images), reference(images), atol=1e-6)
 
 
 def test_continuous_agent_acts(tmp_path):

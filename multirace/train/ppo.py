@@ -368,7 +368,8 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
                 advantages[t] = last
             returns = advantages + buf_val
 
-            # --- 9. PPO update on the learner's samples
+            # --- 9. PPO update on the learner's samples (the workers are idle: the learner may use their cores)
+            torch.set_num_threads(int(config.update_threads))
             keep = torch.from_numpy(buf_learn.reshape(-1))
             b_obs = torch.from_numpy(buf_obs.reshape(T * N, *obs_shape))[keep]
             b_act = buf_act.reshape(T * N, *act_shape)[keep]
@@ -418,6 +419,7 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
                     pg_loss, v_loss, entropy = pg.item(), vl.item(), ent.item()
                 if config.target_kl is not None and approx_kl > config.target_kl:
                     break
+            torch.set_num_threads(int(config.threads))
             update_time += time.perf_counter() - t1
             iteration += 1
 
