@@ -106,14 +106,15 @@ def test_evaluate_rows_with_perturbation_and_traffic(trained, tmp_path):
     assert (tmp_path / "eval.png").stat().st_size > 1000
 
 
-def _ram(collision_penalty, terminate_collision=False):
+def _ram(collision_penalty, terminate_collision=False, proximity_penalty=0.0):
     """Three cars on the start grid: car_2 (last) drives at 2 m/s into the cars ahead, which crawl at 0.1 m/s."""
     from multirace.train.envs import TrainEnv
 
     space = {"action_space_type": "discrete",
              "action_space": [{"steering_angle": 0, "speed": 0.1}, {"steering_angle": 0, "speed": 2.0}]}
     env = TrainEnv([("reinvent_base", False)], num_cars=3, action_space=space, camera=(30, 40),
-                   collision_penalty=collision_penalty, terminate_collision=terminate_collision)
+                   collision_penalty=collision_penalty, terminate_collision=terminate_collision,
+                   proximity_penalty=proximity_penalty)
     env.reset(seed=0)
     steps = []
     for _ in range(12):
@@ -141,7 +142,20 @@ def test_collision_penalty_hits_the_striker_only():
         assert not i1["car_0"]["train_done"] and not i1["car_1"]["train_done"]
 
 
+def test_proximity_penalty_grows_as_the_striker_closes_in_before_it_strikes():
+    plain, _ = _ram(0.0)
+    shaped, _ = _ram(0.0, proximity_penalty=1.0)
+    first_strike = next(k for k, (_, infos) in enumerate(shaped) if infos["car_2"]["caused"])
+    costs = [r0["car_2"] - r1["car_2"] for (r0, _), (r1, _) in zip(plain, shaped)]
+    assert all(-1e-9 <= c <= 1.0 + 1e-9 for c in costs)
+    before = costs[:first_strike + 1]
+    assert before[0] == pytest.approx(0.0) and max(before) > 0.3, before  # far behind: nothing; close: a real cost
+    assert before == sorted(before), before  # the closer, the costlier
+    assert all(r0["car_0"] == pytest.approx(r1["car_0"]) for (r0, _), (r1, _) in zip(plain, shaped))  # nothing ahead of it
+
+
 def test_race_preset_sets_traffic_and_penalty_and_leaves_the_default_alone():
     race = make_config("race")
-    assert race.bots and race.opponent_pool and race.collision_penalty > 0 and race.eval_bots
-    assert make_config("fast").collision_penalty == 0.0 and not make_config("fast").bots  # the default is unchanged
+    assert race.bots and race.opponent_pool and race.collision_penalty > 0 and race.proximity_penalty > 0 and race.eval_bots
+    fast = make_config("fast")
+    assert fast.collision_penalty == 0.0 and fast.proximity_penalty == 0.0 and not fast.bots  # the default is unchanged

@@ -12,7 +12,8 @@
 - ``race``: head-to-head racing: trains in traffic (a ``follow`` and a
   ``lanes`` bot in every env, a quarter of the cars driven by the opponent
   pool, which holds the shipped imitation agents and past snapshots), with a
-  penalty on every collision the car causes, DeepRacer's faster sample action
+  penalty on every collision the car causes and a smaller one for closing in
+  on the car ahead in its lane, DeepRacer's faster sample action
   space (1 and 2 m/s), and evaluations in traffic. Meant with
   ``--init agents/dagger_fast.pt`` (see multirace/train/README.md).
 - ``tiny``: one worker, about a second per iteration, for tests and smoke runs
@@ -50,6 +51,8 @@ class TrainConfig:
     off_track_penalty: float = 1.0  # reward subtracted on an off-track step
     collision_penalty: float = 0.0  # reward subtracted per collision the car causes (it struck a car or box)
     terminate_collision: bool = False  # a collision the car causes ends its training episode (like an off-track)
+    proximity_penalty: float = 0.0  # reward subtracted per step, up to this, for closing in on a car or box ahead in its lane
+    proximity_gap: float = 1.0  # metres ahead within which proximity_penalty starts (0 at this gap, full when touching)
     progress_weight: float = 1.0  # "progress" reward: metres along the centre line per step / (1 m/s * dt)
     centre_weight: float = 0.1  # "progress" reward: bonus of up to this for staying near the centre line
     randomize: object = None  # env domain randomisation: None, "mild", "strong" or a dict (see randomize.py)
@@ -109,6 +112,7 @@ PRESETS: dict[str, dict] = {
     "deepracer": {"anneal_lr": False, "minibatch_size": 64, "lr": 3e-4, "ent_coef": 0.01, "gamma": 0.999, "epochs": 10, "clip": 0.2,
                   "gae_lambda": 0.95, "network": SHALLOW, "reward": "centre"},
     "race": {"bots": ("follow@1.0", "lanes@1.0"), "opponent_pool": True, "collision_penalty": 20.0,
+             "proximity_penalty": 1.0,
              "action_space": str(SHIPPED_AGENTS / "action_space_fast.json"), "eval_bots": ("follow@1.0", "lanes@1.0"),
              "value_warmup": 5},
     "tiny": {"num_envs": 1, "cars_per_env": 4, "rollout_steps": 128, "minibatch_size": 128, "epochs": 4,

@@ -16,6 +16,10 @@ adds what training needs on top of the race env:
 - a penalty on every collision the car causes (the env's contact record
   names the striker of each new contact: the car that drove into the other
   or into a box; the car that was hit is not penalised);
+- optionally, DeepRacer's usual object-avoidance shaping: a penalty growing
+  as the car closes in on the next car or box ahead in its own lane (from the
+  params `closest_objects`, `objects_distance` and the lateral offsets), so
+  it learns to pass or hold back before it collides, not only after;
 - per-car episode statistics in the infos (return, length, laps driven,
   collisions caused);
 - robust options read per episode from shared memory the learner writes:
@@ -37,7 +41,7 @@ class TrainEnv:
     def __init__(self, runs, num_cars=4, bots=(), action_space=None, reward="progress", camera=(120, 160),
                  episode_steps=1500, terminate_off_track=True, off_track_penalty=1.0, progress_weight=1.0,
                  centre_weight=0.1, randomize=None, shared=None, worker=0, collision_penalty=0.0,
-                 terminate_collision=False):
+                 terminate_collision=False, proximity_penalty=0.0, proximity_gap=1.0):
         self.runs = list(runs)  # [(track name/path or Track rows, reverse)]
         self.num_cars = int(num_cars)
         self.bots = tuple(bots)
@@ -49,6 +53,8 @@ class TrainEnv:
         self.off_track_penalty = float(off_track_penalty)
         self.collision_penalty = float(collision_penalty)
         self.terminate_collision = bool(terminate_collision)
+        self.proximity_penalty = float(proximity_penalty)
+        self.proximity_gap = float(proximity_gap)
         self.progress_weight = float(progress_weight)
         self.centre_weight = float(centre_weight)
         self.randomize = randomize
@@ -129,6 +135,18 @@ class TrainEnv:
         self._collisions_seen[i] = len(record)
         return sum(1 for c in new if c["caused"])
 
+    def _closing_in(self, info) -> float:
+        """0 (nothing in the car's lane within `proximity_gap` m ahead) rising to 1 (touching the object ahead)."""
+        along = info["objects_distance"]
+        if not along:
+            return 0.0
+        ahead = info["closest_objects"][1]
+        gap = (along[ahead] - info["projection_distance"]) % self.track_length
+        own = info["distance_from_center"] * (1.0 if info["is_left_of_center"] else -1.0)
+        other = info["objects_distance_from_center"][ahead] * (1.0 if info["objects_left_of_center"][ahead] else -1.0)
+        same_lane = abs(own - other) < self.env.car_spec.width + 0.1  # side by side with less than 10 cm between
+        return max(0.0, 1.0 - gap / self.proximity_gap) if same_lane else 0.0
+
     def step(self, actions):
         env = self.env
         obs, rewards, terms, truncs, infos = env.step(actions)
@@ -151,6 +169,8 @@ class TrainEnv:
                 r = float(rewards[agent])
             caused = self._new_collisions_caused(i)
             r -= self.collision_penalty * caused
+            if self.proximity_penalty and not off:
+                r -= self.proximity_penalty * self._closing_in(info)
             self._ep_caused[i] += caused
             self._ep_return[i] += r
             self._ep_length[i] += 1

@@ -124,7 +124,8 @@ def make_vector_env(config: TrainConfig, shared=None, cars=None, bots=None):
         episode_steps=config.episode_steps, terminate_off_track=config.terminate_off_track,
         off_track_penalty=config.off_track_penalty, progress_weight=config.progress_weight,
         centre_weight=config.centre_weight, randomize=config.randomize, shared=shared, worker=w,
-        collision_penalty=config.collision_penalty, terminate_collision=config.terminate_collision)
+        collision_penalty=config.collision_penalty, terminate_collision=config.terminate_collision,
+        proximity_penalty=config.proximity_penalty, proximity_gap=config.proximity_gap)
         for w in range(config.num_envs)]
     return SubprocVectorEnv(factories, info_keys=INFO_KEYS)
 

@@ -151,7 +151,8 @@ def _optional_env_settings(config) -> dict:
     from .envs import TrainEnv
 
     params = inspect.signature(TrainEnv.__init__).parameters
-    return {key: getattr(config, key) for key in ("collision_penalty",) if key in params and hasattr(config, key)}
+    keys = ("collision_penalty", "terminate_collision", "proximity_penalty", "proximity_gap")
+    return {key: getattr(config, key) for key in keys if key in params and hasattr(config, key)}
 
 
 # --------------------------------------------------------------- the module
