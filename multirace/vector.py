@@ -1,20 +1,51 @@
 """Several race envs stepped in worker processes, as stacked numpy arrays.
 
 Each worker process owns one `RaceEnv` (built there from a picklable factory)
-and resets it automatically when its episode ends. Camera images travel
-through shared memory (each worker writes its cars' images into its own slot),
-so the pipe carries only rewards, flags and the info keys asked for; the full
-DeepRacer params (waypoint lists) are costly to send and stay behind.
+and resets it automatically when its episode ends. Everything per step that
+has a fixed shape lives in shared memory, one block per kind with a slot per
+worker: the actions the learner writes, and the camera images, rewards and
+done flags the workers write. A step is then one command byte down each pipe
+and one byte back (or, when info keys were asked for, a small pickled list of
+those infos): on this machine the pipe round trip is the largest cost of a
+worker step after the env itself. The full DeepRacer params (waypoint lists)
+are costly to send and stay behind.
 """
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
 from multiprocessing import shared_memory
 from typing import Callable, Sequence
 
 import numpy as np
 
 DEFAULT_INFO_KEYS = ("progress", "laps_completed", "lap_times", "resets", "status", "collisions")
+RESET, ACTIONS, STEP, CLOSE, DONE = b"r", b"a", b"s", b"c", b"d"  # one-byte commands and the bare reply
+
+
+class _SharedArray:
+    """A numpy array in a named shared-memory block; `attach` maps the same block in another process."""
+
+    def __init__(self, shape, dtype, name: str | None = None):
+        self.shape, self.dtype = tuple(shape), np.dtype(dtype)
+        size = max(1, int(np.prod(self.shape)) * self.dtype.itemsize)
+        self.memory = shared_memory.SharedMemory(name=name, create=name is None, size=size if name is None else 0)
+        self.array = np.ndarray(self.shape, self.dtype, buffer=self.memory.buf)
+
+    @property
+    def spec(self) -> tuple:
+        return self.memory.name, self.shape, self.dtype.str
+
+    @classmethod
+    def attach(cls, spec: tuple) -> "_SharedArray":
+        name, shape, dtype = spec
+        return cls(shape, dtype, name=name)
+
+    def close(self, unlink: bool = False) -> None:
+        self.array = None
+        self.memory.close()
+        if unlink:
+            self.memory.unlink()
 
 
 def _worker(remote, make_env, info_keys) -> None:
@@ -23,45 +54,60 @@ def _worker(remote, make_env, info_keys) -> None:
     cv2.setNumThreads(1)  # one core per worker; OpenCV's own threads only contend
     env = make_env()
     agents = env.possible_agents
-    memory, images = None, None
+    fd = remote.fileno()
+    shared: dict = {}  # name -> _SharedArray, once the learner has sent them
+    slot = 0
+    integer_actions = True
     episode_seed = None
 
-    def publish(obs, infos=None):
-        nonlocal memory, images
-        if images is None:  # first images: ask for a shared buffer of their size
-            remote.send(("shape", (len(agents),) + obs[agents[0]].shape))
-            memory = shared_memory.SharedMemory(name=remote.recv())
-            images = np.ndarray((len(agents),) + obs[agents[0]].shape, np.uint8, buffer=memory.buf)
+    def small_infos(infos):
+        return [{key: infos[a][key] for key in info_keys if key in infos[a]} for a in agents]
+
+    def publish_images(obs):
+        nonlocal slot
+        if "images" not in shared:  # first images: the learner sizes the shared blocks from them
+            remote.send((len(agents),) + obs[agents[0]].shape)
+            slot, specs = remote.recv()
+            shared.update({name: _SharedArray.attach(spec) for name, spec in specs.items()})
+        images = shared["images"].array[slot]
         for k, agent in enumerate(agents):
             images[k] = obs[agent]
-        if infos is not None:
-            return [{key: infos[a][key] for key in info_keys if key in infos[a]} for a in agents]
 
     try:
         while True:
-            command, payload = remote.recv()
-            if command == "reset":
-                episode_seed = payload
-                obs, infos = env.reset(seed=payload)
-                small = publish(obs, infos)
-                remote.send(("infos", small))
-            elif command == "step":
-                obs, rewards, terms, truncs, infos = env.step({a: payload[k] for k, a in enumerate(agents)})
-                reward = [float(rewards[a]) for a in agents]  # plain lists pickle faster than small arrays
+            command = os.read(fd, 1)
+            if command == STEP:
+                row = shared["actions"].array[slot]
+                actions = row[:, 0].astype(int).tolist() if integer_actions else row.tolist()
+                obs, rewards, terms, truncs, infos = env.step(dict(zip(agents, actions)))
                 truncated = all(truncs.values())
                 done = all(terms.values()) or truncated
-                small = [{key: infos[a][key] for key in info_keys if key in infos[a]} for a in agents]
+                shared["rewards"].array[slot] = [rewards[a] for a in agents]
+                shared["flags"].array[slot] = (done, truncated)
+                small = small_infos(infos) if info_keys else None
                 if done:
                     episode_seed = None if episode_seed is None else episode_seed + 1000
                     obs, _ = env.reset(seed=episode_seed)
-                publish(obs)
-                remote.send(("step", (reward, done, truncated, small)))
-            elif command == "close":
+                publish_images(obs)
+                if info_keys:
+                    remote.send(small)
+                else:
+                    os.write(fd, DONE)
+            elif command == RESET:
+                episode_seed = remote.recv()
+                obs, infos = env.reset(seed=episode_seed)
+                publish_images(obs)
+                remote.send(small_infos(infos))
+            elif command == ACTIONS:
+                spec, integer_actions = remote.recv()
+                if "actions" in shared:
+                    shared["actions"].close()
+                shared["actions"] = _SharedArray.attach(spec)
+            elif command in (CLOSE, b""):  # b"": the learner is gone
                 break
     finally:
-        images = None
-        if memory is not None:
-            memory.close()
+        for array in shared.values():
+            array.close()
         env.close()
         remote.close()
 
@@ -71,65 +117,87 @@ class SubprocVectorEnv:
 
     def __init__(self, make_envs: Sequence[Callable], info_keys: Sequence[str] = DEFAULT_INFO_KEYS):
         context = mp.get_context("spawn")  # PyBullet clients must not be forked
-        self.remotes, self.processes, self.memories = [], [], []
+        self.info_keys = tuple(info_keys)
+        self.remotes, self.processes = [], []
         for make_env in make_envs:
             parent, child = context.Pipe()
-            process = context.Process(target=_worker, args=(child, make_env, tuple(info_keys)), daemon=True)
+            process = context.Process(target=_worker, args=(child, make_env, self.info_keys), daemon=True)
             process.start()
             child.close()
             self.remotes.append(parent)
             self.processes.append(process)
         self.num_envs = len(make_envs)
-        self.images = [None] * self.num_envs
+        self.shared: dict = {}  # images (E, A, H, W, C), rewards (E, A), flags (E, 2), actions (E, A, D)
 
-    def _receive(self, k: int):
-        """The next reply of worker k, first serving its request for a shared image buffer."""
-        kind, payload = self.remotes[k].recv()
-        if kind == "shape":  # one buffer per worker, sized by its first images
-            memory = shared_memory.SharedMemory(create=True, size=int(np.prod(payload)))
-            self.memories.append(memory)
-            self.images[k] = np.ndarray(payload, np.uint8, buffer=memory.buf)
-            self.remotes[k].send(memory.name)
-            kind, payload = self.remotes[k].recv()
-        return payload
+    def _share_buffers(self) -> None:
+        """Answer every worker's first images with shared blocks sized by them (all envs alike)."""
+        shapes = [tuple(remote.recv()) for remote in self.remotes]
+        if len(set(shapes)) != 1:
+            raise ValueError(f"vector env: the envs' cars and camera images differ: {shapes}")
+        cars = shapes[0][0]
+        E = self.num_envs
+        self.shared = {"images": _SharedArray((E,) + shapes[0], np.uint8),
+                       "rewards": _SharedArray((E, cars), np.float32), "flags": _SharedArray((E, 2), bool)}
+        specs = {name: array.spec for name, array in self.shared.items()}
+        for k, remote in enumerate(self.remotes):
+            remote.send((k, specs))
 
-    def _observations(self) -> np.ndarray:
-        return np.stack(self.images)  # a copy: the workers overwrite their buffers next step
+    def _send_actions(self, actions) -> None:
+        actions = np.asarray(actions)
+        E, A = self.shared["rewards"].shape
+        if actions.shape[:2] != (E, A):
+            raise ValueError(f"vector env: actions of shape {actions.shape}, expected ({E}, {A}, ...)")
+        integer = np.issubdtype(actions.dtype, np.integer)
+        rows = actions.reshape(E, A, -1)
+        if "actions" not in self.shared or self.shared["actions"].shape != rows.shape:
+            if "actions" in self.shared:
+                self.shared["actions"].close(unlink=True)
+            self.shared["actions"] = _SharedArray(rows.shape, np.float64)
+            for remote in self.remotes:
+                os.write(remote.fileno(), ACTIONS)
+                remote.send((self.shared["actions"].spec, integer))
+        self.shared["actions"].array[:] = rows
 
     def reset(self, seeds: Sequence[int | None] | None = None):
         """Reset every env; returns observations (E, A, H, W, C) and per-env lists of small infos."""
         seeds = list(seeds) if seeds is not None else [None] * self.num_envs
         for remote, seed in zip(self.remotes, seeds):
-            remote.send(("reset", seed))
-        infos = [self._receive(k) for k in range(self.num_envs)]
-        return self._observations(), infos
+            os.write(remote.fileno(), RESET)
+            remote.send(seed)
+        if not self.shared:
+            self._share_buffers()
+        infos = [remote.recv() for remote in self.remotes]
+        return self.shared["images"].array.copy(), infos
 
     def step(self, actions):
-        """Step every env with `actions[e][car]`.
+        """Step every env with `actions[e][car]` (integers for discrete actions, (E, A, D) floats otherwise).
 
         Returns observations (after auto-reset), rewards (E, A), dones (E,), truncated (E,), and the
         small infos of the step that was taken (before any reset).
         """
-        for remote, action in zip(self.remotes, actions):
-            remote.send(("step", np.asarray(action).tolist()))
-        results = [self._receive(k) for k in range(self.num_envs)]
-        rewards = np.array([r[0] for r in results], np.float32)
-        dones = np.array([r[1] for r in results])
-        truncated = np.array([r[2] for r in results])
-        return self._observations(), rewards, dones, truncated, [r[3] for r in results]
+        self._send_actions(actions)
+        for remote in self.remotes:
+            os.write(remote.fileno(), STEP)
+        if self.info_keys:
+            infos = [remote.recv() for remote in self.remotes]
+        else:
+            for remote in self.remotes:
+                os.read(remote.fileno(), 1)
+            infos = [[{}] * self.shared["rewards"].shape[1]] * self.num_envs
+        flags = self.shared["flags"].array
+        return (self.shared["images"].array.copy(), self.shared["rewards"].array.copy(), flags[:, 0].copy(),
+                flags[:, 1].copy(), infos)
 
     def close(self) -> None:
         for remote in self.remotes:
             try:
-                remote.send(("close", None))
-            except (BrokenPipeError, OSError):
+                os.write(remote.fileno(), CLOSE)
+            except OSError:
                 pass
         for process in self.processes:
             process.join(timeout=5)
             if process.is_alive():
                 process.kill()
-        self.images = []
-        for memory in self.memories:
-            memory.close()
-            memory.unlink()
-        self.memories = []
+        for array in self.shared.values():
+            array.close(unlink=True)
+        self.shared = {}

@@ -31,3 +31,22 @@ def test_vector_env_matches_the_env_and_auto_resets():
         assert dones == 1
     finally:
         vec.close()
+
+
+def test_continuous_actions_reach_the_workers_unchanged():
+    space = {"action_space_type": "continuous",
+             "action_space": {"steering_angle": {"low": -30, "high": 30}, "speed": {"low": 0.5, "high": 2.0}}}
+    make = functools.partial(RaceEnv, num_cars=2, action_space=space, max_steps=30)
+    vec = SubprocVectorEnv([make], info_keys=("progress",))
+    try:
+        env = make()
+        obs, _ = vec.reset(seeds=[3])
+        env.reset(seed=3)
+        for k in range(10):
+            actions = np.array([[[10.0 - 2 * k, 1.5], [-5.0, 1.0 + k / 10]]], np.float32)
+            obs, rewards, _, _, infos = vec.step(actions)
+            expected, reward, _, _, info = env.step({"car_0": actions[0, 0], "car_1": actions[0, 1]})
+            assert np.array_equal(obs[0, 0], expected["car_0"]) and np.array_equal(obs[0, 1], expected["car_1"]), k
+            assert rewards[0, 1] == np.float32(reward["car_1"]) and infos[0][1]["progress"] == info["car_1"]["progress"]
+    finally:
+        vec.close()
