@@ -181,8 +181,9 @@ class SubprocVectorEnv:
         if self.info_keys:
             infos = [remote.recv() for remote in self.remotes]
         else:
-            for remote in self.remotes:
-                os.read(remote.fileno(), 1)
+            for k, remote in enumerate(self.remotes):
+                if os.read(remote.fileno(), 1) != DONE:
+                    raise RuntimeError(f"vector env: worker {k} ended during a step (see its traceback above)")
             infos = [[{}] * self.shared["rewards"].shape[1]] * self.num_envs
         flags = self.shared["flags"].array
         return (self.shared["images"].array.copy(), self.shared["rewards"].array.copy(), flags[:, 0].copy(),
