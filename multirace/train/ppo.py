@@ -3,7 +3,8 @@
 Every learning car in every env is driven by the same policy and all their
 samples train it (parameter sharing / self-play). Envs run in worker processes
 (`vector.SubprocVectorEnv`, one per core); the learner runs inference on the
-whole batch of cars at once, then does PPO updates on one torch thread.
+whole batch of cars at once on one torch thread, then does the PPO updates on
+`update_threads` (the workers wait meanwhile, so their cores are free).
 
     multirace train --track reinvent_base --minutes 10 --out agent.pt
 
