@@ -35,6 +35,17 @@ INFO_KEYS = ("train_done", "ep_return", "ep_length", "ep_laps", "ep_caused", "of
              "perturbation")
 
 
+def env_settings(config) -> dict:
+    """The `TrainEnv` keyword arguments a `TrainConfig` sets (everything but the runs, shared state and worker)."""
+    return {"num_cars": config.cars_per_env, "bots": tuple(config.bots), "action_space": config.action_space,
+            "reward": config.reward, "camera": tuple(config.camera), "episode_steps": config.episode_steps,
+            "terminate_off_track": bool(config.terminate_off_track), "off_track_penalty": config.off_track_penalty,
+            "progress_weight": config.progress_weight, "centre_weight": config.centre_weight,
+            "randomize": config.randomize, "collision_penalty": config.collision_penalty,
+            "terminate_collision": config.terminate_collision, "proximity_penalty": config.proximity_penalty,
+            "proximity_gap": config.proximity_gap}
+
+
 class TrainEnv:
     """See the module docstring. All arguments are plain data so the env pickles to worker processes."""
 
@@ -115,7 +126,6 @@ class TrainEnv:
         self._ep_return = [0.0] * self.num_cars
         self._ep_length = [0] * self.num_cars
         self._ep_dist = [0.0] * self.num_cars
-        self._ep_collisions = [0] * self.num_cars
         self._ep_caused = [0] * self.num_cars
         self._collisions_seen = [0] * self.num_cars
         self.agents = list(self.possible_agents)
@@ -175,7 +185,6 @@ class TrainEnv:
             self._ep_return[i] += r
             self._ep_length[i] += 1
             self._ep_dist[i] += ds
-            self._ep_collisions[i] += len(info["collisions"]) > 0
             done = (off and self.terminate_off_track) or (caused and self.terminate_collision) or truncated
             episode = None
             if done:

@@ -30,7 +30,7 @@ from ..actions import load_action_space
 from ..agentfile import make_metadata, read_payload, parse_metadata, save_agent
 from ..nets import build_net
 from .config import TrainConfig
-from .envs import INFO_KEYS, TrainEnv
+from .envs import INFO_KEYS, TrainEnv, env_settings
 
 
 # ------------------------------------------------------------------ policy
@@ -119,15 +119,9 @@ def make_vector_env(config: TrainConfig, shared=None, cars=None, bots=None):
 
     runs = training_runs(config)
     check_reward_file(config, runs)
-    factories = [functools.partial(
-        TrainEnv, runs, num_cars=cars or config.cars_per_env, bots=config.bots if bots is None else bots,
-        action_space=config.action_space, reward=config.reward, camera=config.camera,
-        episode_steps=config.episode_steps, terminate_off_track=config.terminate_off_track,
-        off_track_penalty=config.off_track_penalty, progress_weight=config.progress_weight,
-        centre_weight=config.centre_weight, randomize=config.randomize, shared=shared, worker=w,
-        collision_penalty=config.collision_penalty, terminate_collision=config.terminate_collision,
-        proximity_penalty=config.proximity_penalty, proximity_gap=config.proximity_gap)
-        for w in range(config.num_envs)]
+    settings = env_settings(config)
+    settings.update(num_cars=cars or config.cars_per_env, bots=tuple(config.bots if bots is None else bots))
+    factories = [functools.partial(TrainEnv, runs, shared=shared, worker=w, **settings) for w in range(config.num_envs)]
     return SubprocVectorEnv(factories, info_keys=INFO_KEYS)
 
 

@@ -136,23 +136,10 @@ def make_rllib_env(env_config: dict):
 
 
 def env_config_for(config, runs) -> dict:
-    return {"runs": runs, "num_cars": config.cars_per_env, "bots": tuple(config.bots),
-            "action_space": config.action_space, "reward": config.reward, "camera": tuple(config.camera),
-            "episode_steps": config.episode_steps, "terminate_off_track": bool(config.terminate_off_track),
-            "off_track_penalty": config.off_track_penalty, "progress_weight": config.progress_weight,
-            "centre_weight": config.centre_weight, "randomize": config.randomize,
-            **_optional_env_settings(config)}
+    """The env_config of every env runner's `TrainEnv`: the training runs and the config's env settings."""
+    from .envs import env_settings
 
-
-def _optional_env_settings(config) -> dict:
-    """Settings TrainEnv accepts only in newer versions (e.g. collision_penalty), passed when both sides know them."""
-    import inspect
-
-    from .envs import TrainEnv
-
-    params = inspect.signature(TrainEnv.__init__).parameters
-    keys = ("collision_penalty", "terminate_collision", "proximity_penalty", "proximity_gap")
-    return {key: getattr(config, key) for key in keys if key in params and hasattr(config, key)}
+    return {"runs": runs, **env_settings(config)}
 
 
 # --------------------------------------------------------------- the module
