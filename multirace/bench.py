@@ -22,6 +22,7 @@ from .env import RaceEnv
 
 CAR_COUNTS = (1, 2, 4, 8)
 WINDOWS = 15  # each figure is the best of this many equal time windows, taken in turns
+WARM_UP = 0.1  # untimed lead-in of each window, as a share of the window
 OBSTACLES = 3
 CARS_PER_WORKER = 4  # cars in each env of the worker-process figures
 
@@ -33,12 +34,17 @@ def _interleaved_rates(workloads: dict, seconds: float, windows: int = WINDOWS) 
     the best of several short windows (other processes on a 2-core machine slow
     some windows down, and the best is the closest to what the code costs), and
     the windows of all workloads take turns, so that a slow patch of the
-    machine hits them alike and their ratios stay meaningful. The CPU figure
+    machine hits them alike and their ratios stay meaningful. Each window
+    starts with an untimed lead-in (`WARM_UP`), so that a workload whose worker
+    processes slept through the other windows is timed awake. The CPU figure
     does not count time spent waiting for a core.
     """
     best = {name: (0.0, 0.0) for name in workloads}
     for _ in range(windows):
         for name, (step, agents_per_step) in workloads.items():
+            warm_up = time.perf_counter() + WARM_UP * seconds / windows
+            while time.perf_counter() < warm_up:  # untimed: wake the workload's processes, refill its caches
+                step()
             steps, start, start_cpu = 0, time.perf_counter(), time.thread_time()
             while time.perf_counter() - start < seconds / windows:
                 step()
