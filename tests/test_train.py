@@ -154,6 +154,28 @@ def test_proximity_penalty_grows_as_the_striker_closes_in_before_it_strikes():
     assert all(r0["car_0"] == pytest.approx(r1["car_0"]) for (r0, _), (r1, _) in zip(plain, shaped))  # nothing ahead of it
 
 
+def test_proximity_penalty_counts_a_car_alongside_with_too_little_room():
+    from multirace.train.envs import SIDE_ROOM, TrainEnv
+
+    env = TrainEnv([("reinvent_base", False)], num_cars=2, camera=(30, 40), proximity_penalty=1.0)
+    env.reset(seed=0)
+    width = env.env.car_spec.width
+
+    def cost(lateral_gap, behind_by, ahead_by=5.0):
+        """The car on the centre line, the other `behind_by` m behind its point, `lateral_gap` m to its left."""
+        here = 3.0
+        return env._closing_in({"objects_distance": [here - behind_by, here + ahead_by], "closest_objects": [0, 1],
+                                "projection_distance": here, "distance_from_center": 0.0, "is_left_of_center": True,
+                                "objects_distance_from_center": [lateral_gap, 0.6],
+                                "objects_left_of_center": [True, True]})
+
+    assert cost(width, 0.1) == pytest.approx(1.0)  # side by side, sides touching
+    assert 0.0 < cost(width + SIDE_ROOM / 2, 0.1) < 1.0
+    assert cost(width + SIDE_ROOM, 0.1) == pytest.approx(0.0)  # enough room to the side
+    assert cost(width, env.env.car_spec.length + 0.05) == pytest.approx(0.0)  # passed: no longer alongside
+    env.close()
+
+
 def test_race_preset_sets_traffic_and_penalty_and_leaves_the_default_alone():
     race = make_config("race")
     assert race.bots and race.opponent_pool and race.collision_penalty > 0 and race.proximity_penalty > 0 and race.eval_bots

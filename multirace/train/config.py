@@ -13,7 +13,7 @@
   ``lanes`` bot in every env, a quarter of the cars driven by the opponent
   pool, which holds the shipped imitation agents and past snapshots), with a
   penalty on every collision the car causes and a smaller one for closing in
-  on the car ahead in its lane, DeepRacer's faster sample action
+  on the car ahead in its lane or passing it too close, DeepRacer's faster sample action
   space (1 and 2 m/s), and evaluations in traffic. Meant with
   ``--init agents/dagger_fast.pt`` (see multirace/train/README.md).
 - ``tiny``: one worker, about a second per iteration, for tests and smoke runs
@@ -51,7 +51,7 @@ class TrainConfig:
     off_track_penalty: float = 1.0  # reward subtracted on an off-track step
     collision_penalty: float = 0.0  # reward subtracted per collision the car causes (it struck a car or box)
     terminate_collision: bool = False  # a collision the car causes ends its training episode (like an off-track)
-    proximity_penalty: float = 0.0  # reward subtracted per step, up to this, for closing in on a car or box ahead in its lane
+    proximity_penalty: float = 0.0  # reward subtracted per step, up to this, for closing in on a car or box ahead in its lane or running alongside one too close
     proximity_gap: float = 1.0  # metres ahead within which proximity_penalty starts (0 at this gap, full when touching)
     progress_weight: float = 1.0  # "progress" reward: metres along the centre line per step / (1 m/s * dt)
     centre_weight: float = 0.1  # "progress" reward: bonus of up to this for staying near the centre line

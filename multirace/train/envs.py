@@ -17,9 +17,10 @@ adds what training needs on top of the race env:
   names the striker of each new contact: the car that drove into the other
   or into a box; the car that was hit is not penalised);
 - optionally, DeepRacer's usual object-avoidance shaping: a penalty growing
-  as the car closes in on the next car or box ahead in its own lane (from the
-  params `closest_objects`, `objects_distance` and the lateral offsets), so
-  it learns to pass or hold back before it collides, not only after;
+  as the car closes in on the next car or box ahead in its own lane, or runs
+  alongside one with less than 10 cm to spare (from the params
+  `closest_objects`, `objects_distance` and the lateral offsets), so it
+  learns to pass wide or hold back before it collides, not only after;
 - per-car episode statistics in the infos (return, length, laps driven,
   collisions caused);
 - robust options read per episode from shared memory the learner writes:
@@ -31,6 +32,7 @@ import math
 
 import numpy as np
 
+SIDE_ROOM = 0.1  # metres between two cars side by side below which proximity_penalty counts them as too close
 INFO_KEYS = ("train_done", "ep_return", "ep_length", "ep_laps", "ep_caused", "off_track", "collisions", "caused",
              "perturbation")
 
@@ -146,16 +148,32 @@ class TrainEnv:
         return sum(1 for c in new if c["caused"])
 
     def _closing_in(self, info) -> float:
-        """0 (nothing in the car's lane within `proximity_gap` m ahead) rising to 1 (touching the object ahead)."""
+        """How close the car runs to the car or box next to it: 0 (clear) rising to 1 (touching).
+
+        Two cases, the worse counts: closing in on the object ahead in its own lane (less than
+        `SIDE_ROOM` between them sideways), 0 at `proximity_gap` metres and 1 at none; and running
+        alongside the object just behind its reported point (still overlapping it lengthwise) with
+        less than `SIDE_ROOM` to spare sideways, 1 when the sides touch.
+        """
         along = info["objects_distance"]
         if not along:
             return 0.0
-        ahead = info["closest_objects"][1]
-        gap = (along[ahead] - info["projection_distance"]) % self.track_length
-        own = info["distance_from_center"] * (1.0 if info["is_left_of_center"] else -1.0)
-        other = info["objects_distance_from_center"][ahead] * (1.0 if info["objects_left_of_center"][ahead] else -1.0)
-        same_lane = abs(own - other) < self.env.car_spec.width + 0.1  # side by side with less than 10 cm between
-        return max(0.0, 1.0 - gap / self.proximity_gap) if same_lane else 0.0
+        spec = self.env.car_spec
+        here = info["projection_distance"]
+        behind, ahead = info["closest_objects"]
+
+        def side_room(k: int) -> float:
+            own = info["distance_from_center"] * (1.0 if info["is_left_of_center"] else -1.0)
+            other = info["objects_distance_from_center"][k] * (1.0 if info["objects_left_of_center"][k] else -1.0)
+            return abs(own - other) - spec.width
+
+        cost = 0.0
+        if side_room(ahead) < SIDE_ROOM:
+            gap = (along[ahead] - here) % self.track_length
+            cost = max(0.0, 1.0 - gap / self.proximity_gap)
+        if (here - along[behind]) % self.track_length < spec.length:
+            cost = max(cost, min(1.0, 1.0 - side_room(behind) / SIDE_ROOM))
+        return cost
 
     def step(self, actions):
         env = self.env
