@@ -387,6 +387,14 @@ class RaceEnv(ParallelEnv):
         self._s[i] = geo["proj"].s
         self._geometry[i] = geo
 
+    def move_car(self, i: int, s: float, lateral: float = 0.0) -> dict:
+        """Put car i at arc length s (metres from the start line), at rest, as an off-track reset does.
+
+        For training set-ups (bots started ahead of the learners). Returns the camera cars' new observations.
+        """
+        self._reset_car(i, s % self.track.length, lateral)
+        return self._observe()
+
     def traffic(self, i: int) -> list[tuple[float, float, float]]:
         """The other cars on track as seen from car i: (metres ahead, lateral offset, speed)."""
         mine = self._geometry[i]

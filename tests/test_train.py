@@ -176,6 +176,21 @@ def test_proximity_penalty_counts_a_car_alongside_with_too_little_room():
     env.close()
 
 
+def test_bots_ahead_start_on_the_centre_line_in_front_of_the_learning_cars_and_drive_on():
+    from multirace.train.envs import BOT_SPACING, TrainEnv
+
+    env = TrainEnv([("reinvent_base", False)], num_cars=2, bots=("follow@1.0", "follow@1.0"), camera=(30, 40),
+                   bots_ahead=3.0)
+    env.reset(seed=0)
+    start = [geo["proj"] for geo in env.env._geometry]
+    for k, bot in enumerate(start[2:]):
+        assert bot.s == pytest.approx(3.0 + BOT_SPACING * k, abs=0.1) and abs(bot.lateral) < 0.02
+    for _ in range(15):
+        env.step({"car_0": 0, "car_1": 0})
+    assert all(race.distance > 3.5 for race in env.env.races[2:])  # the bots drive on from there
+    env.close()
+
+
 def test_race_preset_sets_traffic_and_penalty_and_leaves_the_default_alone():
     race = make_config("race")
     assert race.bots and race.opponent_pool and race.collision_penalty > 0 and race.proximity_penalty > 0 and race.eval_bots

@@ -32,6 +32,7 @@ import math
 
 import numpy as np
 
+BOT_SPACING = 2.0  # metres between bots started ahead of the learning cars (bots_ahead)
 SIDE_ROOM = 0.1  # metres between two cars side by side below which proximity_penalty counts them as too close
 INFO_KEYS = ("train_done", "ep_return", "ep_length", "ep_laps", "ep_caused", "off_track", "collisions", "caused",
              "perturbation")
@@ -45,7 +46,7 @@ def env_settings(config) -> dict:
             "progress_weight": config.progress_weight, "centre_weight": config.centre_weight,
             "randomize": config.randomize, "collision_penalty": config.collision_penalty,
             "terminate_collision": config.terminate_collision, "proximity_penalty": config.proximity_penalty,
-            "proximity_gap": config.proximity_gap}
+            "proximity_gap": config.proximity_gap, "bots_ahead": config.bots_ahead}
 
 
 class TrainEnv:
@@ -54,7 +55,7 @@ class TrainEnv:
     def __init__(self, runs, num_cars=4, bots=(), action_space=None, reward="progress", camera=(120, 160),
                  episode_steps=1500, terminate_off_track=True, off_track_penalty=1.0, progress_weight=1.0,
                  centre_weight=0.1, randomize=None, shared=None, worker=0, collision_penalty=0.0,
-                 terminate_collision=False, proximity_penalty=0.0, proximity_gap=1.0):
+                 terminate_collision=False, proximity_penalty=0.0, proximity_gap=1.0, bots_ahead=0.0):
         self.runs = list(runs)  # [(track name/path or Track rows, reverse)]
         self.num_cars = int(num_cars)
         self.bots = tuple(bots)
@@ -68,6 +69,7 @@ class TrainEnv:
         self.terminate_collision = bool(terminate_collision)
         self.proximity_penalty = float(proximity_penalty)
         self.proximity_gap = float(proximity_gap)
+        self.bots_ahead = float(bots_ahead)
         self.progress_weight = float(progress_weight)
         self.centre_weight = float(centre_weight)
         self.randomize = randomize
@@ -122,6 +124,9 @@ class TrainEnv:
         self.env = self._env_for(k)
         self.env.randomization = self._episode_randomization()
         obs, infos = self.env.reset(seed=None if seed is None else int(seed))
+        if self.bots_ahead > 0:  # every episode starts with slower cars to pass: bots on the centre line ahead
+            for k in range(len(self.bots)):
+                obs = self.env.move_car(self.num_cars + k, self.bots_ahead + BOT_SPACING * k)
         track = self.env.track
         self.track_length = track.length
         self._prev_s = [infos[a]["projection_distance"] for a in self.possible_agents]
