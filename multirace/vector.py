@@ -133,7 +133,10 @@ def _worker(remote, make_env, info_keys, spin_wait: float) -> None:
 
 
 class SubprocVectorEnv:
-    """`len(make_envs)` race envs in worker processes, stepped in lock-step."""
+    """`len(make_envs)` race envs in worker processes, stepped in lock-step.
+
+    `spin_wait`: seconds each worker polls for its next command before it sleeps (see the module docstring).
+    """
 
     def __init__(self, make_envs: Sequence[Callable], info_keys: Sequence[str] = DEFAULT_INFO_KEYS,
                  spin_wait: float = SPIN_WAIT):

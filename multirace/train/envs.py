@@ -125,8 +125,8 @@ class TrainEnv:
         self.env.randomization = self._episode_randomization()
         obs, infos = self.env.reset(seed=None if seed is None else int(seed))
         if self.bots_ahead > 0:  # every episode starts with slower cars to pass: bots on the centre line ahead
-            for k in range(len(self.bots)):
-                obs = self.env.move_car(self.num_cars + k, self.bots_ahead + BOT_SPACING * k)
+            for b in range(len(self.bots)):
+                obs = self.env.move_car(self.num_cars + b, self.bots_ahead + BOT_SPACING * b)
         track = self.env.track
         self.track_length = track.length
         self._prev_s = [infos[a]["projection_distance"] for a in self.possible_agents]
