@@ -387,12 +387,13 @@ class RaceEnv(ParallelEnv):
         self._s[i] = geo["proj"].s
         self._geometry[i] = geo
 
-    def move_car(self, i: int, s: float, lateral: float = 0.0) -> dict:
-        """Put car i at arc length s (metres from the start line), at rest, as an off-track reset does.
+    def move_cars(self, slots: dict) -> dict:
+        """Put cars at rest at {car index: (arc length from the start line, lateral offset)}, as a reset does.
 
         For training set-ups (bots started ahead of the learners). Returns the camera cars' new observations.
         """
-        self._reset_car(i, s % self.track.length, lateral)
+        for i, (s, lateral) in slots.items():
+            self._reset_car(i, s % self.track.length, lateral)
         return self._observe()
 
     def traffic(self, i: int) -> list[tuple[float, float, float]]:

@@ -125,8 +125,8 @@ class TrainEnv:
         self.env.randomization = self._episode_randomization()
         obs, infos = self.env.reset(seed=None if seed is None else int(seed))
         if self.bots_ahead > 0:  # every episode starts with slower cars to pass: bots on the centre line ahead
-            for b in range(len(self.bots)):
-                obs = self.env.move_car(self.num_cars + b, self.bots_ahead + BOT_SPACING * b)
+            obs = self.env.move_cars({self.num_cars + b: (self.bots_ahead + BOT_SPACING * b, 0.0)
+                                      for b in range(len(self.bots))})
         track = self.env.track
         self.track_length = track.length
         self._prev_s = [infos[a]["projection_distance"] for a in self.possible_agents]
@@ -167,8 +167,9 @@ class TrainEnv:
         here = info["projection_distance"]
         behind, ahead = info["closest_objects"]
 
+        own = info["distance_from_center"] * (1.0 if info["is_left_of_center"] else -1.0)
+
         def side_room(k: int) -> float:
-            own = info["distance_from_center"] * (1.0 if info["is_left_of_center"] else -1.0)
             other = info["objects_distance_from_center"][k] * (1.0 if info["objects_left_of_center"][k] else -1.0)
             return abs(own - other) - spec.width
 
