@@ -140,6 +140,7 @@ def test_collision_penalty_hits_the_striker_only():
         # terminate_collision: the striker's training episode ends with the strike, nobody else's
         assert i1["car_2"]["train_done"] == bool(i1["car_2"]["caused"]) and not i0["car_2"]["train_done"]
         assert not i1["car_0"]["train_done"] and not i1["car_1"]["train_done"]
+        assert not i1["car_2"]["time_limit"]  # a crash is a real end: no bootstrapping
 
 
 def test_proximity_penalty_grows_as_the_striker_closes_in_before_it_strikes():
@@ -180,14 +181,33 @@ def test_bots_ahead_start_on_the_centre_line_in_front_of_the_learning_cars_and_d
     from multirace.train.envs import BOT_SPACING, TrainEnv
 
     env = TrainEnv([("reinvent_base", False)], num_cars=2, bots=("follow@1.0", "follow@1.0"), camera=(30, 40),
-                   bots_ahead=3.0)
+                   bots_ahead=3.0, episode_steps=15)
     env.reset(seed=0)
     start = [geo["proj"] for geo in env.env._geometry]
     for k, bot in enumerate(start[2:]):
         assert bot.s == pytest.approx(3.0 + BOT_SPACING * k, abs=0.1) and abs(bot.lateral) < 0.02
-    for _ in range(15):
-        env.step({"car_0": 0, "car_1": 0})
+    for step in range(15):
+        _, _, _, _, infos = env.step({"car_0": 0, "car_1": 0})
+        last = step == 14  # the step limit ends every car's episode, marked for bootstrapping; an off-track is not
+        assert all(info["train_done"] == (last or info["off_track"]) for info in infos.values())
+        assert all(info["time_limit"] == (last and not info["off_track"]) for info in infos.values())
     assert all(race.distance > 3.5 for race in env.env.races[2:])  # the bots drive on from there
+    env.close()
+
+
+def test_bots_ahead_spread_starts_the_bots_at_random_gaps_each_episode():
+    from multirace.train.envs import BOT_SPACING, TrainEnv
+
+    env = TrainEnv([("reinvent_base", False)], num_cars=2, bots=("follow@1.0", "follow@1.0"), camera=(30, 40),
+                   bots_ahead=3.0, bots_ahead_spread=8.0)
+    starts = []
+    for seed in range(4):
+        env.reset(seed=seed)
+        bots = [geo["proj"].s for geo in env.env._geometry[2:]]
+        for k, s in enumerate(bots):
+            assert 3.0 + BOT_SPACING * k - 0.1 < s < 3.0 + BOT_SPACING * k + 8.0 + 0.1
+        starts.append(tuple(round(s, 1) for s in bots))
+    assert len(set(starts)) == 4, starts
     env.close()
 
 

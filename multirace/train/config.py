@@ -47,6 +47,7 @@ class TrainConfig:
     cars_per_env: int = 4  # learning cars per env, all driven by the shared policy (self-play)
     bots: tuple = ()  # scripted cars added to each env, e.g. ("follow@1.0",)
     bots_ahead: float = 0.0  # > 0: the bots start this many metres ahead of the learning cars (2 m apart), so every episode begins with cars to pass; 0: behind them on the grid
+    bots_ahead_spread: float = 0.0  # with bots_ahead: each bot starts up to this many metres further ahead, drawn per episode, so the passes happen all round the lap
     episode_steps: int = 1500  # env steps before the env is reset to the start grid (100 s at 15 Hz)
     terminate_off_track: bool = True  # an off-track ends that car's training episode (value target 0)
     off_track_penalty: float = 1.0  # reward subtracted on an off-track step

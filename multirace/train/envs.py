@@ -21,6 +21,9 @@ adds what training needs on top of the race env:
   alongside one with less than 10 cm to spare (from the params
   `closest_objects`, `objects_distance` and the lateral offsets), so it
   learns to pass wide or hold back before it collides, not only after;
+- `time_limit` in the infos when only the env's step limit ended the car's
+  episode (the learner bootstraps those from its value estimate, as the car
+  could have driven on);
 - per-car episode statistics in the infos (return, length, laps driven,
   collisions caused);
 - robust options read per episode from shared memory the learner writes:
@@ -34,7 +37,7 @@ import numpy as np
 
 BOT_SPACING = 2.0  # metres between bots started ahead of the learning cars (bots_ahead)
 SIDE_ROOM = 0.1  # metres between two cars side by side below which proximity_penalty counts them as too close
-INFO_KEYS = ("train_done", "ep_return", "ep_length", "ep_laps", "ep_caused", "off_track", "collisions", "caused",
+INFO_KEYS = ("train_done", "time_limit", "ep_return", "ep_length", "ep_laps", "ep_caused", "off_track", "collisions", "caused",
              "perturbation")
 
 
@@ -46,7 +49,8 @@ def env_settings(config) -> dict:
             "progress_weight": config.progress_weight, "centre_weight": config.centre_weight,
             "randomize": config.randomize, "collision_penalty": config.collision_penalty,
             "terminate_collision": config.terminate_collision, "proximity_penalty": config.proximity_penalty,
-            "proximity_gap": config.proximity_gap, "bots_ahead": config.bots_ahead}
+            "proximity_gap": config.proximity_gap, "bots_ahead": config.bots_ahead,
+            "bots_ahead_spread": config.bots_ahead_spread}
 
 
 class TrainEnv:
@@ -55,7 +59,8 @@ class TrainEnv:
     def __init__(self, runs, num_cars=4, bots=(), action_space=None, reward="progress", camera=(120, 160),
                  episode_steps=1500, terminate_off_track=True, off_track_penalty=1.0, progress_weight=1.0,
                  centre_weight=0.1, randomize=None, shared=None, worker=0, collision_penalty=0.0,
-                 terminate_collision=False, proximity_penalty=0.0, proximity_gap=1.0, bots_ahead=0.0):
+                 terminate_collision=False, proximity_penalty=0.0, proximity_gap=1.0, bots_ahead=0.0,
+                 bots_ahead_spread=0.0):
         self.runs = list(runs)  # [(track name/path or Track rows, reverse)]
         self.num_cars = int(num_cars)
         self.bots = tuple(bots)
@@ -70,6 +75,7 @@ class TrainEnv:
         self.proximity_penalty = float(proximity_penalty)
         self.proximity_gap = float(proximity_gap)
         self.bots_ahead = float(bots_ahead)
+        self.bots_ahead_spread = float(bots_ahead_spread)
         self.progress_weight = float(progress_weight)
         self.centre_weight = float(centre_weight)
         self.randomize = randomize
@@ -125,7 +131,8 @@ class TrainEnv:
         self.env.randomization = self._episode_randomization()
         obs, infos = self.env.reset(seed=None if seed is None else int(seed))
         if self.bots_ahead > 0:  # every episode starts with slower cars to pass: bots on the centre line ahead
-            obs = self.env.move_cars({self.num_cars + b: (self.bots_ahead + BOT_SPACING * b, 0.0)
+            extra = self._rng.uniform(0.0, self.bots_ahead_spread, len(self.bots))
+            obs = self.env.move_cars({self.num_cars + b: (self.bots_ahead + BOT_SPACING * b + extra[b], 0.0)
                                       for b in range(len(self.bots))})
         track = self.env.track
         self.track_length = track.length
@@ -138,8 +145,8 @@ class TrainEnv:
         self.agents = list(self.possible_agents)
         return obs, {a: self._small(infos[a], False, None) for a in self.possible_agents}
 
-    def _small(self, info, done, episode, caused=0):
-        small = {"train_done": done, "off_track": bool(info.get("off_track", False)),
+    def _small(self, info, done, episode, caused=0, time_limit=False):
+        small = {"train_done": done, "time_limit": time_limit, "off_track": bool(info.get("off_track", False)),
                  "collisions": len(info.get("collisions", ())), "caused": caused, "perturbation": self.perturbation}
         if episode is not None:
             small.update(episode)
@@ -209,14 +216,15 @@ class TrainEnv:
             self._ep_return[i] += r
             self._ep_length[i] += 1
             self._ep_dist[i] += ds
-            done = (off and self.terminate_off_track) or (caused and self.terminate_collision) or truncated
+            terminal = (off and self.terminate_off_track) or bool(caused and self.terminate_collision)
+            done = terminal or truncated
             episode = None
             if done:
                 episode = {"ep_return": self._ep_return[i], "ep_length": self._ep_length[i],
                            "ep_laps": self._ep_dist[i] / self.track_length, "ep_caused": self._ep_caused[i]}
                 self._ep_return[i], self._ep_length[i], self._ep_dist[i], self._ep_caused[i] = 0.0, 0, 0.0, 0
             out_rewards[agent] = r
-            out_infos[agent] = self._small(info, done, episode, caused)
+            out_infos[agent] = self._small(info, done, episode, caused, time_limit=truncated and not terminal)
         if truncated:
             self.agents = []
         return obs, out_rewards, terms, truncs, out_infos

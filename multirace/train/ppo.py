@@ -333,6 +333,10 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
                 buf_learn[t] = learner_mask.reshape(N)
                 obs, reward, env_done, _, infos = vec.step(actions)
                 buf_rew[t] = torch.from_numpy(reward.reshape(N))
+                # an episode cut by the step limit (not by an off-track or a crash) would have gone on:
+                # bootstrap it, with this state's value standing in for the unseen next state's
+                cut = np.array([[infos[e][a]["time_limit"] for a in range(A)] for e in range(E)]).reshape(N)
+                buf_rew[t] += config.gamma * value * torch.from_numpy(cut.astype(np.float32))
                 done = np.array([[infos[e][a]["train_done"] for a in range(A)] for e in range(E)])
                 next_done = torch.from_numpy(done.reshape(N).astype(np.float32))
                 for e in range(E):
