@@ -3,7 +3,9 @@
 They use privileged state (the car's true pose and the track), so they are
 the demo, the test driver, the expert for imitation, and the league's bots:
 ``follow@1.5`` keeps the centre line at 1.5 m/s, ``lanes@1.0`` changes lane
-every few seconds at 1.0 m/s.
+every few seconds at 1.0 m/s, ``pass@2.0`` keeps the centre line at 2 m/s
+and overtakes slower cars with side room to spare (the expert that teaches
+imitation agents to pass, `multirace imitate --traffic`).
 """
 from __future__ import annotations
 
@@ -14,7 +16,7 @@ import re
 from .car import CarSpec
 from .tracks import Track
 
-BOT_KINDS = ("follow", "lanes")
+BOT_KINDS = ("follow", "lanes", "pass")
 _BOT_PATTERN = re.compile(r"^(?:bot:)?(?P<kind>[a-z]+)@(?P<speed>[0-9]*\.?[0-9]+)$")
 
 
@@ -60,12 +62,16 @@ class Bot:
         `traffic` lists the other cars as (metres ahead along the track, lateral
         offset from this car, speed); a bot slows behind a car in its way.
         """
-        lateral = 0.0
-        if self.kind == "lanes":
-            lane = int(sim_time // self.lane_period) % 2
+        if self.kind == "pass":
             proj = track.project(pose[0], pose[1], segment_hint)
-            lateral = (proj.left_width if lane == 0 else -proj.right_width) / 2
-        speed = speed_in_traffic(self.speed, traffic, spec)
+            lateral, speed = passing_line(track, spec, proj, traffic, self.speed)
+        else:
+            lateral = 0.0
+            if self.kind == "lanes":
+                lane = int(sim_time // self.lane_period) % 2
+                proj = track.project(pose[0], pose[1], segment_hint)
+                lateral = (proj.left_width if lane == 0 else -proj.right_width) / 2
+            speed = speed_in_traffic(self.speed, traffic, spec)
         return PurePursuit(speed=speed, lateral=lateral).command(track, spec, pose, segment_hint)
 
 
@@ -82,6 +88,45 @@ def speed_in_traffic(speed: float, traffic, spec: CarSpec) -> float:
                 return spec.min_speed
             speed = min(speed, max(spec.min_speed, 0.9 * other_speed))
     return speed
+
+
+PASS_AHEAD = 4.0  # m; a slower car closer than this ahead is overtaken
+PASS_BEHIND = 0.5  # m; a car being passed keeps steering the pass until this far behind
+PASS_GAP = 0.12  # m of side room a passing car leaves between its side and the other's
+ROAD_MARGIN = 0.03  # m between a passing car's centre and the road edge (its outer wheels may leave the road)
+
+
+def passing_line(track: Track, spec: CarSpec, proj, traffic, speed: float) -> tuple[float, float]:
+    """(lateral target, speed) of a driver that keeps the centre line and overtakes slower cars wide.
+
+    Every slower car from `PASS_BEHIND` behind to `PASS_AHEAD` ahead (and any car alongside) is in the
+    way. The driver steers for the line nearest its own that keeps `PASS_GAP` of side room to all of
+    them: the centre line, or one side of one of them (so it passes on the side it is already on and
+    does not weave). Where no line is clear, or while the car ahead is still in its way, it holds back
+    at that car's pace instead of running into it.
+    """
+    in_window = []
+    for ahead, lateral, other_speed in traffic:
+        along = track.wrap_ds(ahead)
+        if -PASS_BEHIND < along < PASS_AHEAD and (other_speed < speed - 0.2 or along < spec.length):
+            in_window.append((along, proj.lateral + lateral, other_speed))
+    if not in_window:
+        return 0.0, speed
+    clear = spec.width + PASS_GAP  # centre-to-centre offset of a clean pass
+    left_limit, right_limit = proj.left_width - ROAD_MARGIN, -(proj.right_width - ROAD_MARGIN)
+    lines = [0.0] + [min(max(other + side * clear, right_limit), left_limit)
+                     for _, other, _ in in_window for side in (1.0, -1.0)]
+
+    def room(line: float) -> float:
+        return min(abs(line - other) for _, other, _ in in_window)
+
+    clear_lines = [line for line in lines if room(line) >= clear - 1e-6]
+    target = (min(clear_lines, key=lambda line: abs(line - proj.lateral)) if clear_lines
+              else max(lines, key=room))
+    for along, other, other_speed in in_window:  # not yet beside it: close in slower than it drives
+        if 0.0 < along < FOLLOW_DISTANCE and abs(proj.lateral - other) < spec.width + PASS_GAP / 2:
+            speed = spec.min_speed if along < STOP_DISTANCE else min(speed, max(spec.min_speed, 0.9 * other_speed))
+    return target, speed
 
 
 def parse_bot(text: str) -> Bot:

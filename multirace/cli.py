@@ -143,7 +143,10 @@ def cmd_imitate(args) -> int:
         command += ["--one-direction"]
     if args.name:
         command += ["--name", args.name]
-    config = ImitationConfig(out=args.out, tracks=tuple(args.tracks), both_directions=not args.one_direction,
+    traffic = tuple(b.strip() for b in (args.traffic or "").split(",") if b.strip())
+    if traffic:
+        command += ["--traffic", ",".join(traffic)]
+    config = ImitationConfig(traffic=traffic, out=args.out, tracks=tuple(args.tracks), both_directions=not args.one_direction,
                              minutes=args.minutes, seed=args.seed, network=args.network,
                              action_space=args.action_space, expert_speed=args.speed, name=args.name,
                              threads=args.threads, command=shlex.join(command))
@@ -223,6 +226,9 @@ def build_parser() -> argparse.ArgumentParser:
                          help="DeepRacer model_metadata.json with the action space (default: 10 actions, "
                               "steering -30..30 by 15 x speed 0.5, 1.0)")
     imitate.add_argument("--speed", type=float, default=1.0, help="expert's speed in m/s (default 1.0)")
+    imitate.add_argument("--traffic", default=None, metavar="BOTS",
+                         help="bots in every env, comma-separated (e.g. follow@1.0,lanes@1.0): the expert "
+                              "passes them wide, so the agent learns to overtake")
     imitate.add_argument("--name", default=None, help="agent name in the metadata (default: file stem)")
     imitate.add_argument("--threads", type=int, default=None,
                          help="torch threads (default: all cores on an idle machine, 1 on a busy one)")

@@ -1,7 +1,9 @@
 """DAgger imitation of the scripted driver, from the camera: a first real agent in minutes on a CPU.
 
-The expert is `bots.PurePursuit`: it reads the car's true pose and the track
-(privileged state) and says how to steer. The learner is a camera CNN
+The expert is the scripted ``pass`` driver (`bots.passing_line` steering by
+`bots.PurePursuit`): it reads the car's true pose, the track and the other
+cars (privileged state) and says how to steer: along the centre line, and
+wide round slower cars when there are any (``traffic``). The learner is a camera CNN
 (`nets.py`) that sees only the front camera image. DAgger (Ross et al., 2011)
 lets the learner drive so it visits its own mistakes, and asks the expert what
 it should have done there:
@@ -18,7 +20,11 @@ it should have done there:
 
 Cars race a time trial with unlimited resets, so a learner that leaves the
 track is put back by the rules (with the usual penalty) and DAgger goes on;
-the env adds DeepRacer's steering and speed noise to every command.
+the env adds DeepRacer's steering and speed noise to every command. With
+``traffic`` (bot specs such as ``follow@1.0``), every env also has those
+bots, started at random gaps ahead of the learner each episode, so the
+dataset holds passes: the learner sees the cars in its camera and the
+expert's labels steer round them.
 """
 from __future__ import annotations
 
@@ -34,7 +40,7 @@ from torch import nn
 
 from .actions import load_action_space
 from .agentfile import make_metadata, save_agent
-from .bots import PurePursuit
+from .bots import Bot, parse_bot
 from .env import parallel_env
 from .nets import DEFAULT_NETWORK, build_net
 
@@ -53,6 +59,7 @@ class ImitationConfig:
     network: str = DEFAULT_NETWORK
     action_space: object = None  # model_metadata path/dict; None = the 10 default actions
     expert_speed: float = 1.0  # m/s the expert drives (and so labels)
+    traffic: tuple = ()  # bots in every env (e.g. ("follow@1.0", "lanes@1.0")), started ahead: the expert passes them
     name: str | None = None  # agent name in the metadata (default: the file stem)
     camera: tuple = (120, 160)
     episode_steps: int = 900  # steps before an env is reset to the start grid (60 s at 15 Hz)
@@ -137,7 +144,8 @@ def run_dagger(config: ImitationConfig) -> dict:
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
     space = load_action_space(config.action_space)
-    expert = PurePursuit(speed=float(config.expert_speed))
+    expert = Bot(kind="pass", speed=float(config.expert_speed))
+    bots = tuple(parse_bot(b).name for b in config.traffic)  # a clear error on a bad spec, before any env starts
     if not space.discrete and not space.low[1] <= expert.speed <= space.high[1]:
         raise ValueError(f"expert_speed {expert.speed} is outside the action space's speed range")
 
@@ -145,7 +153,7 @@ def run_dagger(config: ImitationConfig) -> dict:
     if not runs:
         raise ValueError("tracks: need at least one track")
     envs = [parallel_env(track=t, reverse=r, num_cars=1, race="time_trial", laps=1000, action_space=space,
-                         camera=tuple(config.camera), max_steps=config.episode_steps) for t, r in runs]
+                         camera=tuple(config.camera), max_steps=config.episode_steps, bots=bots) for t, r in runs]
     obs_shape = envs[0].observation_space("car_0").shape
     net = build_net(config.network, obs_shape, space)
     optimiser = torch.optim.Adam(net.parameters(), lr=config.lr)
@@ -153,10 +161,15 @@ def run_dagger(config: ImitationConfig) -> dict:
     label_shape, label_dtype = ((), np.int64) if space.discrete else ((2,), np.float32)
     data = Dataset(config.max_samples, obs_shape, label_shape, label_dtype, rng)
 
-    observations = []
-    for k, env in enumerate(envs):
-        obs, _ = env.reset(seed=config.seed * 1000 + k)
-        observations.append(obs["car_0"])
+    def reset(k: int, seed: int):
+        """Reset env k; traffic starts at random gaps ahead (up to half a lap), so passes come early."""
+        obs, _ = envs[k].reset(seed=seed)
+        if bots:
+            half = envs[k].track.length / 2
+            obs = envs[k].move_cars({1 + b: (rng.uniform(1.5, half), 0.0) for b in range(len(bots))})
+        return obs["car_0"]
+
+    observations = [reset(k, config.seed * 1000 + k) for k in range(len(envs))]
     episodes = [0] * len(envs)
 
     progress = None
@@ -179,8 +192,8 @@ def run_dagger(config: ImitationConfig) -> dict:
                 with torch.no_grad():
                     learner = _greedy(space, net(torch.from_numpy(np.stack(observations))))
                 for k, env in enumerate(envs):
-                    steer, speed = expert.command(env.track, env.car_spec, env.world.poses[0],
-                                                  env.races[0].segment_hint)
+                    steer, speed = expert.command(env.track, env.car_spec, env.world.poses[0], env.sim_time,
+                                                  env.races[0].segment_hint, env.traffic(0))
                     label = space.nearest(steer, speed)
                     data.add(observations[k], label)
                     use_learner = rng.random() >= beta
@@ -192,8 +205,9 @@ def run_dagger(config: ImitationConfig) -> dict:
                         learner_resets += env.races[0].resets - resets_before
                     if terms["car_0"] or truncs["car_0"]:
                         episodes[k] += 1
-                        obs, _ = env.reset(seed=config.seed * 1000 + k + 100 * episodes[k])
-                    observations[k] = obs["car_0"]
+                        observations[k] = reset(k, config.seed * 1000 + k + 100 * episodes[k])
+                    else:
+                        observations[k] = obs["car_0"]
             net.train()
             losses = []
             for step in range(config.train_steps):
@@ -230,7 +244,7 @@ def run_dagger(config: ImitationConfig) -> dict:
     net.eval()
     wall = time.perf_counter() - started
     training = {
-        "method": "dagger", "expert": f"PurePursuit(speed={expert.speed:g})",
+        "method": "dagger", "expert": expert.name, "traffic": list(bots),
         "tracks": [f"{t}{' (reverse)' if r else ''}" for t, r in runs], "seed": config.seed,
         "minutes": config.minutes, "iterations": iteration, "samples": data.seen,
         "dataset_size": data.size, "final_loss": round(loss_value, 4), "wall_seconds": round(wall, 1),

@@ -30,3 +30,30 @@ def test_env_bots_drive_laps_among_learning_cars():
     names = [race.name for race in env.races]
     assert names == ["car_0", "bot:follow@1.5", "bot:lanes@1.0"]
     assert all(race.status == "finished" for race in env.races[1:])
+
+
+def test_pass_bot_overtakes_a_slower_car_wide_where_a_follow_bot_stays_behind():
+    slow = make_controller("bot:follow@1.0")  # on pole, on the centre line
+    passing = run_race([slow, make_controller("bot:pass@2.0")],
+                       RaceConfig(track="reinvent_base", race="head_to_head", laps=2, seed=0))
+    following = run_race([make_controller("bot:follow@1.0"), make_controller("bot:follow@2.0")],
+                         RaceConfig(track="reinvent_base", race="head_to_head", laps=2, seed=0))
+    by_name = {car["name"]: car for car in passing["cars"]}
+    assert by_name["bot:pass@2.0"]["position"] == 1 and by_name["bot:pass@2.0"]["status"] == "finished"
+    assert all(car["collisions"] == 0 for car in passing["cars"])
+    assert {car["name"]: car["position"] for car in following["cars"]}["bot:follow@2.0"] == 2
+
+
+def test_passing_line_steers_round_a_slower_car_on_the_side_it_is_on():
+    from multirace.bots import PASS_GAP, passing_line
+    from multirace.car import CarSpec
+    from multirace.tracks import load_track
+
+    track, spec = load_track("reinvent_base"), CarSpec()
+    here = track.project(*track.point_at(2.0, 0.05)[:2])  # a little left of the centre line
+    assert passing_line(track, spec, here, [], 2.0) == (0.0, 2.0)
+    target, speed = passing_line(track, spec, here, [(2.0, -0.05, 1.0)], 2.0)  # slower car on the centre line
+    assert target >= spec.width + PASS_GAP - 1e-6 and speed == 2.0  # passes on the left, at full speed
+    target, speed = passing_line(track, spec, here, [(0.4, -0.05, 1.0)], 2.0)  # right behind it, still in its way
+    assert target > 0.0 and speed < 1.0  # moves over and holds back meanwhile
+    assert passing_line(track, spec, here, [(2.0, -0.05, 2.0)], 2.0) == (0.0, 2.0)  # not slower: no pass

@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 
 from multirace.agentfile import AgentController, load_agent
 from multirace.cli import main as cli_main
@@ -32,6 +33,15 @@ def test_tiny_dagger_writes_a_loadable_agent(tmp_path):
     controller = AgentController(summary["out"])
     steer, speed = controller.act(np.full((120, 160, 1), 90, np.uint8), {})
     assert -30 <= steer <= 30 and speed in (0.5, 1.0)
+
+
+def test_dagger_in_traffic_records_the_passing_expert_and_rejects_a_bad_bot(tmp_path):
+    summary = _tiny(tmp_path, "traffic", traffic=("follow@1.0",), expert_speed=2.0)
+    training = load_agent(summary["out"]).metadata["training"]
+    assert training["expert"] == "bot:pass@2" and training["traffic"] == ["bot:follow@1.0"]
+    with pytest.raises(ValueError, match="zigzag"):
+        _tiny(tmp_path, "bad", traffic=("zigzag@1.0",))
+    assert not (tmp_path / "bad.pt").exists()
 
 
 def test_tiny_dagger_continuous_space(tmp_path):
