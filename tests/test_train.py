@@ -216,3 +216,50 @@ def test_race_preset_sets_traffic_and_penalty_and_leaves_the_default_alone():
     assert race.bots and race.opponent_pool and race.collision_penalty > 0 and race.proximity_penalty > 0 and race.eval_bots
     fast = make_config("fast")
     assert fast.collision_penalty == 0.0 and fast.proximity_penalty == 0.0 and not fast.bots  # the default is unchanged
+
+
+def test_expert_labels_name_the_pass_drivers_action_and_see_the_traffic():
+    from multirace.train.envs import TrainEnv
+
+    def labels(bots):
+        env = TrainEnv([("reinvent_base", False)], num_cars=1, bots=bots, camera=(30, 40), episode_steps=4,
+                       bots_ahead=1.0, expert_labels=True)
+        _, infos = env.reset(seed=0)
+        seen = [infos["car_0"]["expert_action"]]
+        for _ in range(4):
+            _, _, _, _, infos = env.step({"car_0": seen[-1] if seen[-1] >= 0 else 0})
+            seen.append(infos["car_0"]["expert_action"])
+        size = env.env.actions.space.n
+        env.close()
+        return seen, size
+
+    empty, size = labels(())
+    assert all(0 <= a < size for a in empty[:-1]) and empty[-1] == -1  # the step limit's label is marked missing
+    slow_car_ahead, _ = labels(("follow@0.3",))  # a crawling car 1 m ahead on the centre line: steer round it
+    assert slow_car_ahead[:-1] != empty[:-1]
+
+
+def test_expert_loss_pulls_the_policy_toward_the_pass_driver(tmp_path):
+    from multirace.train.ppo import train
+
+    config = make_config("tiny", tracks=("Oval_track",), minutes=0.35, seed=2, progress=False, expert_coef=2.0,
+                         bots=("follow@0.5",))
+    losses = [h["expert_loss"] for h in train(config, tmp_path / "expert.pt")["history"]]
+    assert len(losses) >= 5 and np.mean(losses[-3:]) < 0.8 * losses[0], losses  # from a near-uniform policy
+
+
+def test_reward_scale_keeps_discounted_returns_near_unit_size():
+    from multirace.train.ppo import RewardScale
+
+    rng = np.random.default_rng(0)
+    scale, gamma = RewardScale(8, 0.99), 0.99
+    raw_returns, scaled_returns, raw, scaled = [], [], np.zeros(8), np.zeros(8)
+    for t in range(3000):  # 2 m/s progress rewards, episodes of 500 steps
+        rewards = rng.normal(2.0, 0.5, 8)
+        done = np.full(8, t % 500 == 499)
+        out = scale(rewards, done)
+        raw, scaled = raw * gamma + rewards, scaled * gamma + out
+        raw_returns.append(raw.copy()), scaled_returns.append(scaled.copy())
+        raw[done], scaled[done] = 0.0, 0.0
+    assert np.mean(raw_returns[1000:]) > 100  # value targets in the hundreds without it
+    assert 0.3 < np.std(scaled_returns[1000:]) < 3.0 and np.mean(scaled_returns[1000:]) < 20

@@ -67,12 +67,14 @@ class TrainConfig:
     gamma: float = 0.99  # discount (DeepRacer: 0.999)
     gae_lambda: float = 0.95  # GAE lambda (DeepRacer: 0.95)
     clip: float = 0.2  # PPO ratio clip (DeepRacer: 0.2)
+    norm_reward: bool = False  # divide rewards by a running std of the discounted return, so value targets stay near 1 (matters when fine-tuning an --init policy: large value errors reshape the shared trunk)
     clip_value: bool = False  # clip the value loss too (CleanRL option)
     ent_coef: float = 0.01  # entropy bonus (DeepRacer: beta_entropy 0.01)
     vf_coef: float = 0.5  # value loss weight
     max_grad_norm: float = 0.5  # gradient norm clip
     target_kl: float | None = None  # stop an iteration's epochs early above this approximate KL
     norm_adv: bool = True  # normalise advantages per minibatch
+    expert_coef: float = 0.0  # weight of an auxiliary imitation loss toward the scripted pass driver's action (bots.passing_line, privileged state); 0 = pure RL
     value_warmup: int = 0  # with --init: first iterations train only the (new) value head, policy frozen
     # ---- budget, logging, outputs
     minutes: float = 10.0  # wall-clock budget, including evaluations and checkpoints

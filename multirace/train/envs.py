@@ -24,6 +24,9 @@ adds what training needs on top of the race env:
 - `time_limit` in the infos when only the env's step limit ended the car's
   episode (the learner bootstraps those from its value estimate, as the car
   could have driven on);
+- optionally (`expert_labels`), the action the scripted ``pass`` driver
+  (`bots.passing_line`, privileged state) would take from each car's next
+  observation, for the learner's auxiliary imitation loss (`expert_coef`);
 - per-car episode statistics in the infos (return, length, laps driven,
   collisions caused);
 - robust options read per episode from shared memory the learner writes:
@@ -38,7 +41,7 @@ import numpy as np
 BOT_SPACING = 2.0  # metres between bots started ahead of the learning cars (bots_ahead)
 SIDE_ROOM = 0.1  # metres between two cars side by side below which proximity_penalty counts them as too close
 INFO_KEYS = ("train_done", "time_limit", "ep_return", "ep_length", "ep_laps", "ep_caused", "off_track", "collisions", "caused",
-             "perturbation")
+             "perturbation", "expert_action")
 
 
 def env_settings(config) -> dict:
@@ -50,7 +53,7 @@ def env_settings(config) -> dict:
             "randomize": config.randomize, "collision_penalty": config.collision_penalty,
             "terminate_collision": config.terminate_collision, "proximity_penalty": config.proximity_penalty,
             "proximity_gap": config.proximity_gap, "bots_ahead": config.bots_ahead,
-            "bots_ahead_spread": config.bots_ahead_spread}
+            "bots_ahead_spread": config.bots_ahead_spread, "expert_labels": config.expert_coef > 0}
 
 
 class TrainEnv:
@@ -60,7 +63,7 @@ class TrainEnv:
                  episode_steps=1500, terminate_off_track=True, off_track_penalty=1.0, progress_weight=1.0,
                  centre_weight=0.1, randomize=None, shared=None, worker=0, collision_penalty=0.0,
                  terminate_collision=False, proximity_penalty=0.0, proximity_gap=1.0, bots_ahead=0.0,
-                 bots_ahead_spread=0.0):
+                 bots_ahead_spread=0.0, expert_labels=False):
         self.runs = list(runs)  # [(track name/path or Track rows, reverse)]
         self.num_cars = int(num_cars)
         self.bots = tuple(bots)
@@ -76,6 +79,7 @@ class TrainEnv:
         self.proximity_gap = float(proximity_gap)
         self.bots_ahead = float(bots_ahead)
         self.bots_ahead_spread = float(bots_ahead_spread)
+        self.expert_labels = bool(expert_labels)
         self.progress_weight = float(progress_weight)
         self.centre_weight = float(centre_weight)
         self.randomize = randomize
@@ -143,7 +147,28 @@ class TrainEnv:
         self._ep_caused = [0] * self.num_cars
         self._collisions_seen = [0] * self.num_cars
         self.agents = list(self.possible_agents)
-        return obs, {a: self._small(infos[a], False, None) for a in self.possible_agents}
+        small = {a: self._small(infos[a], False, None) for a in self.possible_agents}
+        if self.expert_labels:
+            for i, a in enumerate(self.possible_agents):
+                small[a]["expert_action"] = self._expert_action(i)
+        return obs, small
+
+    def _expert_action(self, i: int, known: bool = True):
+        """The scripted pass driver's action for car i where it stands (its top speed: the space's).
+
+        With `known` False (the worker resets the env after this step, so the label would not match
+        the next observation) the label is marked missing: -1, or NaNs for a continuous space.
+        """
+        from ..bots import Bot
+
+        env, space = self.env, self.env.actions
+        if not known:
+            return -1 if space.discrete else [math.nan, math.nan]
+        top = max(a[1] for a in space.actions) if space.discrete else float(space.high[1])
+        steer, speed = Bot(kind="pass", speed=top).command(env.track, env.car_spec, env.world.poses[i], env.sim_time,
+                                                           env.races[i].segment_hint, env.traffic(i))
+        label = space.nearest(steer, speed)
+        return label if space.discrete else [float(v) for v in label]
 
     def _small(self, info, done, episode, caused=0, time_limit=False):
         small = {"train_done": done, "time_limit": time_limit, "off_track": bool(info.get("off_track", False)),
@@ -225,6 +250,8 @@ class TrainEnv:
                 self._ep_return[i], self._ep_length[i], self._ep_dist[i], self._ep_caused[i] = 0.0, 0, 0.0, 0
             out_rewards[agent] = r
             out_infos[agent] = self._small(info, done, episode, caused, time_limit=truncated and not terminal)
+            if self.expert_labels:
+                out_infos[agent]["expert_action"] = self._expert_action(i, known=not truncated)
         if truncated:
             self.agents = []
         return obs, out_rewards, terms, truncs, out_infos

@@ -81,6 +81,34 @@ def init_settings(path) -> dict:
             ("action_space", "action_space_type")}, "camera": (image["height"], image["width"])}
 
 
+class RewardScale:
+    """Divides rewards by a running standard deviation of the discounted return (as gym's NormalizeReward).
+
+    Keeps value targets near 1 instead of the hundreds a 2 m/s progress reward adds up to, so the value
+    loss does not swamp the policy's gradient in the trunk the two heads share.
+    """
+
+    def __init__(self, n: int, gamma: float):
+        self.gamma, self.returns = gamma, np.zeros(n)
+        self.count, self.mean, self.var = 1e-4, 0.0, 1.0
+
+    def __call__(self, rewards: np.ndarray, dones: np.ndarray) -> np.ndarray:
+        self.returns = self.returns * self.gamma + rewards
+        batch_mean, batch_var, k = self.returns.mean(), self.returns.var(), len(self.returns)
+        total = self.count + k
+        delta = batch_mean - self.mean
+        self.var = (self.var * self.count + batch_var * k + delta ** 2 * self.count * k / total) / total
+        self.mean, self.count = self.mean + delta * k / total, total
+        self.returns[dones] = 0.0
+        return rewards / np.sqrt(self.var + 1e-8)
+
+    def state(self) -> dict:
+        return {"count": self.count, "mean": self.mean, "var": self.var}
+
+    def load(self, state: dict) -> None:
+        self.count, self.mean, self.var = state["count"], state["mean"], state["var"]
+
+
 # ------------------------------------------------------------------- runs
 def training_runs(config: TrainConfig) -> list:
     """(track, reverse) pairs to train on: named tracks x directions, plus generated tracks."""
@@ -230,7 +258,7 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
     # --- 3. envs in worker processes
     vec = make_vector_env(config, shared)
     E, A = config.num_envs, config.cars_per_env
-    obs, _ = vec.reset(seeds=[config.seed * 100_000 + e for e in range(E)])
+    obs, reset_infos = vec.reset(seeds=[config.seed * 100_000 + e for e in range(E)])
     obs_shape = obs.shape[2:]
     N = E * A
 
@@ -248,6 +276,9 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
         agent_steps, iteration = int(checkpoint["agent_steps"]), int(checkpoint["iteration"])
         history, evals = json.loads(checkpoint["history"]), json.loads(checkpoint["evals"])
         spent = float(checkpoint["elapsed"])
+    reward_scale = RewardScale(E * A, config.gamma) if config.norm_reward else None
+    if reward_scale is not None and checkpoint is not None and "reward_scale" in checkpoint:
+        reward_scale.load(json.loads(checkpoint["reward_scale"]))
     pool = OpponentPool(config, space, obs_shape, rng) if config.opponent_pool else None
     learner_mask = np.ones((E, A), bool)  # which cars' samples train the learner (pool opponents: False)
 
@@ -260,6 +291,15 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
     buf_rew = torch.zeros((T, N))
     buf_done = torch.zeros((T, N))
     buf_val = torch.zeros((T, N))
+    buf_expert = torch.zeros((T, N, *act_shape), dtype=buf_act.dtype)  # expert_coef: the pass driver's actions
+
+    def expert_actions(infos) -> torch.Tensor:
+        """The scripted pass driver's action for every car's next observation (-1 / NaN: none)."""
+        rows = [info.get("expert_action", -1 if space.discrete else [math.nan, math.nan])
+                for env_infos in infos for info in env_infos]
+        return torch.tensor(rows, dtype=buf_act.dtype)
+
+    expert_now = expert_actions(reset_infos)
     buf_learn = np.zeros((T, N), bool)
     next_done = torch.zeros(N)
 
@@ -297,6 +337,7 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
 
     def save_checkpoint():
         torch.save({"net": net.state_dict(), "optimiser": optimiser.state_dict(), "agent_steps": agent_steps,
+                    "reward_scale": json.dumps(reward_scale.state() if reward_scale is not None else None),
                     "iteration": iteration, "history": json.dumps(history), "evals": json.dumps(evals),
                     "elapsed": spent + elapsed(), "config": json.dumps(config.to_dict())},
                    ckpt_dir / "checkpoint.tmp")
@@ -326,19 +367,23 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
                     dist = policy.dist(out_)
                     action = dist.sample()
                     buf_logp[t] = policy.log_prob(dist, action)
-                buf_act[t], buf_val[t] = action, value
+                buf_act[t], buf_val[t], buf_expert[t] = action, value, expert_now
                 actions = action.numpy().reshape(E, A, *act_shape)
                 if pool is not None:
                     actions = pool.override(actions, obs, learner_mask)
                 buf_learn[t] = learner_mask.reshape(N)
                 obs, reward, env_done, _, infos = vec.step(actions)
-                buf_rew[t] = torch.from_numpy(reward.reshape(N))
+                expert_now = expert_actions(infos)
+                done = np.array([[infos[e][a]["train_done"] for a in range(A)] for e in range(E)]).reshape(N)
+                step_reward = reward.reshape(N).astype(np.float64)
+                if reward_scale is not None:
+                    step_reward = reward_scale(step_reward, done)
+                buf_rew[t] = torch.from_numpy(step_reward.astype(np.float32))
                 # an episode cut by the step limit (not by an off-track or a crash) would have gone on:
                 # bootstrap it, with this state's value standing in for the unseen next state's
                 cut = np.array([[infos[e][a]["time_limit"] for a in range(A)] for e in range(E)]).reshape(N)
                 buf_rew[t] += config.gamma * value * torch.from_numpy(cut.astype(np.float32))
-                done = np.array([[infos[e][a]["train_done"] for a in range(A)] for e in range(E)])
-                next_done = torch.from_numpy(done.reshape(N).astype(np.float32))
+                next_done = torch.from_numpy(done.astype(np.float32))
                 for e in range(E):
                     for a in range(A):
                         info = infos[e][a]
@@ -375,6 +420,7 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
             b_act = buf_act.reshape(T * N, *act_shape)[keep]
             b_logp, b_adv = buf_logp.reshape(-1)[keep], advantages.reshape(-1)[keep]
             b_ret, b_val = returns.reshape(-1)[keep], buf_val.reshape(-1)[keep]
+            b_expert = buf_expert.reshape(T * N, *act_shape)[keep]
             if config.anneal_lr:
                 for group in optimiser.param_groups:
                     group["lr"] = config.lr * max(0.1, 1.0 - frac)
@@ -382,7 +428,7 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
             warmup = bool(init) and iteration - start_iteration < config.value_warmup and checkpoint is None
             size = len(b_obs)
             mb = min(config.minibatch_size, size)
-            clip_fracs, approx_kl, pg_loss, v_loss, entropy = [], 0.0, 0.0, 0.0, 0.0
+            clip_fracs, approx_kl, pg_loss, v_loss, entropy, expert_loss = [], 0.0, 0.0, 0.0, 0.0, 0.0
             for epoch in range(config.epochs):
                 order = torch.randperm(size)
                 for start in range(0, size - mb + 1, mb):
@@ -406,6 +452,13 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
                         vl = 0.5 * ((value - b_ret[idx]) ** 2).mean()
                     ent = policy.entropy(dist).mean()
                     loss = pg - config.ent_coef * ent + config.vf_coef * vl
+                    if config.expert_coef:  # imitation of the pass driver where it labelled the image
+                        labels = b_expert[idx]
+                        known = labels >= 0 if space.discrete else ~torch.isnan(labels).any(-1)
+                        safe = labels.clamp(min=0) if space.discrete else torch.nan_to_num(labels)
+                        nll = -(policy.log_prob(dist, safe) * known).sum() / known.sum().clamp(min=1)
+                        loss = loss + config.expert_coef * nll
+                        expert_loss = nll.item()
                     optimiser.zero_grad()
                     if warmup:  # a fresh value head under an --init policy: fit values first, policy frozen
                         loss = config.vf_coef * vl
@@ -439,7 +492,7 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
                    "caused_per_lap": (float(sum(ep["caused"] for ep in mine) / max(sum(ep["laps"] for ep in mine),
                                                                                     0.25)) if mine else 0.0),
                    "mean_reward": float(buf_rew.mean()), "policy_loss": round(pg_loss, 4),
-                   "value_loss": round(v_loss, 4), "entropy": round(entropy, 4), "approx_kl": round(approx_kl, 5),
+                   "value_loss": round(v_loss, 4), "entropy": round(entropy, 4), "expert_loss": round(expert_loss, 4), "approx_kl": round(approx_kl, 5),
                    "clip_frac": round(float(np.mean(clip_fracs)) if clip_fracs else 0.0, 4),
                    "steps_per_s": round(agent_steps / max(spent + elapsed(), 1e-9), 1) if not spent else
                    round(int(buf_learn.sum()) / max(time.perf_counter() - t0, 1e-9), 1)}
