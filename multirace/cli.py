@@ -146,10 +146,10 @@ def cmd_imitate(args) -> int:
     traffic = tuple(b.strip() for b in (args.traffic or "").split(",") if b.strip())
     if traffic:
         command += ["--traffic", ",".join(traffic)]
-    config = ImitationConfig(traffic=traffic, out=args.out, tracks=tuple(args.tracks), both_directions=not args.one_direction,
+    config = ImitationConfig(out=args.out, tracks=tuple(args.tracks), both_directions=not args.one_direction,
                              minutes=args.minutes, seed=args.seed, network=args.network,
-                             action_space=args.action_space, expert_speed=args.speed, name=args.name,
-                             threads=args.threads, command=shlex.join(command))
+                             action_space=args.action_space, expert_speed=args.speed, traffic=traffic,
+                             name=args.name, threads=args.threads, command=shlex.join(command))
     summary = run_dagger(config)
     print(f"wrote {summary['out']}: {summary['iterations']} DAgger iterations, {summary['samples']} samples, "
           f"final loss {summary['final_loss']}, {summary['wall_seconds']} s")

@@ -40,8 +40,8 @@ import numpy as np
 
 BOT_SPACING = 2.0  # metres between bots started ahead of the learning cars (bots_ahead)
 SIDE_ROOM = 0.1  # metres between two cars side by side below which proximity_penalty counts them as too close
-INFO_KEYS = ("train_done", "time_limit", "ep_return", "ep_length", "ep_laps", "ep_caused", "off_track", "collisions", "caused",
-             "perturbation", "expert_action")
+INFO_KEYS = ("train_done", "time_limit", "ep_return", "ep_length", "ep_laps", "ep_caused", "off_track", "collisions",
+             "caused", "perturbation", "expert_action")
 
 
 def env_settings(config) -> dict:

@@ -277,8 +277,9 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
         history, evals = json.loads(checkpoint["history"]), json.loads(checkpoint["evals"])
         spent = float(checkpoint["elapsed"])
     reward_scale = RewardScale(E * A, config.gamma) if config.norm_reward else None
-    if reward_scale is not None and checkpoint is not None and "reward_scale" in checkpoint:
-        reward_scale.load(json.loads(checkpoint["reward_scale"]))
+    saved_scale = json.loads(checkpoint.get("reward_scale", "null")) if checkpoint is not None else None
+    if reward_scale is not None and saved_scale:
+        reward_scale.load(saved_scale)
     pool = OpponentPool(config, space, obs_shape, rng) if config.opponent_pool else None
     learner_mask = np.ones((E, A), bool)  # which cars' samples train the learner (pool opponents: False)
 
@@ -358,6 +359,7 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
             # --- 7. rollout: T steps of every env, batched inference over all cars
             t0 = time.perf_counter()
             net.eval()
+            env_reward = 0.0  # the env's own rewards this rollout (buf_rew may be scaled and bootstrapped)
             for t in range(T):
                 flat = obs.reshape(N, *obs_shape)
                 buf_obs[t] = flat
@@ -376,6 +378,7 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
                 expert_now = expert_actions(infos)
                 done = np.array([[infos[e][a]["train_done"] for a in range(A)] for e in range(E)]).reshape(N)
                 step_reward = reward.reshape(N).astype(np.float64)
+                env_reward += float(step_reward.sum())
                 if reward_scale is not None:
                     step_reward = reward_scale(step_reward, done)
                 buf_rew[t] = torch.from_numpy(step_reward.astype(np.float32))
@@ -491,8 +494,9 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
                    "lap_completion": float(np.mean([ep["laps"] >= 1.0 for ep in mine])) if mine else 0.0,
                    "caused_per_lap": (float(sum(ep["caused"] for ep in mine) / max(sum(ep["laps"] for ep in mine),
                                                                                     0.25)) if mine else 0.0),
-                   "mean_reward": float(buf_rew.mean()), "policy_loss": round(pg_loss, 4),
-                   "value_loss": round(v_loss, 4), "entropy": round(entropy, 4), "expert_loss": round(expert_loss, 4), "approx_kl": round(approx_kl, 5),
+                   "mean_reward": env_reward / (T * N), "policy_loss": round(pg_loss, 4),
+                   "value_loss": round(v_loss, 4), "entropy": round(entropy, 4),
+                   "expert_loss": round(expert_loss, 4), "approx_kl": round(approx_kl, 5),
                    "clip_frac": round(float(np.mean(clip_fracs)) if clip_fracs else 0.0, 4),
                    "steps_per_s": round(agent_steps / max(spent + elapsed(), 1e-9), 1) if not spent else
                    round(int(buf_learn.sum()) / max(time.perf_counter() - t0, 1e-9), 1)}
