@@ -80,6 +80,7 @@ class TrainEnv:
         self.bots_ahead = float(bots_ahead)
         self.bots_ahead_spread = float(bots_ahead_spread)
         self.expert_labels = bool(expert_labels)
+        self._expert = None  # the scripted pass driver that labels actions (built on first use)
         self.progress_weight = float(progress_weight)
         self.centre_weight = float(centre_weight)
         self.randomize = randomize
@@ -159,14 +160,16 @@ class TrainEnv:
         With `known` False (the worker resets the env after this step, so the label would not match
         the next observation) the label is marked missing: -1, or NaNs for a continuous space.
         """
-        from ..bots import Bot
-
         env, space = self.env, self.env.actions
         if not known:
             return -1 if space.discrete else [math.nan, math.nan]
-        top = max(a[1] for a in space.actions) if space.discrete else float(space.high[1])
-        steer, speed = Bot(kind="pass", speed=top).command(env.track, env.car_spec, env.world.poses[i], env.sim_time,
-                                                           env.races[i].segment_hint, env.traffic(i))
+        if self._expert is None:  # every run shares the action space, so one driver at its top speed serves all
+            from ..bots import Bot
+
+            top = max(a[1] for a in space.actions) if space.discrete else float(space.high[1])
+            self._expert = Bot(kind="pass", speed=top)
+        steer, speed = self._expert.command(env.track, env.car_spec, env.world.poses[i], env.sim_time,
+                                            env.races[i].segment_hint, env.traffic(i))
         label = space.nearest(steer, speed)
         return label if space.discrete else [float(v) for v in label]
 

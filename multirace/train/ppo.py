@@ -375,7 +375,8 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
                     actions = pool.override(actions, obs, learner_mask)
                 buf_learn[t] = learner_mask.reshape(N)
                 obs, reward, env_done, _, infos = vec.step(actions)
-                expert_now = expert_actions(infos)
+                if config.expert_coef:
+                    expert_now = expert_actions(infos)
                 done = np.array([[infos[e][a]["train_done"] for a in range(A)] for e in range(E)]).reshape(N)
                 step_reward = reward.reshape(N).astype(np.float64)
                 env_reward += float(step_reward.sum())
