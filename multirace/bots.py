@@ -94,6 +94,7 @@ PASS_AHEAD = 4.0  # m; a slower car closer than this ahead is overtaken
 PASS_BEHIND = 0.5  # m; a car being passed keeps steering the pass until this far behind
 PASS_GAP = 0.12  # m of side room a passing car leaves between its side and the other's
 ROAD_MARGIN = 0.03  # m between a passing car's centre and the road edge (its outer wheels may leave the road)
+RETURN_STEP = 0.08  # m; with nothing in the way, the target line is this much nearer the centre than the car
 
 
 def passing_line(track: Track, spec: CarSpec, proj, traffic, speed: float) -> tuple[float, float]:
@@ -103,7 +104,9 @@ def passing_line(track: Track, spec: CarSpec, proj, traffic, speed: float) -> tu
     way. The driver steers for the line nearest its own that keeps `PASS_GAP` of side room to all of
     them: the centre line, or one side of one of them (so it passes on the side it is already on and
     does not weave). Where no line is clear, or while the car ahead is still in its way, it holds back
-    at that car's pace instead of running into it.
+    at that car's pace instead of running into it. With nothing in the way it drifts back to the centre
+    line gently (`RETURN_STEP`), so it never cuts in on a car it has just passed, and a camera driver
+    that imitates it, which cannot see that car any more, learns the same slow return.
     """
     in_window = []
     for ahead, lateral, other_speed in traffic:
@@ -111,7 +114,7 @@ def passing_line(track: Track, spec: CarSpec, proj, traffic, speed: float) -> tu
         if -PASS_BEHIND < along < PASS_AHEAD and (other_speed < speed - 0.2 or along < spec.length):
             in_window.append((along, proj.lateral + lateral, other_speed))
     if not in_window:
-        return 0.0, speed
+        return proj.lateral - max(-RETURN_STEP, min(RETURN_STEP, proj.lateral)), speed
     clear = spec.width + PASS_GAP  # centre-to-centre offset of a clean pass
     left_limit, right_limit = proj.left_width - ROAD_MARGIN, -(proj.right_width - ROAD_MARGIN)
     lines = [0.0] + [min(max(other + side * clear, right_limit), left_limit)

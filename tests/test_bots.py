@@ -45,7 +45,7 @@ def test_pass_bot_overtakes_a_slower_car_wide_where_a_follow_bot_stays_behind():
 
 
 def test_passing_line_steers_round_a_slower_car_on_the_side_it_is_on():
-    from multirace.bots import PASS_GAP, passing_line
+    from multirace.bots import PASS_GAP, RETURN_STEP, passing_line
     from multirace.car import CarSpec
     from multirace.tracks import load_track
 
@@ -57,3 +57,6 @@ def test_passing_line_steers_round_a_slower_car_on_the_side_it_is_on():
     target, speed = passing_line(track, spec, here, [(0.4, -0.05, 1.0)], 2.0)  # right behind it, still in its way
     assert target > 0.0 and speed < 1.0  # moves over and holds back meanwhile
     assert passing_line(track, spec, here, [(2.0, -0.05, 2.0)], 2.0) == (0.0, 2.0)  # not slower: no pass
+    out_wide = track.project(*track.point_at(2.0, 0.3)[:2])  # just past a car, out on its passing line
+    target, speed = passing_line(track, spec, out_wide, [], 2.0)
+    assert target == pytest.approx(0.3 - RETURN_STEP, abs=1e-3) and speed == 2.0  # drifts back, does not cut in
