@@ -156,11 +156,11 @@ def test_proximity_penalty_grows_as_the_striker_closes_in_before_it_strikes():
 
 
 def test_proximity_penalty_counts_a_car_alongside_with_too_little_room():
-    from multirace.train.envs import SIDE_ROOM, TrainEnv
+    from multirace.train.envs import TrainEnv
 
     env = TrainEnv([("reinvent_base", False)], num_cars=2, camera=(30, 40), proximity_penalty=1.0)
     env.reset(seed=0)
-    width = env.env.car_spec.width
+    width, room = env.env.car_spec.width, env.proximity_side_room
 
     def cost(lateral_gap, behind_by, ahead_by=5.0):
         """The car on the centre line, the other `behind_by` m behind its point, `lateral_gap` m to its left."""
@@ -171,8 +171,8 @@ def test_proximity_penalty_counts_a_car_alongside_with_too_little_room():
                                 "objects_left_of_center": [True, True]})
 
     assert cost(width, 0.1) == pytest.approx(1.0)  # side by side, sides touching
-    assert 0.0 < cost(width + SIDE_ROOM / 2, 0.1) < 1.0
-    assert cost(width + SIDE_ROOM, 0.1) == pytest.approx(0.0)  # enough room to the side
+    assert 0.0 < cost(width + room / 2, 0.1) < 1.0
+    assert cost(width + room, 0.1) == pytest.approx(0.0)  # enough room to the side
     assert cost(width, env.env.car_spec.length + 0.05) == pytest.approx(0.0)  # passed: no longer alongside
     env.close()
 

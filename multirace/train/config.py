@@ -55,6 +55,7 @@ class TrainConfig:
     terminate_collision: bool = False  # a collision the car causes ends its training episode (like an off-track)
     proximity_penalty: float = 0.0  # reward subtracted per step, up to this, for closing in on a car or box ahead in its lane or running alongside one too close
     proximity_gap: float = 1.0  # metres ahead within which proximity_penalty starts (0 at this gap, full when touching)
+    proximity_side_room: float = 0.1  # metres of side room below which a car ahead counts as in the lane, or one alongside as too close
     progress_weight: float = 1.0  # "progress" reward: metres along the centre line per step / (1 m/s * dt)
     centre_weight: float = 0.1  # "progress" reward: bonus of up to this for staying near the centre line
     randomize: object = None  # env domain randomisation: None, "mild", "strong" or a dict (see randomize.py)

@@ -18,7 +18,7 @@ adds what training needs on top of the race env:
   or into a box; the car that was hit is not penalised);
 - optionally, DeepRacer's usual object-avoidance shaping: a penalty growing
   as the car closes in on the next car or box ahead in its own lane, or runs
-  alongside one with less than 10 cm to spare (from the params
+  alongside one with too little room to the side (from the params
   `closest_objects`, `objects_distance` and the lateral offsets), so it
   learns to pass wide or hold back before it collides, not only after;
 - `time_limit` in the infos when only the env's step limit ended the car's
@@ -39,7 +39,6 @@ import math
 import numpy as np
 
 BOT_SPACING = 2.0  # metres between bots started ahead of the learning cars (bots_ahead)
-SIDE_ROOM = 0.1  # metres between two cars side by side below which proximity_penalty counts them as too close
 INFO_KEYS = ("train_done", "time_limit", "ep_return", "ep_length", "ep_laps", "ep_caused", "off_track", "collisions",
              "caused", "perturbation", "expert_action")
 
@@ -52,7 +51,8 @@ def env_settings(config) -> dict:
             "progress_weight": config.progress_weight, "centre_weight": config.centre_weight,
             "randomize": config.randomize, "collision_penalty": config.collision_penalty,
             "terminate_collision": config.terminate_collision, "proximity_penalty": config.proximity_penalty,
-            "proximity_gap": config.proximity_gap, "bots_ahead": config.bots_ahead,
+            "proximity_gap": config.proximity_gap, "proximity_side_room": config.proximity_side_room,
+            "bots_ahead": config.bots_ahead,
             "bots_ahead_spread": config.bots_ahead_spread, "expert_labels": config.expert_coef > 0}
 
 
@@ -62,7 +62,8 @@ class TrainEnv:
     def __init__(self, runs, num_cars=4, bots=(), action_space=None, reward="progress", camera=(120, 160),
                  episode_steps=1500, terminate_off_track=True, off_track_penalty=1.0, progress_weight=1.0,
                  centre_weight=0.1, randomize=None, shared=None, worker=0, collision_penalty=0.0,
-                 terminate_collision=False, proximity_penalty=0.0, proximity_gap=1.0, bots_ahead=0.0,
+                 terminate_collision=False, proximity_penalty=0.0, proximity_gap=1.0, proximity_side_room=0.1,
+                 bots_ahead=0.0,
                  bots_ahead_spread=0.0, expert_labels=False):
         self.runs = list(runs)  # [(track name/path or Track rows, reverse)]
         self.num_cars = int(num_cars)
@@ -77,6 +78,7 @@ class TrainEnv:
         self.terminate_collision = bool(terminate_collision)
         self.proximity_penalty = float(proximity_penalty)
         self.proximity_gap = float(proximity_gap)
+        self.proximity_side_room = float(proximity_side_room)
         self.bots_ahead = float(bots_ahead)
         self.bots_ahead_spread = float(bots_ahead_spread)
         self.expert_labels = bool(expert_labels)
@@ -191,9 +193,9 @@ class TrainEnv:
         """How close the car runs to the car or box next to it: 0 (clear) rising to 1 (touching).
 
         Two cases, the worse counts: closing in on the object ahead in its own lane (less than
-        `SIDE_ROOM` between them sideways), 0 at `proximity_gap` metres and 1 at none; and running
+        `proximity_side_room` between them sideways), 0 at `proximity_gap` metres and 1 at none; and running
         alongside the object just behind its reported point (still overlapping it lengthwise) with
-        less than `SIDE_ROOM` to spare sideways, 1 when the sides touch.
+        less than `proximity_side_room` to spare sideways, 1 when the sides touch.
         """
         along = info["objects_distance"]
         if not along:
@@ -209,11 +211,11 @@ class TrainEnv:
             return abs(own - other) - spec.width
 
         cost = 0.0
-        if side_room(ahead) < SIDE_ROOM:
+        if side_room(ahead) < self.proximity_side_room:
             gap = (along[ahead] - here) % self.track_length
             cost = max(0.0, 1.0 - gap / self.proximity_gap)
         if (here - along[behind]) % self.track_length < spec.length:
-            cost = max(cost, min(1.0, 1.0 - side_room(behind) / SIDE_ROOM))
+            cost = max(cost, min(1.0, 1.0 - side_room(behind) / self.proximity_side_room))
         return cost
 
     def step(self, actions):
