@@ -103,7 +103,7 @@ def passing_line(track: Track, spec: CarSpec, proj, traffic, speed: float) -> tu
     Every slower car from `PASS_BEHIND` behind to `PASS_AHEAD` ahead (and any car alongside) is in the
     way. The driver steers for the line nearest its own that keeps `PASS_GAP` of side room to all of
     them: the centre line, or one side of one of them (so it passes on the side it is already on and
-    does not weave). Where no line is clear, or while the car ahead is still in its way, it holds back
+    does not weave); a car already clear of them holds its line. Where no line is clear, or while the car ahead is still in its way, it holds back
     at that car's pace instead of running into it. With nothing in the way it drifts back to the centre
     line gently (`RETURN_STEP`), so it never cuts in on a car it has just passed, and a camera driver
     that imitates it, which cannot see that car any more, learns the same slow return.
@@ -124,8 +124,11 @@ def passing_line(track: Track, spec: CarSpec, proj, traffic, speed: float) -> tu
         return min(abs(line - other) for _, other, _ in in_window)
 
     clear_lines = [line for line in lines if room(line) >= clear - 1e-6]
-    target = (min(clear_lines, key=lambda line: abs(line - proj.lateral)) if clear_lines
-              else max(lines, key=room))
+    if room(proj.lateral) >= clear and right_limit <= proj.lateral <= left_limit:
+        target = proj.lateral  # already clear of them all: hold this line, never close in on a car to pass it
+    else:
+        target = (min(clear_lines, key=lambda line: abs(line - proj.lateral)) if clear_lines
+                  else max(lines, key=room))
     for along, other, other_speed in in_window:  # not yet beside it: close in slower than it drives
         if 0.0 < along < FOLLOW_DISTANCE and abs(proj.lateral - other) < spec.width + PASS_GAP / 2:
             speed = spec.min_speed if along < STOP_DISTANCE else min(speed, max(spec.min_speed, 0.9 * other_speed))

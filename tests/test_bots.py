@@ -57,6 +57,8 @@ def test_passing_line_steers_round_a_slower_car_on_the_side_it_is_on():
     target, speed = passing_line(track, spec, here, [(0.4, -0.05, 1.0)], 2.0)  # right behind it, still in its way
     assert target > 0.0 and speed < 1.0  # moves over and holds back meanwhile
     assert passing_line(track, spec, here, [(2.0, -0.05, 2.0)], 2.0) == (0.0, 2.0)  # not slower: no pass
-    out_wide = track.project(*track.point_at(2.0, 0.3)[:2])  # just past a car, out on its passing line
-    target, speed = passing_line(track, spec, out_wide, [], 2.0)
-    assert target == pytest.approx(0.3 - RETURN_STEP, abs=1e-3) and speed == 2.0  # drifts back, does not cut in
+    out_wide = track.project(*track.point_at(2.0, 0.34)[:2])  # out wider than a passing line
+    target, speed = passing_line(track, spec, out_wide, [(1.0, -0.34, 1.0)], 2.0)  # slower car on the centre line
+    assert target == pytest.approx(out_wide.lateral) and speed == 2.0  # clear of it already: holds the line
+    target, speed = passing_line(track, spec, out_wide, [], 2.0)  # past it
+    assert target == pytest.approx(0.34 - RETURN_STEP, abs=1e-3) and speed == 2.0  # drifts back, does not cut in
