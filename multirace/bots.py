@@ -103,8 +103,9 @@ def passing_line(track: Track, spec: CarSpec, proj, traffic, speed: float) -> tu
     Every slower car from `PASS_BEHIND` behind to `PASS_AHEAD` ahead (and any car alongside) is in the
     way. The driver steers for the line nearest its own that keeps `PASS_GAP` of side room to all of
     them: the centre line, or one side of one of them (so it passes on the side it is already on and
-    does not weave); a car already clear of them holds its line. Where no line is clear, or while the car ahead is still in its way, it holds back
-    at that car's pace instead of running into it. With nothing in the way it drifts back to the centre
+    does not weave); where its own line is already clear it holds it rather than close in on the car
+    it passes. Where no line is clear, or while the car ahead is still in its way, it holds back at
+    that car's pace instead of running into it. With nothing in the way it drifts back to the centre
     line gently (`RETURN_STEP`), so it never cuts in on a car it has just passed, and a camera driver
     that imitates it, which cannot see that car any more, learns the same slow return.
     """

@@ -52,8 +52,8 @@ def env_settings(config) -> dict:
             "randomize": config.randomize, "collision_penalty": config.collision_penalty,
             "terminate_collision": config.terminate_collision, "proximity_penalty": config.proximity_penalty,
             "proximity_gap": config.proximity_gap, "proximity_side_room": config.proximity_side_room,
-            "bots_ahead": config.bots_ahead,
-            "bots_ahead_spread": config.bots_ahead_spread, "expert_labels": config.expert_coef > 0}
+            "bots_ahead": config.bots_ahead, "bots_ahead_spread": config.bots_ahead_spread,
+            "expert_labels": config.expert_coef > 0}
 
 
 class TrainEnv:
@@ -63,8 +63,7 @@ class TrainEnv:
                  episode_steps=1500, terminate_off_track=True, off_track_penalty=1.0, progress_weight=1.0,
                  centre_weight=0.1, randomize=None, shared=None, worker=0, collision_penalty=0.0,
                  terminate_collision=False, proximity_penalty=0.0, proximity_gap=1.0, proximity_side_room=0.1,
-                 bots_ahead=0.0,
-                 bots_ahead_spread=0.0, expert_labels=False):
+                 bots_ahead=0.0, bots_ahead_spread=0.0, expert_labels=False):
         self.runs = list(runs)  # [(track name/path or Track rows, reverse)]
         self.num_cars = int(num_cars)
         self.bots = tuple(bots)
