@@ -10,7 +10,9 @@ The metadata is DeepRacer's ``model_metadata.json`` (``sensor``,
 ``neural_network``, ``action_space``, ``action_space_type``, ``version``,
 ``training_algorithm``) plus ``name`` (the agent's name), ``image``
 (``{"height", "width", "channels"}`` of the camera it expects) and optional
-``training`` notes. The network is rebuilt from its name (`nets.NETWORKS`),
+``training`` notes. ``sensor`` is ``["FRONT_FACING_CAMERA"]``, or
+``["FRONT_FACING_CAMERA", "LIDAR"]`` for a policy that also reads DeepRacer's
+64-beam LIDAR (see `lidar`). The network is rebuilt from its name (`nets.NETWORKS`),
 so a custom network travels without Python source.
 
 Loading never unpickles arbitrary objects: files are read with
@@ -35,12 +37,14 @@ import numpy as np
 import torch
 
 from .actions import ActionSpace, ActionSpaceError
+from .lidar import SENSOR_NAME as LIDAR, LidarSpec
 from .nets import NETWORKS, CameraNet, num_outputs_for, parameter_count
 from .race import Controller, Forfeit, file_sha256
 
 FORMAT = "multirace-agent"
 FORMAT_VERSION = 1
-SENSORS = ("FRONT_FACING_CAMERA",)
+CAMERA = "FRONT_FACING_CAMERA"
+SENSORS = (CAMERA, LIDAR)
 DEFAULT_STEP_BUDGET = 1.0 / 15  # seconds: one 15 Hz frame (DeepRacer's control rate)
 WARMUP_STEPS = 2  # first steps of a race not held to the time budget (allocator / cache warm-up)
 
@@ -50,12 +54,12 @@ class AgentFileError(ValueError):
 
 
 def make_metadata(action_space, network: str, name: str, image_shape=(120, 160, 1), version: str = "5",
-                  training_algorithm: str = "dagger", **extra) -> dict:
-    """A model_metadata dict for an agent file."""
+                  training_algorithm: str = "dagger", lidar: bool = False, **extra) -> dict:
+    """A model_metadata dict for an agent file (`lidar`: the policy also reads the LIDAR)."""
     height, width, channels = (int(v) for v in image_shape)
     metadata = {
         "name": str(name),
-        "sensor": ["FRONT_FACING_CAMERA"],
+        "sensor": [CAMERA, LIDAR] if lidar else [CAMERA],
         "image": {"height": height, "width": width, "channels": channels},
         "neural_network": network,
         "training_algorithm": training_algorithm,
@@ -78,12 +82,15 @@ def save_agent(path, net: CameraNet, metadata: dict) -> Path:
     metadata.setdefault("neural_network", net.network)
     h, w, c = net.image_shape
     metadata.setdefault("image", {"height": h, "width": w, "channels": c})
-    metadata.setdefault("sensor", ["FRONT_FACING_CAMERA"])
+    metadata.setdefault("sensor", [CAMERA, LIDAR] if net.lidar_samples else [CAMERA])
     metadata.setdefault("version", "5")
     _, space, network, image_shape = check_metadata(metadata, str(path))
     if network != net.network or tuple(image_shape) != tuple(net.image_shape):
         raise AgentFileError(f"{path}: metadata says {network} on {image_shape} images but the net is "
                              f"{net.network} on {net.image_shape}")
+    if lidar_samples(metadata) != net.lidar_samples:
+        raise AgentFileError(f"{path}: metadata field 'sensor' {metadata['sensor']!r} does not match the net "
+                             f"({net.lidar_samples} LIDAR inputs)")
     if num_outputs_for(space) != net.num_outputs:
         raise AgentFileError(f"{path}: the net has {net.num_outputs} outputs but the action space needs "
                              f"{num_outputs_for(space)}")
@@ -164,6 +171,9 @@ def check_metadata(metadata: dict, source: str):
     if not isinstance(sensor, list) or not sensor or any(s not in SENSORS for s in sensor):
         raise AgentFileError(f"{source}: metadata field 'sensor' is {metadata.get('sensor')!r}; "
                              f"supported: {list(SENSORS)}")
+    if CAMERA not in sensor:
+        raise AgentFileError(f"{source}: metadata field 'sensor' is {metadata.get('sensor')!r}; "
+                             f"every agent drives from its {CAMERA!r}")
     image = metadata.get("image")
     if not isinstance(image, dict):
         raise AgentFileError(f"{source}: metadata field 'image' is missing or not "
@@ -190,6 +200,12 @@ def check_metadata(metadata: dict, source: str):
     return metadata, space, network, shape
 
 
+def lidar_samples(metadata: dict) -> int:
+    """How many LIDAR ranges the agent of a (checked) model_metadata reads: 0 without a LIDAR."""
+    sensor = metadata.get("sensor")
+    return LidarSpec().samples if LIDAR in ([sensor] if isinstance(sensor, str) else sensor) else 0
+
+
 class Agent:
     """A loaded, validated agent: net (eval mode), metadata, action space."""
 
@@ -201,10 +217,18 @@ class Agent:
     def image_shape(self) -> tuple[int, int, int]:
         return self.net.image_shape
 
+    @property
+    def lidar_samples(self) -> int:
+        return self.net.lidar_samples
+
     def outputs(self, observation) -> np.ndarray:
-        """The net's raw output row for one uint8 (H, W, C) image."""
+        """The net's raw output row for one uint8 (H, W, C) image (LIDAR agents: the env's dict)."""
         with torch.no_grad():
-            out = self.net(torch.from_numpy(np.ascontiguousarray(observation)))
+            if self.lidar_samples:
+                out = self.net({"camera": torch.from_numpy(np.ascontiguousarray(observation["camera"])),
+                                "lidar": torch.from_numpy(np.asarray(observation["lidar"], np.float32))})
+            else:
+                out = self.net(torch.from_numpy(np.ascontiguousarray(observation)))
         return out.numpy()
 
     def decide(self, output: np.ndarray):
@@ -235,15 +259,16 @@ def load_agent(path, step_budget: float | None = DEFAULT_STEP_BUDGET, smoke_runs
         raise AgentFileError(f"{source}: output shape: the net outputs {head.shape[0]} values but the "
                              f"{space.kind} action space needs {expected}")
     try:
-        net = CameraNet(network, shape, expected, value_head=value_head)
+        net = CameraNet(network, shape, expected, value_head=value_head, lidar_samples=lidar_samples(metadata))
     except ValueError as exc:
         raise AgentFileError(f"{source}: metadata field 'image': {exc}") from None
     try:
         net.load_state_dict(state, strict=True)
     except RuntimeError as exc:
         lines = [line.strip() for line in str(exc).splitlines() if line.strip()][1:4]
+        with_lidar = f" and {lidar_samples(metadata)} LIDAR ranges" if lidar_samples(metadata) else ""
         raise AgentFileError(f"{source}: weights do not match the {network} architecture for "
-                             f"{shape[0]}x{shape[1]}x{shape[2]} images: {' '.join(lines)}") from None
+                             f"{shape[0]}x{shape[1]}x{shape[2]} images{with_lidar}: {' '.join(lines)}") from None
     net.eval()
     agent = Agent(path, net, metadata, space, file_sha256(path))
     smoke_test(agent, step_budget, smoke_runs)
@@ -251,13 +276,15 @@ def load_agent(path, step_budget: float | None = DEFAULT_STEP_BUDGET, smoke_runs
 
 
 def smoke_test(agent: Agent, step_budget: float | None, runs: int = 5) -> None:
-    """One inference on a blank image: right shape, finite, and within budget.
+    """One inference on a blank image (and an empty LIDAR scan): right shape, finite, and within budget.
 
     Timed on one torch thread (as `AgentController` runs); up to `runs` tries, the
     fastest counts, so a busy machine's hiccup does not reject a good agent.
     """
     source = str(agent.path)
     image = np.zeros(agent.image_shape, dtype=np.uint8)
+    if agent.lidar_samples:
+        image = {"camera": image, "lidar": np.full(agent.lidar_samples, LidarSpec().max_range, np.float32)}
     fastest = math.inf
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -345,6 +372,10 @@ class AgentController(Controller):
         self.steps = 0
         self.step_times: list[float] = []
 
+    @property
+    def uses_lidar(self) -> bool:
+        return self.agent is not None and self.agent.lidar_samples > 0
+
     def reset(self, env, car: int) -> None:
         super().reset(env, car)
         self.steps = 0
@@ -354,10 +385,7 @@ class AgentController(Controller):
         if self.agent is None:
             raise Forfeit(f"bad agent file: {self.error}")
         self.steps += 1
-        obs = np.asarray(observation)
-        if obs.shape != tuple(self.agent.image_shape) or obs.dtype != np.uint8:
-            raise Forfeit(f"observation {obs.shape} {obs.dtype} does not match the agent's model_metadata "
-                          f"image {tuple(self.agent.image_shape)} uint8")
+        obs = self._checked_observation(observation)
         start = time.perf_counter()
         try:
             out = self.agent.outputs(obs)
@@ -378,3 +406,20 @@ class AgentController(Controller):
         except Exception as exc:
             raise Forfeit(f"could not turn output into a command ({type(exc).__name__}: {exc})") from None
         return float(steer), float(speed)
+
+    def _checked_observation(self, observation):
+        """The part of the env's observation this agent reads, checked against its model_metadata."""
+        scan = None
+        if isinstance(observation, dict):
+            observation, scan = observation.get("camera"), observation.get("lidar")
+        image = np.asarray(observation)
+        if image.shape != tuple(self.agent.image_shape) or image.dtype != np.uint8:
+            raise Forfeit(f"observation {image.shape} {image.dtype} does not match the agent's model_metadata "
+                          f"image {tuple(self.agent.image_shape)} uint8")
+        if not self.agent.lidar_samples:
+            return image
+        scan = np.asarray(scan if scan is not None else [], np.float32)
+        if scan.shape != (self.agent.lidar_samples,):
+            raise Forfeit(f"LIDAR observation of shape {scan.shape} does not match the agent's "
+                          f"{self.agent.lidar_samples} ranges (sensor {LIDAR!r} in its model_metadata)")
+        return {"camera": image, "lidar": scan}

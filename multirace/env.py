@@ -24,6 +24,7 @@ from .actions import load_action_space
 from .bots import parse_bot
 from .camera import CameraSpec, camera_poses, make_renderer
 from .car import CarSpec
+from .lidar import Lidar
 from .objects import objects_seen
 from .randomize import Randomization, apply_command, apply_image
 from .rewards import load_reward_function
@@ -54,8 +55,11 @@ class RaceEnv(ParallelEnv):
 
     Keywords follow DESIGN.md's public contract: track, reverse, num_cars,
     race, laps, obstacles, bots, action_space, reward_function, camera,
-    grayscale, renderer, randomize, render_mode, max_steps; plus
+    grayscale, lidar, renderer, randomize, render_mode, max_steps; plus
     `physics_hz` (default 60) and `car_names` (names used in results).
+
+    Observations are camera images, uint8 (H, W, C); with ``lidar=True`` each
+    is a dict ``{"camera": image, "lidar": 64 float32 ranges}`` (see `lidar`).
     """
 
     metadata = {"name": "multirace_v0", "render_modes": ["rgb_array"], "render_fps": ACTION_HZ,
@@ -63,7 +67,7 @@ class RaceEnv(ParallelEnv):
 
     def __init__(self, track="reinvent_base", reverse=False, num_cars=4, race="time_trial", laps=3,
                  obstacles=None, bots=(), action_space=None, reward_function=None, camera=(120, 160),
-                 grayscale=True, renderer="fast", randomize=None, render_mode=None, max_steps=None,
+                 grayscale=True, lidar=False, renderer="fast", randomize=None, render_mode=None, max_steps=None,
                  physics_hz=60, car_names=None):
         self.track: Track = track if isinstance(track, Track) else load_track(track, reverse=reverse)
         self.rules = make_rules(race, laps, obstacles)
@@ -103,6 +107,11 @@ class RaceEnv(ParallelEnv):
             raise ValueError(f"car_names: expected {self.num_cars} names, got {len(names)}")
         self.car_names = names + [bot.name for bot in self.bots]
         obs_space = spaces.Box(0, 255, (height, width, self.camera.channels), np.uint8)
+        self.lidar = Lidar(self.car_spec) if lidar else None
+        if self.lidar is not None:
+            spec = self.lidar.spec
+            obs_space = spaces.Dict({"camera": obs_space, "lidar": spaces.Box(
+                spec.min_range, spec.max_range, (spec.samples,), np.float32)})
         self.observation_spaces = {a: obs_space for a in self.possible_agents}
         self.action_spaces = {a: self.actions.space for a in self.possible_agents}
 
@@ -427,7 +436,11 @@ class RaceEnv(ParallelEnv):
         images = self._renderer.render_many(self.world, self._camera_cars, eyes, rotations)
         if draw is not None and self.randomization.perception_enabled:
             images = [apply_image(image, self._randomizer_rng, draw) for image in images]
-        return dict(zip(self.possible_agents, images))
+        if self.lidar is None:
+            return dict(zip(self.possible_agents, images))
+        ranges = self.lidar.scan(self.world, self._camera_cars, self._rng)
+        return {agent: {"camera": image, "lidar": scan}
+                for agent, image, scan in zip(self.possible_agents, images, ranges)}
 
     def _params(self, i: int, touched: set, table: tuple) -> dict:
         """The 27 DeepRacer reward params of car i, in DeepRacer's units."""

@@ -253,6 +253,9 @@ def explain(agent_file, track: str = "reinvent_base", steps: int = DEFAULT_STEPS
     from .env import RaceEnv
 
     agent = load_agent(agent_file, step_budget=None)
+    if agent.lidar_samples:
+        raise ValueError(f"{agent_file}: explain computes Grad-CAM of camera-only agents; this agent "
+                         "also reads the LIDAR (sensor LIDAR in its model_metadata)")
     height, width, channels = agent.image_shape
     env = RaceEnv(track=track, reverse=reverse, num_cars=1, race="time_trial", laps=1, action_space=COMMAND_SPACE,
                   camera=(height, width), grayscale=channels == 1, max_steps=int(steps), car_names=[agent.name])

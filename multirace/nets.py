@@ -23,9 +23,16 @@ one trunk pass (for PPO). Networks (``NETWORKS``):
   conv 16 5x5/2, conv 32 3x3/2, conv 32 3x3/1, fully connected 128 (about
   0.11 M parameters); about 3x cheaper than the small net to train and run.
 
-A network is fully determined by (name, image shape, number of outputs,
-value head), which is what an agent file's metadata records; weights are
-loaded into it as plain tensors.
+With a LIDAR (``lidar_samples`` > 0) a net takes observations as the env
+gives them, ``{"camera": images, "lidar": ranges}``: the ranges go through
+two fully connected layers of 64 (DeepRacer's own LIDAR embedder is dense
+layers too), whose output joins the flattened convolution features before the
+hidden layer. `add_lidar_inputs` widens a camera-only net into one that starts
+out acting exactly as it did.
+
+A network is fully determined by (name, image shape, LIDAR samples, number of
+outputs, value head), which is what an agent file's metadata records; weights
+are loaded into it as plain tensors.
 """
 from __future__ import annotations
 
@@ -38,6 +45,7 @@ SHALLOW = "DEEP_CONVOLUTIONAL_NETWORK_SHALLOW"
 TINY = "MULTIRACE_TINY_CNN"
 DEFAULT_NETWORK = SMALL
 CONTINUOUS_OUTPUTS = 4  # mean steer, mean speed, log-std steer, log-std speed
+LIDAR_HIDDEN = 64  # width of the two LIDAR layers
 
 
 class AveragePool(nn.AvgPool2d):
@@ -95,7 +103,7 @@ class CameraNet(nn.Module):
     """A camera CNN: convolutional trunk, one hidden fully connected layer, output (and value) head."""
 
     def __init__(self, network: str = DEFAULT_NETWORK, image_shape=(120, 160, 1), num_outputs: int = 10,
-                 value_head: bool = False):
+                 value_head: bool = False, lidar_samples: int = 0):
         super().__init__()
         if network not in NETWORKS:
             raise ValueError(f"neural_network: unknown network {network!r}; known: {', '.join(NETWORKS)}")
@@ -113,6 +121,14 @@ class CameraNet(nn.Module):
                 flat = self.conv(torch.zeros(1, channels, height, width)).shape[1]
         except RuntimeError:
             raise ValueError(f"image shape {image_shape}: too small for {network}") from None
+        self.lidar_samples = int(lidar_samples)
+        if self.lidar_samples < 0:
+            raise ValueError(f"lidar_samples: must be 0 (no LIDAR) or positive, got {lidar_samples}")
+        self.lidar = None
+        if self.lidar_samples:
+            self.lidar = nn.Sequential(nn.Linear(self.lidar_samples, LIDAR_HIDDEN), nn.ReLU(),
+                                       nn.Linear(LIDAR_HIDDEN, LIDAR_HIDDEN), nn.ReLU())
+            flat += LIDAR_HIDDEN
         self.fc = nn.Sequential(nn.Linear(flat, hidden), nn.ReLU())
         self.head = nn.Linear(hidden, self.num_outputs)
         self.value_head = nn.Linear(hidden, 1) if value_head else None
@@ -122,12 +138,21 @@ class CameraNet(nn.Module):
         return self.value_head is not None
 
     def features(self, obs) -> torch.Tensor:
-        """The hidden features of uint8 images (B, H, W, C) or one image (H, W, C)."""
+        """The hidden features of uint8 images (B, H, W, C) or one image (H, W, C).
+
+        A LIDAR net takes ``{"camera": images, "lidar": ranges (B, samples) or (samples,)}``.
+        """
+        if self.lidar is not None:
+            if not isinstance(obs, dict):
+                raise ValueError("this net needs {'camera': images, 'lidar': ranges} observations")
+            obs, ranges = obs["camera"], torch.as_tensor(obs["lidar"], dtype=torch.float32)
         x = torch.as_tensor(obs)
         if x.dim() == 3:
             x = x.unsqueeze(0)
-        x = x.permute(0, 3, 1, 2).float().div_(255.0)
-        return self.fc(self.conv(x))
+        x = self.conv(x.permute(0, 3, 1, 2).float().div_(255.0))
+        if self.lidar is not None:
+            x = torch.cat([x, self.lidar(ranges.reshape(x.shape[0], self.lidar_samples))], dim=1)
+        return self.fc(x)
 
     def forward(self, obs) -> torch.Tensor:
         """Action logits (discrete) or [mean steer, mean speed, log-std steer, log-std speed]."""
@@ -146,18 +171,37 @@ class CameraNet(nn.Module):
         return self.head(h), value
 
 
+def add_lidar_inputs(net: CameraNet, lidar_samples: int) -> CameraNet:
+    """A copy of camera-only `net` with a LIDAR branch whose inputs start with zero weight.
+
+    The new net's outputs equal the old net's for any scan, until training gives the LIDAR a say.
+    """
+    if net.lidar is not None:
+        raise ValueError("the net already has a LIDAR branch")
+    wide = CameraNet(net.network, net.image_shape, net.num_outputs, net.has_value, lidar_samples)
+    state = net.state_dict()
+    old = state["fc.0.weight"]
+    weight = torch.zeros_like(wide.fc[0].weight)
+    weight[:, :old.shape[1]] = old
+    state["fc.0.weight"] = weight
+    state.update({k: v for k, v in wide.state_dict().items() if k.startswith("lidar.")})
+    wide.load_state_dict(state)
+    return wide
+
+
 def num_outputs_for(action_space) -> int:
     """Output size a net needs for an `actions.ActionSpace`."""
     return len(action_space.actions) if action_space.discrete else CONTINUOUS_OUTPUTS
 
 
 def build_net(network: str = DEFAULT_NETWORK, image_shape=(120, 160, 1), action_space=None,
-              value_head: bool = False) -> CameraNet:
+              value_head: bool = False, lidar_samples: int = 0) -> CameraNet:
     """A freshly initialised net for an action space (default: the 10-action DeepRacer space)."""
     from .actions import load_action_space
 
     space = load_action_space(action_space)
-    return CameraNet(network, image_shape, num_outputs_for(space), value_head=value_head)
+    return CameraNet(network, image_shape, num_outputs_for(space), value_head=value_head,
+                     lidar_samples=lidar_samples)
 
 
 def parameter_count(net: nn.Module) -> int:

@@ -1,7 +1,8 @@
 """Running a race between entrants (agent files and bots) and writing its result record.
 
-Every entrant is a `Controller` that turns its car's camera image (and, for
-bots, the privileged state) into a command (steering degrees, speed m/s).
+Every entrant is a `Controller` that turns its car's camera image (its LIDAR
+scan too, if it reads one; for bots, the privileged state) into a command
+(steering degrees, speed m/s).
 The env is built with the full continuous command range so that entrants with
 different action spaces can race each other; each controller maps its own
 actions to commands. A controller that fails forfeits; the race goes on.
@@ -30,6 +31,7 @@ class Controller:
 
     name: str = "controller"
     file_sha256: str | None = None
+    uses_lidar: bool = False  # the race env scans the LIDAR when any entrant reads it
 
     def reset(self, env: RaceEnv, car: int) -> None:
         """Called at the start of a race with the env and the car index it drives."""
@@ -90,6 +92,7 @@ def run_race(controllers: list[Controller], config: RaceConfig, recorders=()) ->
         raise ValueError("a race needs at least one entrant")
     env = RaceEnv(track=config.track, reverse=config.reverse, num_cars=len(controllers), race=config.race,
                   laps=config.laps, obstacles=config.obstacles, action_space=COMMAND_SPACE,
+                  lidar=any(c.uses_lidar for c in controllers),
                   max_steps=config.max_steps, renderer=config.renderer,
                   car_names=[c.name for c in controllers])
     try:

@@ -203,7 +203,8 @@ class ReplayRecorder:
                 continue
             agent = agents[i]
             if take_image and agent in observations:
-                image = np.asarray(observations[agent])
+                image = observations[agent]
+                image = np.asarray(image["camera"] if isinstance(image, dict) else image)  # LIDAR envs: a dict
                 if image.ndim == 3 and image.shape[2] == 1:
                     image = image[..., 0]
                 elif image.ndim == 3:

@@ -3,8 +3,8 @@
 Each worker process owns one `RaceEnv` (built there from a picklable factory)
 and resets it automatically when its episode ends. Everything per step that
 has a fixed shape lives in shared memory, one block per kind with a slot per
-worker: the actions the learner writes, and the camera images, rewards and
-done flags the workers write. A step is then one command byte down each pipe
+worker: the actions the learner writes, and the camera images (and LIDAR
+ranges, for envs that scan one), rewards and done flags the workers write. A step is then one command byte down each pipe
 and one byte back (or, when info keys were asked for, a small pickled list of
 those infos): on this machine the pipe round trip is the largest cost of a
 worker step after the env itself. The full DeepRacer params (waypoint lists)
@@ -76,13 +76,20 @@ def _worker(remote, make_env, info_keys, spin_wait: float) -> None:
 
     def publish_images(obs):
         nonlocal slot
+        scans = isinstance(obs[agents[0]], dict)  # {"camera", "lidar"} observations
         if "images" not in shared:  # first images: the learner sizes the shared blocks from them
-            remote.send((len(agents),) + obs[agents[0]].shape)
+            first = obs[agents[0]]
+            remote.send(((len(agents),) + first["camera"].shape, first["lidar"].shape) if scans
+                        else ((len(agents),) + first.shape, None))
             slot, specs = remote.recv()
             shared.update({name: _SharedArray.attach(spec) for name, spec in specs.items()})
         images = shared["images"].array[slot]
         for k, agent in enumerate(agents):
-            images[k] = obs[agent]
+            images[k] = obs[agent]["camera"] if scans else obs[agent]
+        if scans:
+            ranges = shared["lidar"].array[slot]
+            for k, agent in enumerate(agents):
+                ranges[k] = obs[agent]["lidar"]
 
     def next_command():
         """The learner's next command byte; polled for `spin_wait` seconds (yielding the core) before sleeping."""
@@ -151,17 +158,20 @@ class SubprocVectorEnv:
             self.remotes.append(parent)
             self.processes.append(process)
         self.num_envs = len(make_envs)
-        self.shared: dict = {}  # images (E, A, H, W, C), rewards (E, A), flags (E, 2), actions (E, A, D)
+        self.shared: dict = {}  # images (E, A, H, W, C), [lidar (E, A, R)], rewards (E, A), flags (E, 2), actions
 
     def _share_buffers(self) -> None:
         """Answer every worker's first images with shared blocks sized by them (all envs alike)."""
         shapes = [tuple(remote.recv()) for remote in self.remotes]
         if len(set(shapes)) != 1:
-            raise ValueError(f"vector env: the envs' cars and camera images differ: {shapes}")
-        cars = shapes[0][0]
+            raise ValueError(f"vector env: the envs' cars, camera images or LIDARs differ: {shapes}")
+        images, lidar = shapes[0]
+        cars = images[0]
         E = self.num_envs
-        self.shared = {"images": _SharedArray((E,) + shapes[0], np.uint8),
+        self.shared = {"images": _SharedArray((E,) + images, np.uint8),
                        "rewards": _SharedArray((E, cars), np.float32), "flags": _SharedArray((E, 2), bool)}
+        if lidar is not None:
+            self.shared["lidar"] = _SharedArray((E, cars) + tuple(lidar), np.float32)
         specs = {name: array.spec for name, array in self.shared.items()}
         for k, remote in enumerate(self.remotes):
             remote.send((k, specs))
@@ -183,7 +193,7 @@ class SubprocVectorEnv:
         self.shared["actions"].array[:] = rows
 
     def reset(self, seeds: Sequence[int | None] | None = None):
-        """Reset every env; returns observations (E, A, H, W, C) and per-env lists of small infos."""
+        """Reset every env; returns observations (see `_observations`) and per-env lists of small infos."""
         seeds = list(seeds) if seeds is not None else [None] * self.num_envs
         for remote, seed in zip(self.remotes, seeds):
             os.write(remote.fileno(), RESET)
@@ -191,7 +201,14 @@ class SubprocVectorEnv:
         if not self.shared:
             self._share_buffers()
         infos = [remote.recv() for remote in self.remotes]
-        return self.shared["images"].array.copy(), infos
+        return self._observations(), infos
+
+    def _observations(self):
+        """Images (E, A, H, W, C), or with a LIDAR {"camera": images, "lidar": ranges (E, A, R)}."""
+        images = self.shared["images"].array.copy()
+        if "lidar" not in self.shared:
+            return images
+        return {"camera": images, "lidar": self.shared["lidar"].array.copy()}
 
     def step(self, actions):
         """Step every env with `actions[e][car]` (integers for discrete actions, (E, A, D) floats otherwise).
@@ -210,7 +227,7 @@ class SubprocVectorEnv:
                     raise RuntimeError(f"vector env: worker {k} ended during a step (see its traceback above)")
             infos = [[{}] * self.shared["rewards"].shape[1]] * self.num_envs
         flags = self.shared["flags"].array
-        return (self.shared["images"].array.copy(), self.shared["rewards"].array.copy(), flags[:, 0].copy(),
+        return (self._observations(), self.shared["rewards"].array.copy(), flags[:, 0].copy(),
                 flags[:, 1].copy(), infos)
 
     def close(self) -> None:

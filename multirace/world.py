@@ -180,6 +180,12 @@ class World:
                                                  physicsClientId=cid)
         self.obstacle_poses[k] = (x, y, yaw)
 
+    def cast_rays(self, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
+        """Hit fraction (0 at the start .. 1 at the end, 1 for no hit) of each ray, rows of (M, 3) points."""
+        cid = self.connect()
+        hits = pybullet.rayTestBatch(starts.tolist(), ends.tolist(), physicsClientId=cid)
+        return np.array([hit[2] for hit in hits])
+
     # ------------------------------------------------------------- dynamics
     def step(self, commands: np.ndarray) -> list[Contact]:
         """Advance one action step (several physics steps) under (steer rad, speed m/s) commands.

@@ -42,6 +42,7 @@ class TrainConfig:
     reward: str = "progress"  # "progress" (built-in shaped), "centre" (DeepRacer default) or a reward .py file
     camera: tuple = (120, 160)  # camera (height, width), grayscale as DeepRacer
     network: str = TINY  # nets.NETWORKS name: MULTIRACE_TINY_CNN, MULTIRACE_SMALL_CNN or DEEP_CONVOLUTIONAL_NETWORK_SHALLOW
+    lidar: bool = False  # also read DeepRacer's 64-beam LIDAR (sensor FRONT_FACING_CAMERA + LIDAR): sees cars alongside and too close for the camera
     # ---- environments
     num_envs: int = 2  # worker processes (one env each); 2 uses both cores of this machine
     cars_per_env: int = 4  # learning cars per env, all driven by the shared policy (self-play)

@@ -51,7 +51,7 @@ def race_agent(agent_path, track="reinvent_base", reverse=False, laps=2, seed=0,
 
     controller = AgentController(agent_path, step_budget=step_budget)
     env = RaceEnv(track=track, reverse=reverse, num_cars=1, race=race, laps=laps, bots=bots,
-                  action_space=COMMAND_SPACE, randomize=randomize, max_steps=max_steps,
+                  action_space=COMMAND_SPACE, randomize=randomize, max_steps=max_steps, lidar=controller.uses_lidar,
                   car_names=[controller.name])
     try:
         obs, infos = env.reset(seed=seed)

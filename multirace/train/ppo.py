@@ -27,8 +27,8 @@ from torch import nn
 from torch.distributions import Categorical, Normal
 
 from ..actions import load_action_space
-from ..agentfile import make_metadata, read_payload, parse_metadata, save_agent
-from ..nets import build_net
+from ..agentfile import lidar_samples, make_metadata, read_payload, parse_metadata, save_agent
+from ..nets import CameraNet, add_lidar_inputs, build_net
 from .config import TrainConfig
 from .envs import INFO_KEYS, TrainEnv, env_settings
 
@@ -65,9 +65,17 @@ def init_continuous_head(net, space) -> None:
 
 
 def load_init_agent(path, net) -> None:
-    """Initialise the policy from an agent file (e.g. a DAgger imitation agent); the value head stays new."""
+    """Initialise the policy from an agent file (e.g. a DAgger imitation agent); the value head stays new.
+
+    A camera-only agent can start a LIDAR net: its LIDAR inputs start with zero weight (`add_lidar_inputs`).
+    """
     payload = read_payload(path)
     state = {k: v for k, v in payload["state_dict"].items() if not k.startswith("value_head.")}
+    if net.lidar is not None and not any(k.startswith("lidar.") for k in state):
+        camera_only = CameraNet(net.network, net.image_shape, net.num_outputs, value_head=True)
+        load_init_agent(path, camera_only)
+        net.load_state_dict(add_lidar_inputs(camera_only, net.lidar_samples).state_dict())
+        return
     missing, unexpected = net.load_state_dict(state, strict=False)
     if unexpected or any(not k.startswith("value_head.") for k in missing):
         raise ValueError(f"--init {path}: weights do not match the network ({missing or unexpected})")
@@ -179,7 +187,7 @@ def evaluate_time_trial(agent_path, track: str, laps: int = 3, seed: int = 0, re
 def save_agent_file(path, net, space, config: TrainConfig, obs_shape, training: dict) -> Path:
     name = Path(path).stem
     metadata = make_metadata(space, net.network, name, obs_shape, training_algorithm="clipped_ppo",
-                             training=training)
+                             lidar=net.lidar is not None, training=training)
     return save_agent(path, net, metadata)
 
 
@@ -231,11 +239,13 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
     if resume:
         checkpoint = torch.load(resume, map_location="cpu", weights_only=True)
         saved = json.loads(checkpoint["config"])
-        for key in ("network", "action_space", "camera"):
-            setattr(config, key, saved[key] if key != "camera" else tuple(saved[key]))
+        for key in ("network", "action_space", "camera", "lidar"):
+            value = saved.get(key, getattr(config, key))  # checkpoints from before the LIDAR lack "lidar"
+            setattr(config, key, tuple(value) if key == "camera" else value)
     if init:
         for key, value in init_settings(init).items():
             setattr(config, key, value)
+        config.lidar = config.lidar or bool(lidar_samples(parse_metadata(read_payload(init), str(init))))
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
     space = load_action_space(config.action_space)
@@ -259,11 +269,19 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
     vec = make_vector_env(config, shared)
     E, A = config.num_envs, config.cars_per_env
     obs, reset_infos = vec.reset(seeds=[config.seed * 100_000 + e for e in range(E)])
-    obs_shape = obs.shape[2:]
+    obs_shape = (obs["camera"] if config.lidar else obs).shape[2:]
+    R = obs["lidar"].shape[-1] if config.lidar else 0  # LIDAR ranges per car
     N = E * A
 
+    def batch(obs):
+        """(E, A, ...) observations as the net's input for N cars: images, or images and LIDAR ranges."""
+        if not R:
+            return torch.from_numpy(obs.reshape(N, *obs_shape))
+        return {"camera": torch.from_numpy(obs["camera"].reshape(N, *obs_shape)),
+                "lidar": torch.from_numpy(obs["lidar"].reshape(N, R))}
+
     # --- 4. the net (policy + value head), optimiser
-    net = build_net(config.network, obs_shape, space, value_head=True)
+    net = build_net(config.network, obs_shape, space, value_head=True, lidar_samples=R)
     if not space.discrete:
         init_continuous_head(net, space)
     if init:
@@ -280,12 +298,13 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
     saved_scale = json.loads(checkpoint.get("reward_scale", "null")) if checkpoint is not None else None
     if reward_scale is not None and saved_scale:
         reward_scale.load(saved_scale)
-    pool = OpponentPool(config, space, obs_shape, rng) if config.opponent_pool else None
+    pool = OpponentPool(config, space, obs_shape, rng, lidar_samples=R) if config.opponent_pool else None
     learner_mask = np.ones((E, A), bool)  # which cars' samples train the learner (pool opponents: False)
 
-    # --- 5. rollout storage (T, N): uint8 images, actions, log-probs, rewards, dones, values
+    # --- 5. rollout storage (T, N): uint8 images, LIDAR ranges, actions, log-probs, rewards, dones, values
     T = config.rollout_steps
     buf_obs = np.zeros((T, N, *obs_shape), np.uint8)
+    buf_lidar = np.zeros((T, N, R), np.float32)
     act_shape = () if space.discrete else (2,)
     buf_act = torch.zeros((T, N, *act_shape), dtype=torch.long if space.discrete else torch.float32)
     buf_logp = torch.zeros((T, N))
@@ -361,11 +380,13 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
             net.eval()
             env_reward = 0.0  # the env's own rewards this rollout (buf_rew may be scaled and bootstrapped)
             for t in range(T):
-                flat = obs.reshape(N, *obs_shape)
-                buf_obs[t] = flat
+                x = batch(obs)
+                buf_obs[t] = x["camera"] if R else x
+                if R:
+                    buf_lidar[t] = x["lidar"]
                 buf_done[t] = next_done
                 with torch.no_grad():
-                    out_, value = net.forward_all(torch.from_numpy(flat))
+                    out_, value = net.forward_all(x)
                     dist = policy.dist(out_)
                     action = dist.sample()
                     buf_logp[t] = policy.log_prob(dist, action)
@@ -402,7 +423,7 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
                     pool.episode_end(env_done)
             agent_steps += int(buf_learn.sum())
             with torch.no_grad():
-                next_value = net.forward_all(torch.from_numpy(obs.reshape(N, *obs_shape)))[1]
+                next_value = net.forward_all(batch(obs))[1]
             sample_time += time.perf_counter() - t0
 
             # --- 8. advantages (GAE); a done at step t+1 means the episode ended with step t
@@ -421,6 +442,7 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
             torch.set_num_threads(int(config.update_threads))
             keep = torch.from_numpy(buf_learn.reshape(-1))
             b_obs = torch.from_numpy(buf_obs.reshape(T * N, *obs_shape))[keep]
+            b_lidar = torch.from_numpy(buf_lidar.reshape(T * N, R))[keep]
             b_act = buf_act.reshape(T * N, *act_shape)[keep]
             b_logp, b_adv = buf_logp.reshape(-1)[keep], advantages.reshape(-1)[keep]
             b_ret, b_val = returns.reshape(-1)[keep], buf_val.reshape(-1)[keep]
@@ -437,7 +459,7 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
                 order = torch.randperm(size)
                 for start in range(0, size - mb + 1, mb):
                     idx = order[start:start + mb]
-                    out_, value = net.forward_all(b_obs[idx])
+                    out_, value = net.forward_all({"camera": b_obs[idx], "lidar": b_lidar[idx]} if R else b_obs[idx])
                     dist = policy.dist(out_)
                     logp = policy.log_prob(dist, b_act[idx])
                     log_ratio = logp - b_logp[idx]

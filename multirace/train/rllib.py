@@ -328,6 +328,9 @@ def train_rllib(args, log=print) -> int:
         raise ValueError("--engine rllib: --resume and --init are local-engine options (resume an RLlib run with "
                          "ray.rllib.algorithms.Algorithm.from_checkpoint(FILE.rllib))")
     config = config_from_args(args)
+    if config.lidar:
+        raise ValueError("--engine rllib: lidar=true is a local-engine option for now (the RLlib model reads "
+                         "camera images only)")
     if config.opponent_pool or config.nature or config.curriculum:
         log("note: --engine rllib ignores the opponent pool, nature adversary and curriculum "
             "(env randomisation and procedural tracks are kept)")

@@ -37,8 +37,9 @@ class OpponentPool:
     """See the module docstring."""
 
     def __init__(self, config, space, obs_shape, rng, max_snapshots: int = 8, power: float = 2.0,
-                 shipped_dir=SHIPPED_DIR):
+                 shipped_dir=SHIPPED_DIR, lidar_samples: int = 0):
         self.config, self.space, self.obs_shape, self.rng = config, space, tuple(obs_shape), rng
+        self.lidar_samples = int(lidar_samples)  # the envs' LIDAR ranges (0: no LIDAR)
         self.max_snapshots, self.power = int(max_snapshots), float(power)
         self.members: list[Opponent] = []
         self.last_snapshot = time.perf_counter()
@@ -54,7 +55,7 @@ class OpponentPool:
                 agent = load_agent(path, step_budget=None)
             except (AgentFileError, OSError, ValueError):
                 continue
-            if tuple(agent.image_shape) == self.obs_shape:
+            if tuple(agent.image_shape) == self.obs_shape and agent.lidar_samples in (0, self.lidar_samples):
                 self.members.append(Opponent(agent.name, agent.net, agent.action_space, "shipped"))
 
     # ------------------------------------------------------------ members
@@ -92,15 +93,22 @@ class OpponentPool:
         self.scores = np.zeros((envs, cars))
         return mask
 
-    def override(self, actions: np.ndarray, obs: np.ndarray, mask: np.ndarray) -> np.ndarray:
-        """Replace the opponent cars' actions by their opponent's greedy actions."""
+    def override(self, actions: np.ndarray, obs, mask: np.ndarray) -> np.ndarray:
+        """Replace the opponent cars' actions by their opponent's greedy actions.
+
+        `obs`: images (E, A, H, W, C), or {"camera": images, "lidar": ranges (E, A, R)}.
+        """
         actions = actions.copy()
+        images = obs["camera"] if isinstance(obs, dict) else obs
         for e, opponent in enumerate(self.assigned):
             if opponent is None:
                 continue
             cars = np.nonzero(~mask[e])[0]
+            x = torch.from_numpy(np.ascontiguousarray(images[e, cars]))
+            if opponent.net.lidar is not None:
+                x = {"camera": x, "lidar": torch.from_numpy(np.ascontiguousarray(obs["lidar"][e, cars]))}
             with torch.no_grad():
-                out = opponent.net(torch.from_numpy(np.ascontiguousarray(obs[e, cars]))).numpy()
+                out = opponent.net(x).numpy()
             for row, a in zip(out, cars):
                 if opponent.space.discrete:
                     command = opponent.space.command(int(np.argmax(row)))
