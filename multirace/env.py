@@ -119,6 +119,7 @@ class RaceEnv(ParallelEnv):
         self._texture = None
         self._rng = np.random.default_rng()
         self._randomizer_rng = np.random.default_rng()
+        self._lidar_rng = np.random.default_rng()  # LIDAR noise: its own stream, so a scan changes no other draw
         self._draw = None  # this episode's domain-randomisation draw
         self.races: list[CarRace] = []
         self.steps = 0
@@ -154,6 +155,7 @@ class RaceEnv(ParallelEnv):
         if seed is not None:
             self._rng = np.random.default_rng(seed)
             self._randomizer_rng = np.random.default_rng([seed, 3])  # its own stream: same grid either way
+            self._lidar_rng = np.random.default_rng([seed, 5])
         self.world.connect()
         self._draw = None
         palette = DEFAULT_PALETTE
@@ -438,7 +440,7 @@ class RaceEnv(ParallelEnv):
             images = [apply_image(image, self._randomizer_rng, draw) for image in images]
         if self.lidar is None:
             return dict(zip(self.possible_agents, images))
-        ranges = self.lidar.scan(self.world, self._camera_cars, self._rng)
+        ranges = self.lidar.scan(self.world, self._camera_cars, self._lidar_rng)
         return {agent: {"camera": image, "lidar": scan}
                 for agent, image, scan in zip(self.possible_agents, images, ranges)}
 

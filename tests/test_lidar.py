@@ -161,3 +161,16 @@ def test_training_with_lidar_from_a_camera_agent_writes_a_lidar_agent_that_races
     result = run_race([AgentController(out, step_budget=0.5)],
                       RaceConfig(track="Oval_track", race="time_trial", laps=1, max_steps=30))
     assert result["cars"][0]["status"] == "not_finished"  # drove to the step limit from camera and LIDAR
+
+
+def test_scanning_the_lidar_changes_no_other_random_draw():
+    """The same seed gives the same race with or without a LIDAR (its noise has its own stream)."""
+    poses = []
+    for lidar in (False, True):
+        env = multirace.parallel_env(num_cars=2, race="head_to_head", lidar=lidar)
+        env.reset(seed=4)
+        for _ in range(20):
+            env.step({"car_0": 5, "car_1": 3})
+        poses.append(env.world.poses.copy())
+        env.close()
+    assert np.array_equal(poses[0], poses[1])
