@@ -12,6 +12,9 @@ it writes, headless (no viewer needed), with rerun-sdk 0.41:
   races, and once more on the step its run ends;
 - ``cameras/car_<i>``: the car's camera image as JPEG (`EncodedImage`), every
   `image_every`-th step;
+- ``world/lidar/car_<i>`` (races with a LIDAR): the echoes of the car's scan
+  (beams that met something within range) as `Points3D` in the world, with
+  the camera images;
 - ``plots/{speed,progress,reward,rank}/car_<i>``: `Scalars` per step
   (speed is the drive train's actual speed in m/s, progress the lap progress
   in % as in DeepRacer's params);
@@ -204,7 +207,10 @@ class ReplayRecorder:
             agent = agents[i]
             if take_image and agent in observations:
                 image = observations[agent]
-                image = np.asarray(image["camera"] if isinstance(image, dict) else image)  # LIDAR envs: a dict
+                if isinstance(image, dict):  # a LIDAR env: {"camera", "lidar"}
+                    self._log_lidar_echoes(env, i, image["lidar"])
+                    image = image["camera"]
+                image = np.asarray(image)
                 if image.ndim == 3 and image.shape[2] == 1:
                     image = image[..., 0]
                 elif image.ndim == 3:
@@ -221,6 +227,22 @@ class ReplayRecorder:
         if cameras:  # JPEG encoding (OpenCV releases the GIL) runs on the other core meanwhile, one job a step
             cars, images = zip(*cameras)
             self._buf_img.append((row, cars, self._encoder.submit(self._encode_all, images)))
+
+    def _log_lidar_echoes(self, env, i: int, ranges) -> None:
+        """Car i's LIDAR echoes as world points (beams at max range met nothing and are left out)."""
+        rr, lidar = _rr(), env.lidar
+        ranges = np.asarray(ranges, np.float64)
+        hit = ranges < lidar.spec.max_range - 0.02
+        x, y, yaw = env.world.poses[i]
+        angles = yaw + lidar.angles[hit]
+        points = np.column_stack([x + ranges[hit] * np.cos(angles), y + ranges[hit] * np.sin(angles),
+                                  np.full(int(hit.sum()), lidar.height)])
+        if not self._time_set:
+            self.rec.set_time("step", sequence=int(env.steps))
+            self.rec.set_time("race_time", duration=float(env.sim_time))
+            self._time_set = True
+        self.rec.log(f"world/lidar/{self.ids[i]}", rr.Points3D(points, colors=[CAR_COLOURS[i % len(CAR_COLOURS)]],
+                                                               radii=[0.015]))
 
     def _encode_all(self, images) -> list:
         return [self._encode(image) for image in images]
@@ -344,7 +366,7 @@ def replay_summary(path, poses: bool = True) -> dict:
     """What a replay holds, read back with rerun's own reader.
 
     Returns {"track", "format", "laps", "cars": [{"id", "name", "laps", "lap_times", "images",
-    "pose_steps", "status"}], "steps", "duration", "events": [{"step", "race_time", "car", "name",
+    "pose_steps", "lidar_scans", "lidar_echoes", "status"}], "steps", "duration", "events": [{"step", "race_time", "car", "name",
     "kind", "clock", "text"}], "result"} and, with `poses`, "poses": {car id: array (k, 4) of
     step, x, y, yaw} sorted by step.
     """
@@ -363,6 +385,7 @@ def replay_summary(path, poses: bool = True) -> dict:
     max_time = 0.0
     pose_rows: dict[str, dict[int, tuple]] = {c["id"]: {} for c in info["cars"]}
     image_counts = {c["id"]: 0 for c in info["cars"]}
+    lidar_echoes: dict[str, list] = {c["id"]: [] for c in info["cars"]}  # echo count per recorded scan
     events = []
     for entity, batches in chunks.items():
         parts = entity.split("/")
@@ -385,6 +408,10 @@ def replay_summary(path, poses: bool = True) -> dict:
                     qx, qy, qz, qw = q
                     yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
                     pose_rows[parts[2]][int(s)] = (float(t[0]), float(t[1]), float(yaw))
+            elif parts[:2] == ["world", "lidar"] and len(parts) == 3:
+                positions = _column(batch, "Points3D:positions")
+                if positions is not None:
+                    lidar_echoes[parts[2]].extend(len(p or ()) for p in positions.to_pylist())
             elif parts[0] == "cameras" and len(parts) == 2:
                 blob = _column(batch, "EncodedImage:blob")
                 if blob is not None:
@@ -408,6 +435,7 @@ def replay_summary(path, poses: bool = True) -> dict:
         lap_times = [float(e["text"].rsplit(" in ", 1)[1].split()[0]) for e in laps]
         cars.append({"id": c["id"], "name": c["name"], "laps": len(laps), "lap_times": lap_times,
                      "images": image_counts.get(c["id"], 0), "pose_steps": len(pose_rows[c["id"]]),
+                     "lidar_scans": len(lidar_echoes[c["id"]]), "lidar_echoes": sum(lidar_echoes[c["id"]]),
                      "status": ends[-1] if ends else "racing"})
     summary = {
         "file": str(path), "size_mb": round(path.stat().st_size / 1e6, 3),
