@@ -146,10 +146,12 @@ def cmd_imitate(args) -> int:
     traffic = tuple(b.strip() for b in (args.traffic or "").split(",") if b.strip())
     if traffic:
         command += ["--traffic", ",".join(traffic)]
+    if args.lidar:
+        command += ["--lidar"]
     config = ImitationConfig(out=args.out, tracks=tuple(args.tracks), both_directions=not args.one_direction,
                              minutes=args.minutes, seed=args.seed, network=args.network,
                              action_space=args.action_space, expert_speed=args.speed, traffic=traffic,
-                             name=args.name, threads=args.threads, command=shlex.join(command))
+                             name=args.name, threads=args.threads, lidar=args.lidar, command=shlex.join(command))
     summary = run_dagger(config)
     print(f"wrote {summary['out']}: {summary['iterations']} DAgger iterations, {summary['samples']} samples, "
           f"final loss {summary['final_loss']}, {summary['wall_seconds']} s")
@@ -229,6 +231,8 @@ def build_parser() -> argparse.ArgumentParser:
     imitate.add_argument("--traffic", default=None, metavar="BOTS",
                          help="bots in every env, comma-separated (e.g. follow@1.0,lanes@1.0): the expert "
                               "passes them wide, so the agent learns to overtake")
+    imitate.add_argument("--lidar", action="store_true",
+                         help="the agent also reads DeepRacer's 64-beam LIDAR (sensor FRONT_FACING_CAMERA + LIDAR)")
     imitate.add_argument("--name", default=None, help="agent name in the metadata (default: file stem)")
     imitate.add_argument("--threads", type=int, default=None,
                          help="torch threads (default: all cores on an idle machine, 1 on a busy one)")

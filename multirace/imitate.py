@@ -24,7 +24,9 @@ the env adds DeepRacer's steering and speed noise to every command. With
 ``traffic`` (bot specs such as ``follow@1.0``), every env also has those
 bots, started at random gaps ahead of the learner each episode, so the
 dataset holds passes: the learner sees the cars in its camera and the
-expert's labels steer round them.
+expert's labels steer round them. With ``lidar`` the learner also reads
+DeepRacer's LIDAR (`lidar`), which sees the cars alongside and right ahead
+that the camera cannot.
 """
 from __future__ import annotations
 
@@ -62,6 +64,7 @@ class ImitationConfig:
     traffic: tuple = ()  # bots in every env (e.g. ("follow@1.0", "lanes@1.0")), started ahead: the expert passes them
     name: str | None = None  # agent name in the metadata (default: the file stem)
     camera: tuple = (120, 160)
+    lidar: bool = False  # the learner also reads the 64-beam LIDAR (sensor FRONT_FACING_CAMERA + LIDAR)
     episode_steps: int = 900  # steps before an env is reset to the start grid (60 s at 15 Hz)
     rollout_steps: int = 1600  # samples gathered per DAgger iteration, over all envs
     train_steps: int = 250  # gradient steps per iteration
@@ -75,26 +78,44 @@ class ImitationConfig:
 
 
 class Dataset:
-    """Aggregated (image, label) pairs with a size cap (random replacement when full)."""
+    """Aggregated (observation, label) pairs with a size cap (random replacement when full).
 
-    def __init__(self, capacity: int, image_shape, label_shape, label_dtype, rng: np.random.Generator):
+    An observation is an image, or with `lidar_samples` the env's {"camera", "lidar"} dict.
+    """
+
+    def __init__(self, capacity: int, image_shape, label_shape, label_dtype, rng: np.random.Generator,
+                 lidar_samples: int = 0):
         self.images = np.zeros((capacity, *image_shape), np.uint8)
+        self.lidar = np.zeros((capacity, lidar_samples), np.float32) if lidar_samples else None
         self.labels = np.zeros((capacity, *label_shape), label_dtype)
         self.size, self.capacity, self.seen, self.rng = 0, capacity, 0, rng
 
-    def add(self, image, label) -> None:
+    def add(self, observation, label) -> None:
         if self.size < self.capacity:
             k = self.size
             self.size += 1
         else:
             k = int(self.rng.integers(self.capacity))
-        self.images[k] = image
+        if self.lidar is not None:
+            self.images[k], self.lidar[k] = observation["camera"], observation["lidar"]
+        else:
+            self.images[k] = observation
         self.labels[k] = label
         self.seen += 1
 
     def batch(self, n: int):
+        """(net input, labels) of `n` random samples."""
         idx = self.rng.integers(self.size, size=n)
-        return torch.from_numpy(self.images[idx]), torch.from_numpy(self.labels[idx])
+        images = torch.from_numpy(self.images[idx])
+        inputs = images if self.lidar is None else {"camera": images, "lidar": torch.from_numpy(self.lidar[idx])}
+        return inputs, torch.from_numpy(self.labels[idx])
+
+
+def stack_observations(observations: list):
+    """One net input from per-car observations (images, or {"camera", "lidar"} dicts)."""
+    if isinstance(observations[0], dict):
+        return {key: torch.from_numpy(np.stack([o[key] for o in observations])) for key in ("camera", "lidar")}
+    return torch.from_numpy(np.stack(observations))
 
 
 def _make_loss(space):
@@ -153,13 +174,16 @@ def run_dagger(config: ImitationConfig) -> dict:
     if not runs:
         raise ValueError("tracks: need at least one track")
     envs = [parallel_env(track=t, reverse=r, num_cars=1, race="time_trial", laps=1000, action_space=space,
-                         camera=tuple(config.camera), max_steps=config.episode_steps, bots=bots) for t, r in runs]
-    obs_shape = envs[0].observation_space("car_0").shape
-    net = build_net(config.network, obs_shape, space)
+                         camera=tuple(config.camera), lidar=config.lidar, max_steps=config.episode_steps,
+                         bots=bots) for t, r in runs]
+    observation_space = envs[0].observation_space("car_0")
+    obs_shape = observation_space["camera"].shape if config.lidar else observation_space.shape
+    lidar_samples = observation_space["lidar"].shape[0] if config.lidar else 0
+    net = build_net(config.network, obs_shape, space, lidar_samples=lidar_samples)
     optimiser = torch.optim.Adam(net.parameters(), lr=config.lr)
     loss_fn = _make_loss(space)
     label_shape, label_dtype = ((), np.int64) if space.discrete else ((2,), np.float32)
-    data = Dataset(config.max_samples, obs_shape, label_shape, label_dtype, rng)
+    data = Dataset(config.max_samples, obs_shape, label_shape, label_dtype, rng, lidar_samples)
 
     def reset(k: int, seed: int):
         """Reset env k; traffic starts at random gaps ahead (up to half a lap), so passes come early."""
@@ -190,7 +214,7 @@ def run_dagger(config: ImitationConfig) -> dict:
                 if step and time.perf_counter() - started >= budget:
                     break  # out of time: train on what we have and finish
                 with torch.no_grad():
-                    learner = _greedy(space, net(torch.from_numpy(np.stack(observations))))
+                    learner = _greedy(space, net(stack_observations(observations)))
                 for k, env in enumerate(envs):
                     steer, speed = expert.command(env.track, env.car_spec, env.world.poses[0], env.sim_time,
                                                   env.races[0].segment_hint, env.traffic(0))
@@ -213,8 +237,8 @@ def run_dagger(config: ImitationConfig) -> dict:
             for step in range(config.train_steps):
                 if step and time.perf_counter() - started >= budget:
                     break
-                images, labels = data.batch(config.batch_size)
-                loss = loss_fn(net(images), labels)
+                inputs, labels = data.batch(config.batch_size)
+                loss = loss_fn(net(inputs), labels)
                 optimiser.zero_grad()
                 loss.backward()
                 optimiser.step()
@@ -244,13 +268,13 @@ def run_dagger(config: ImitationConfig) -> dict:
     net.eval()
     wall = time.perf_counter() - started
     training = {
-        "method": "dagger", "expert": expert.name, "traffic": list(bots),
+        "method": "dagger", "expert": expert.name, "traffic": list(bots), "lidar": bool(config.lidar),
         "tracks": [f"{t}{' (reverse)' if r else ''}" for t, r in runs], "seed": config.seed,
         "minutes": config.minutes, "iterations": iteration, "samples": data.seen,
         "dataset_size": data.size, "final_loss": round(loss_value, 4), "wall_seconds": round(wall, 1),
     }
     if config.command:
         training["command"] = config.command
-    metadata = make_metadata(space, config.network, name, obs_shape, training=training)
+    metadata = make_metadata(space, config.network, name, obs_shape, lidar=config.lidar, training=training)
     save_agent(out, net, metadata)
     return {"out": str(out), **training, "history": history}

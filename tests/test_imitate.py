@@ -44,6 +44,15 @@ def test_dagger_in_traffic_records_the_passing_expert_and_rejects_a_bad_bot(tmp_
     assert not (tmp_path / "bad.pt").exists()
 
 
+def test_dagger_with_lidar_writes_a_lidar_agent(tmp_path):
+    summary = _tiny(tmp_path, "lidar", traffic=("follow@1.0",), lidar=True)
+    agent = load_agent(summary["out"])
+    assert agent.metadata["sensor"] == ["FRONT_FACING_CAMERA", "LIDAR"] and agent.metadata["training"]["lidar"]
+    steer, speed = AgentController(summary["out"]).act(
+        {"camera": np.zeros((120, 160, 1), np.uint8), "lidar": np.ones(64, np.float32)}, {})
+    assert -30 <= steer <= 30 and speed in (0.5, 1.0)
+
+
 def test_tiny_dagger_continuous_space(tmp_path):
     summary = _tiny(tmp_path, "cont", action_space=CONTINUOUS, expert_speed=1.0)
     agent = load_agent(summary["out"])
