@@ -282,9 +282,9 @@ def smoke_test(agent: Agent, step_budget: float | None, runs: int = 5) -> None:
     fastest counts, so a busy machine's hiccup does not reject a good agent.
     """
     source = str(agent.path)
-    image = np.zeros(agent.image_shape, dtype=np.uint8)
+    blank = np.zeros(agent.image_shape, dtype=np.uint8)
     if agent.lidar_samples:
-        image = {"camera": image, "lidar": np.full(agent.lidar_samples, LidarSpec().max_range, np.float32)}
+        blank = {"camera": blank, "lidar": np.full(agent.lidar_samples, LidarSpec().max_range, np.float32)}
     fastest = math.inf
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -292,7 +292,7 @@ def smoke_test(agent: Agent, step_budget: float | None, runs: int = 5) -> None:
         for _ in range(max(1, runs)):
             start = time.perf_counter()
             try:
-                out = agent.outputs(image)
+                out = agent.outputs(blank)
             except Exception as exc:
                 raise AgentFileError(f"{source}: smoke inference failed ({type(exc).__name__}: {exc})") from None
             fastest = min(fastest, time.perf_counter() - start)
