@@ -186,3 +186,11 @@ def test_replays_record_the_lidar_echoes_and_read_them_back(tmp_path):
     car = replay_summary(tmp_path / "race.rrd", poses=False)["cars"][0]
     assert car["lidar_scans"] == car["images"] > 0  # one scan with each camera frame
     assert car["lidar_echoes"] > 0  # the bot on the staggered grid is within a metre at the start
+
+
+def test_the_robustness_report_races_a_lidar_agent_in_traffic_and_under_perturbations(tmp_path):
+    from multirace.train.evaluate import race_agent
+
+    row = race_agent(save_lidar_agent(tmp_path / "lidar.pt"), laps=1, bots=("follow@1.0",), race="head_to_head",
+                     randomize="mild", max_steps=20)
+    assert row["status"] == "not_finished" and row["reason"].startswith("step limit")  # drove, did not forfeit
