@@ -19,6 +19,15 @@ def test_missing_ray_names_the_install_command(monkeypatch, tmp_path, capsys):
 
 
 @pytest.mark.rllib
+def test_lidar_under_rllib_is_refused_before_ray_starts(tmp_path, capsys):
+    pytest.importorskip("ray.rllib")
+    code = main(["train", "--engine", "rllib", "--set", "lidar=true", "--out", str(tmp_path / "a.pt"),
+                 "--minutes", "0.01"])
+    assert code != 0
+    assert "lidar=true is a local-engine option" in capsys.readouterr().err
+    assert not (tmp_path / "a.pt").exists()
+
+@pytest.mark.rllib
 def test_tiny_rllib_run_writes_checkpoint_and_racing_agent_file(tmp_path, capsys):
     pytest.importorskip("ray.rllib")
     import torch

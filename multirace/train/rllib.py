@@ -329,8 +329,9 @@ def train_rllib(args, log=print) -> int:
                          "ray.rllib.algorithms.Algorithm.from_checkpoint(FILE.rllib))")
     config = config_from_args(args)
     if config.lidar:
-        raise ValueError("--engine rllib: lidar=true is a local-engine option for now (the RLlib model reads "
-                         "camera images only)")
+        raise ValueError("--engine rllib: lidar=true is a local-engine option for now: with camera + LIDAR dict "
+                         "observations RLlib's PettingZoo wrapper loses the per-car episode ids' observations "
+                         "(car_0.1, ...; seen with ray 2.60)")
     if config.opponent_pool or config.nature or config.curriculum:
         log("note: --engine rllib ignores the opponent pool, nature adversary and curriculum "
             "(env randomisation and procedural tracks are kept)")
