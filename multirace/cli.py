@@ -182,7 +182,7 @@ def build_parser() -> argparse.ArgumentParser:
     race = sub.add_parser("race", help="race agent files and bots against each other",
                           description="Race agent files (.pt) and scripted bots (bot:follow@1.5, "
                                       "bot:lanes@1.0) and print the result.")
-    race.add_argument("entrants", nargs="+", help="agent files or bot:KIND@SPEED (KIND: follow, lanes)")
+    race.add_argument("entrants", nargs="+", help="agent files or bot:KIND@SPEED (KIND: follow, lanes, pass)")
     race.add_argument("--track", default="reinvent_base",
                       help=f"bundled track name or .npy path (bundled: {', '.join(list_tracks())})")
     race.add_argument("--reverse", action="store_true", help="race the track in the other direction")
