@@ -183,7 +183,8 @@ class World:
     def cast_rays(self, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
         """Hit fraction (0 at the start .. 1 at the end, 1 for no hit) of each ray, rows of (M, 3) points."""
         cid = self.connect()
-        hits = pybullet.rayTestBatch(starts.tolist(), ends.tolist(), physicsClientId=cid)
+        # one thread: each env has one core (numThreads=1 measured 15 % faster than the default here)
+        hits = pybullet.rayTestBatch(starts.tolist(), ends.tolist(), numThreads=1, physicsClientId=cid)
         return np.array([hit[2] for hit in hits])
 
     # ------------------------------------------------------------- dynamics
