@@ -77,4 +77,3 @@ def _with_height(points: np.ndarray, z: float) -> np.ndarray:
     """(..., 2) points as flat (M, 3) rows at height z."""
     flat = points.reshape(-1, 2)
     return np.column_stack([flat, np.full(len(flat), z)])
-

@@ -366,8 +366,8 @@ def replay_summary(path, poses: bool = True) -> dict:
     """What a replay holds, read back with rerun's own reader.
 
     Returns {"track", "format", "laps", "cars": [{"id", "name", "laps", "lap_times", "images",
-    "pose_steps", "lidar_scans", "lidar_echoes", "status"}], "steps", "duration", "events": [{"step", "race_time", "car", "name",
-    "kind", "clock", "text"}], "result"} and, with `poses`, "poses": {car id: array (k, 4) of
+    "pose_steps", "lidar_scans", "lidar_echoes", "status"}], "steps", "duration", "events": [{"step",
+    "race_time", "car", "name", "kind", "clock", "text"}], "result"} and, with `poses`, "poses": {car id: array (k, 4) of
     step, x, y, yaw} sorted by step.
     """
     path = Path(path)
