@@ -367,8 +367,8 @@ def replay_summary(path, poses: bool = True) -> dict:
 
     Returns {"track", "format", "laps", "cars": [{"id", "name", "laps", "lap_times", "images",
     "pose_steps", "lidar_scans", "lidar_echoes", "status"}], "steps", "duration", "events": [{"step",
-    "race_time", "car", "name", "kind", "clock", "text"}], "result"} and, with `poses`, "poses": {car id: array (k, 4) of
-    step, x, y, yaw} sorted by step.
+    "race_time", "car", "name", "kind", "clock", "text"}], "result"} and, with `poses`, "poses":
+    {car id: array (k, 4) of step, x, y, yaw} sorted by step.
     """
     path = Path(path)
     if not path.exists():
