@@ -72,6 +72,15 @@ class Lidar:
             ranges = ranges + rng.normal(0.0, spec.noise_stddev, ranges.shape)
         return np.clip(ranges, spec.min_range, spec.max_range).astype(np.float32)
 
+    def echoes(self, pose, ranges) -> np.ndarray:
+        """World points (k, 3) of the beams of one scan that met something (below max range), from pose (x, y, yaw)."""
+        ranges = np.asarray(ranges, np.float64)
+        hit = ranges < self.spec.max_range - 2 * self.spec.noise_stddev
+        x, y, yaw = pose
+        headings = yaw + self.angles[hit]
+        return np.column_stack([x + ranges[hit] * np.cos(headings), y + ranges[hit] * np.sin(headings),
+                                np.full(int(hit.sum()), self.height)])
+
 
 def _with_height(points: np.ndarray, z: float) -> np.ndarray:
     """(..., 2) points as flat (M, 3) rows at height z."""

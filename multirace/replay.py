@@ -228,21 +228,19 @@ class ReplayRecorder:
             cars, images = zip(*cameras)
             self._buf_img.append((row, cars, self._encoder.submit(self._encode_all, images)))
 
-    def _log_lidar_echoes(self, env, i: int, ranges) -> None:
-        """Car i's LIDAR echoes as world points (beams at max range met nothing and are left out)."""
-        rr, lidar = _rr(), env.lidar
-        ranges = np.asarray(ranges, np.float64)
-        hit = ranges < lidar.spec.max_range - 0.02
-        x, y, yaw = env.world.poses[i]
-        angles = yaw + lidar.angles[hit]
-        points = np.column_stack([x + ranges[hit] * np.cos(angles), y + ranges[hit] * np.sin(angles),
-                                  np.full(int(hit.sum()), lidar.height)])
+    def _set_step_time(self, env) -> None:
+        """Point the recording's time lines at this step (once per step) before a direct `log`."""
         if not self._time_set:
             self.rec.set_time("step", sequence=int(env.steps))
             self.rec.set_time("race_time", duration=float(env.sim_time))
             self._time_set = True
-        self.rec.log(f"world/lidar/{self.ids[i]}", rr.Points3D(points, colors=[CAR_COLOURS[i % len(CAR_COLOURS)]],
-                                                               radii=[0.015]))
+
+    def _log_lidar_echoes(self, env, i: int, ranges) -> None:
+        """Car i's LIDAR echoes as world points (beams that met nothing are left out)."""
+        points = env.lidar.echoes(env.world.poses[i], ranges)
+        self._set_step_time(env)
+        self.rec.log(f"world/lidar/{self.ids[i]}", _rr().Points3D(points, colors=[CAR_COLOURS[i % len(CAR_COLOURS)]],
+                                                                  radii=[0.015]))
 
     def _encode_all(self, images) -> list:
         return [self._encode(image) for image in images]
@@ -281,10 +279,8 @@ class ReplayRecorder:
             reason = f" ({race.reason})" if race.reason else ""
             level = "INFO" if now["status"] == "finished" else "WARN"
             entries.append((now["status"], level, f"{name}: {text} at {race.finish_time:.3f} s{reason}"))
-        if entries and not self._time_set:
-            rec.set_time("step", sequence=int(env.steps))
-            rec.set_time("race_time", duration=float(env.sim_time))
-            self._time_set = True
+        if entries:
+            self._set_step_time(env)
         for kind, level, text in entries:
             rec.log(f"events/{self.ids[i]}", rr.TextLog(text, level=level),
                     rr.AnyValues(kind=kind, car=self.ids[i], clock=float(clock if clock is not None else 0.0)))

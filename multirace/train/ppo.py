@@ -82,11 +82,14 @@ def load_init_agent(path, net) -> None:
 
 
 def init_settings(path) -> dict:
-    """The network, image and action space an --init agent file was built with."""
+    """The network, image and action space an --init agent file was built with (and the LIDAR, if it reads one)."""
     metadata = parse_metadata(read_payload(path), str(path))
     image = metadata["image"]
-    return {"network": metadata["neural_network"], "action_space": {k: metadata[k] for k in
-            ("action_space", "action_space_type")}, "camera": (image["height"], image["width"])}
+    settings = {"network": metadata["neural_network"], "action_space": {k: metadata[k] for k in
+                ("action_space", "action_space_type")}, "camera": (image["height"], image["width"])}
+    if lidar_samples(metadata):  # a camera-only file leaves lidar as configured (it can start a LIDAR net)
+        settings["lidar"] = True
+    return settings
 
 
 class RewardScale:
@@ -245,7 +248,6 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
     if init:
         for key, value in init_settings(init).items():
             setattr(config, key, value)
-        config.lidar = config.lidar or bool(lidar_samples(parse_metadata(read_payload(init), str(init))))
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
     space = load_action_space(config.action_space)
