@@ -9,8 +9,8 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
-from .rules import FORMATS
-from .tracks import TrackError, list_tracks
+from .environment.rules import FORMATS
+from .sim.tracks import TrackError, list_tracks
 
 
 def _format_time(value) -> str:
@@ -34,7 +34,7 @@ def print_result(result: dict, console: Console) -> None:
 
 
 def cmd_race(args) -> int:
-    from .race import RaceConfig, make_controller, run_race
+    from .racing.runner import RaceConfig, make_controller, run_race
 
     controllers = [make_controller(spec) for spec in args.entrants]
     race_format = args.format or ("time_trial" if len(controllers) == 1 else "head_to_head")
@@ -42,15 +42,15 @@ def cmd_race(args) -> int:
                         seed=args.seed, obstacles=args.obstacles, max_steps=args.max_steps)
     recorders = []
     if getattr(args, "replay", None):
-        from .replay import ReplayRecorder
+        from .recording.replay import ReplayRecorder
 
         recorders.append(ReplayRecorder(args.replay))
     if getattr(args, "simtrace", None):
-        from .simtrace import SimTraceRecorder
+        from .recording.simtrace import SimTraceRecorder
 
         recorders.append(SimTraceRecorder(args.simtrace))
     if getattr(args, "video", None):
-        from .video import VideoRecorder
+        from .recording.video import VideoRecorder
 
         recorders.append(VideoRecorder(args.video))
     result = run_race(controllers, config, recorders=recorders)
@@ -61,10 +61,10 @@ def cmd_race(args) -> int:
 
 
 def cmd_replay(args) -> int:
-    from .replay import format_summary, open_viewer, replay_summary
+    from .recording.replay_reader import format_summary, open_viewer, replay_summary
 
     if getattr(args, "video", None):
-        from .replay_video import replay_video
+        from .recording.replay_video import replay_video
 
         made = replay_video(args.file, args.video)
         print(f"wrote {made['file']}: {made['frames']} frames ({made['steps']} steps at {made['fps']:g} fps)")
@@ -80,7 +80,7 @@ def cmd_replay(args) -> int:
 
 
 def cmd_explain(args) -> int:
-    from .explain import explain
+    from .tools.explain import explain
 
     out = args.out if args.out is not None else f"{Path(args.agent).stem}_gradcam.mp4"
     result = explain(args.agent, track=args.track, steps=args.steps, out=out, replay=args.replay,
@@ -96,7 +96,7 @@ def cmd_explain(args) -> int:
 
 
 def cmd_plot(args) -> int:
-    from .plot import plot_simtrace
+    from .recording.plot import plot_simtrace
 
     out = plot_simtrace(args.trace, args.out, track=args.track)
     print(f"wrote {out}")
@@ -104,7 +104,7 @@ def cmd_plot(args) -> int:
 
 
 def cmd_agent_inspect(args) -> int:
-    from .agentfile import inspect_agent
+    from .racing.agentfile import inspect_agent
 
     info = inspect_agent(args.file)
     if args.json:
@@ -128,8 +128,8 @@ def cmd_agent_inspect(args) -> int:
 def cmd_imitate(args) -> int:
     import shlex
 
-    from .imitate import DEFAULT_TRACKS, ImitationConfig, run_dagger
-    from .nets import NETWORKS
+    from .train.imitate import DEFAULT_TRACKS, ImitationConfig, run_dagger
+    from .racing.nets import NETWORKS
 
     if args.network not in NETWORKS:
         raise ValueError(f"--network: unknown network {args.network!r}; choose from {', '.join(NETWORKS)}")
@@ -159,7 +159,7 @@ def cmd_imitate(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from .bench import format_table, run_bench
+    from .tools.bench import format_table, run_bench
 
     console = Console(width=120)
     figures = run_bench(seconds=args.seconds, replay_seconds=args.replay_seconds,
@@ -287,7 +287,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_train_parser(sub)
     add_evaluate_parser(sub)
 
-    from .league import add_league_commands
+    from .league.core import add_league_commands
 
     add_league_commands(sub)
     return parser

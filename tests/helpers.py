@@ -1,8 +1,8 @@
 """Shared helpers for the multirace tests (import as `from helpers import ...`)."""
 from __future__ import annotations
 
-from multirace.bots import PurePursuit
-from multirace.race import COMMAND_SPACE, BotController
+from multirace.environment.bots import PurePursuit
+from multirace.racing.entrant import COMMAND_SPACE, BotController
 
 
 def drive_expert(env, speed=1.0, steps=None, lateral=0.0):

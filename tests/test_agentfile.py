@@ -11,12 +11,13 @@ import numpy as np
 import pytest
 import torch
 
-from multirace.actions import load_action_space
-from multirace.agentfile import (AgentController, AgentFileError, inspect_agent, load_agent, make_metadata,
+from multirace.environment.actions import load_action_space
+from multirace.racing.agentfile import (AgentController, AgentFileError, inspect_agent, load_agent, make_metadata,
                                  save_agent)
 from multirace.cli import main as cli_main
-from multirace.nets import NETWORKS, SHALLOW, SMALL, TINY, CameraNet, build_net
-from multirace.race import Forfeit, RaceConfig, make_controller, run_race
+from multirace.racing.nets import NETWORKS, SHALLOW, SMALL, TINY, CameraNet, build_net
+from multirace.racing.entrant import Forfeit
+from multirace.racing.runner import RaceConfig, make_controller, run_race
 from helpers import overflow_on_camera_images
 
 REPO = Path(__file__).resolve().parents[1]

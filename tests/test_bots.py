@@ -2,8 +2,8 @@
 import pytest
 
 import multirace
-from multirace.bots import parse_bot
-from multirace.race import RaceConfig, make_controller, run_race
+from multirace.environment.bots import parse_bot
+from multirace.racing.runner import RaceConfig, make_controller, run_race
 
 
 def test_bot_names_read_back_as_typed():
@@ -45,9 +45,9 @@ def test_pass_bot_overtakes_a_slower_car_wide_where_a_follow_bot_stays_behind():
 
 
 def test_passing_line_steers_round_a_slower_car_on_the_side_it_is_on():
-    from multirace.bots import PASS_GAP, RETURN_STEP, passing_line
-    from multirace.car import CarSpec
-    from multirace.tracks import load_track
+    from multirace.environment.bots import PASS_GAP, RETURN_STEP, passing_line
+    from multirace.sim.car import CarSpec
+    from multirace.sim.tracks import load_track
 
     track, spec = load_track("reinvent_base"), CarSpec()
     here = track.project(*track.point_at(2.0, 0.05)[:2])  # a little left of the centre line

@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 import multirace
-from multirace.camera import CameraSpec, camera_pose
-from multirace.fast_renderer import FastRenderer
-from multirace.pybullet_renderer import PyBulletRenderer
-from multirace.texture import Palette, TrackTexture
+from multirace.sensors.camera import CameraSpec, camera_pose
+from multirace.sensors.fast_renderer import FastRenderer
+from multirace.sensors.pybullet_renderer import PyBulletRenderer
+from multirace.sim.texture import Palette, TrackTexture
 
 # distinct colours so that road and objects can be told apart by colour alone
 TEST_PALETTE = Palette(floor=(0, 120, 0), road=(90, 90, 90), border=(255, 0, 255), centre=(255, 255, 0))

@@ -66,7 +66,7 @@ def test_params_at_known_poses():
 
 
 def test_all_27_deepracer_params_are_passed():
-    from multirace.rewards import PARAM_KEYS
+    from multirace.environment.rewards import PARAM_KEYS
 
     seen = {}
 

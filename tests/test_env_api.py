@@ -18,7 +18,7 @@ def test_parallel_api_with_pybullet_renderer():
 
 
 def test_aec_api():
-    env = multirace.env(num_cars=2, obstacles=2, max_steps=60)
+    env = multirace.environment.race_env(num_cars=2, obstacles=2, max_steps=60)
     api_test(env, num_cycles=80)
 
 
@@ -121,7 +121,7 @@ def test_bad_randomisation_config_names_the_key():
 
 
 def test_switching_randomisation_off_restores_the_plain_track():
-    from multirace.randomize import Randomization
+    from multirace.environment.randomize import Randomization
 
     plain = multirace.parallel_env(num_cars=1).reset(seed=2)[0]["car_0"]
     env = multirace.parallel_env(num_cars=1, randomize={"texture_tint": 0.5})

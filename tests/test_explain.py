@@ -7,14 +7,14 @@ import cv2
 import numpy as np
 import pytest
 
-from multirace.actions import load_action_space
-from multirace.agentfile import load_agent, make_metadata, save_agent
-from multirace.env import RaceEnv
-from multirace.explain import (BORDER, CENTRE, FLOOR, ROAD, SKY, TRACK_LABELS, GradCam, cell_geometry, explain,
+from multirace.environment.actions import load_action_space
+from multirace.racing.agentfile import load_agent, make_metadata, save_agent
+from multirace.environment.race_env import RaceEnv
+from multirace.tools.explain import (BORDER, CENTRE, FLOOR, ROAD, SKY, TRACK_LABELS, GradCam, cell_geometry, explain,
                                heat_shares, last_conv_activation, scene_labels)
-from multirace.fast_renderer import _gray
-from multirace.nets import build_net
-from multirace.replay import read_chunks, replay_summary
+from multirace.sensors.fast_renderer import _gray
+from multirace.racing.nets import build_net
+from multirace.recording.replay_reader import read_chunks, replay_summary
 
 AGENT = Path(__file__).resolve().parents[1] / "agents" / "dagger_small.pt"
 pytestmark = pytest.mark.skipif(not AGENT.exists(), reason="shipped agent agents/dagger_small.pt missing")

@@ -6,9 +6,9 @@ import json
 import numpy as np
 import pytest
 
-from multirace.agentfile import AgentController, load_agent
+from multirace.racing.agentfile import AgentController, load_agent
 from multirace.cli import main as cli_main
-from multirace.imitate import ImitationConfig, run_dagger
+from multirace.train.imitate import ImitationConfig, run_dagger
 
 CONTINUOUS = {"action_space": {"steering_angle": {"low": -30.0, "high": 30.0}, "speed": {"low": 0.5, "high": 1.5}},
               "action_space_type": "continuous"}

@@ -15,13 +15,13 @@ from pathlib import Path
 import pytest
 import torch
 
-from multirace.actions import load_action_space
-from multirace.agentfile import make_metadata, save_agent
+from multirace.environment.actions import load_action_space
+from multirace.racing.agentfile import make_metadata, save_agent
 from multirace.cli import main as cli_main
-from multirace.league import (DEFAULT_TOML_TEXT, LeagueError, build_schedule, connect, init_league, load_config,
+from multirace.league.core import (DEFAULT_TOML_TEXT, LeagueError, build_schedule, connect, init_league, load_config,
                               parse_config, run_league, submit)
-from multirace.league_table import compute_table, write_table
-from multirace.nets import SMALL, build_net
+from multirace.league.table import compute_table, write_table
+from multirace.racing.nets import SMALL, build_net
 from helpers import overflow_on_camera_images
 
 REPO = Path(__file__).resolve().parents[1]
@@ -79,7 +79,7 @@ HOOK = textwrap.dedent('''
 
     class _Finder(importlib.abc.MetaPathFinder):
         def find_spec(self, name, path, target=None):
-            if name != "multirace.nets":
+            if name != "multirace.racing.nets":
                 return None
             for finder in sys.meta_path:
                 if finder is self or not hasattr(finder, "find_spec"):

@@ -7,11 +7,11 @@ import pytest
 import torch
 
 import multirace
-from multirace.agentfile import AgentController, AgentFileError, load_agent, make_metadata, save_agent
-from multirace.actions import load_action_space
-from multirace.lidar import LidarSpec
-from multirace.nets import SMALL, TINY, CameraNet, add_lidar_inputs, build_net
-from multirace.race import RaceConfig, make_controller, run_race
+from multirace.racing.agentfile import AgentController, AgentFileError, load_agent, make_metadata, save_agent
+from multirace.environment.actions import load_action_space
+from multirace.sensors.lidar import LidarSpec
+from multirace.racing.nets import SMALL, TINY, CameraNet, add_lidar_inputs, build_net
+from multirace.racing.runner import RaceConfig, make_controller, run_race
 
 SPACE = load_action_space(None)
 
@@ -177,7 +177,8 @@ def test_scanning_the_lidar_changes_no_other_random_draw():
 
 
 def test_replays_record_the_lidar_echoes_and_read_them_back(tmp_path):
-    from multirace.replay import ReplayRecorder, replay_summary
+    from multirace.recording.replay import ReplayRecorder
+    from multirace.recording.replay_reader import replay_summary
 
     agent = save_lidar_agent(tmp_path / "lidar.pt")
     run_race([make_controller(str(agent)), make_controller("bot:follow@1.0")],

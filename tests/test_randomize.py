@@ -7,9 +7,9 @@ import cv2
 import numpy as np
 import pytest
 
-from multirace.env import RaceEnv
-from multirace.randomize import EpisodeDraw, Randomization, apply_command, apply_image
-from multirace.texture import DEFAULT_PALETTE
+from multirace.environment.race_env import RaceEnv
+from multirace.environment.randomize import EpisodeDraw, Randomization, apply_command, apply_image
+from multirace.sim.texture import DEFAULT_PALETTE
 
 
 @pytest.fixture(scope="module")

@@ -8,9 +8,11 @@ import numpy as np
 import pytest
 
 from multirace.cli import main
-from multirace.race import BotController, RaceConfig, run_race
+from multirace.racing.entrant import BotController
+from multirace.racing.runner import RaceConfig, run_race
 from helpers import Wild
-from multirace.replay import ReplayRecorder, read_chunks, replay_summary
+from multirace.recording.replay import ReplayRecorder
+from multirace.recording.replay_reader import read_chunks, replay_summary
 
 DT = 1.0 / 15
 

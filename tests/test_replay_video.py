@@ -7,11 +7,12 @@ import cv2
 import numpy as np
 import pytest
 
-from multirace.race import RaceConfig, make_controller, run_race
-from multirace.replay import ReplayRecorder, replay_summary
-from multirace.replay_video import ReplayScene, replay_video
-from multirace.topdown import layout_for
-from multirace.world import CAR_COLOURS
+from multirace.racing.runner import RaceConfig, make_controller, run_race
+from multirace.recording.replay import ReplayRecorder
+from multirace.recording.replay_reader import replay_summary
+from multirace.recording.replay_video import ReplayScene, replay_video
+from multirace.sensors.topdown import layout_for
+from multirace.sim.world import CAR_COLOURS
 
 SIZE = (270, 480)
 

@@ -4,7 +4,7 @@ from pathlib import Path
 import pytest
 
 import multirace
-from multirace.rewards import RewardFunctionError, load_reward_function
+from multirace.environment.rewards import RewardFunctionError, load_reward_function
 
 FILES = Path(__file__).parent / "reward_files"
 

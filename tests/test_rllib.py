@@ -33,7 +33,7 @@ def test_tiny_rllib_run_writes_checkpoint_and_racing_agent_file(tmp_path, capsys
     import torch
     from ray.rllib.core.rl_module.rl_module import RLModule
 
-    from multirace.agentfile import load_agent
+    from multirace.racing.agentfile import load_agent
     from multirace.train.rllib import MODULE_ID, net_state_from_module
 
     out = tmp_path / "r.pt"

@@ -4,8 +4,8 @@ import math
 import pytest
 
 import multirace
-from multirace.bots import PurePursuit
-from multirace.rules import CarRace, make_rules
+from multirace.environment.bots import PurePursuit
+from multirace.environment.rules import CarRace, make_rules
 from helpers import CONTINUOUS, drive_expert
 
 

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from multirace.cli import main
-from multirace.race import BotController, RaceConfig, run_race
-from multirace.simtrace import SimTraceRecorder, SimTraceWriter, read_simtrace
+from multirace.racing.entrant import BotController
+from multirace.racing.runner import RaceConfig, run_race
+from multirace.recording.simtrace import SimTraceRecorder, SimTraceWriter, read_simtrace
 from helpers import Wild
 
 COLUMNS = ["episode", "steps", "X", "Y", "yaw", "steer", "throttle", "action", "reward", "done",

@@ -7,11 +7,11 @@ import cv2
 import numpy as np
 import pytest
 
-from multirace.env import RaceEnv
-from multirace.race import RaceConfig, make_controller, run_race
-from multirace.topdown import layout_for, render_topdown
-from multirace.video import VideoRecorder, write_video
-from multirace.world import CAR_COLOURS
+from multirace.environment.race_env import RaceEnv
+from multirace.racing.runner import RaceConfig, make_controller, run_race
+from multirace.sensors.topdown import layout_for, render_topdown
+from multirace.recording.video import VideoRecorder, write_video
+from multirace.sim.world import CAR_COLOURS
 
 
 def _colour_near(frame, col, row, colour, radius=3, tol=30) -> bool:

@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 import multirace
-from multirace.trackgen import WIDTHS, generate_track, save_track
-from multirace.tracks import Track, load_track
+from multirace.sim.trackgen import WIDTHS, generate_track, save_track
+from multirace.sim.tracks import Track, load_track
 
 
 def test_many_seeds_give_valid_tracks():

@@ -4,13 +4,13 @@ import math
 import numpy as np
 import pytest
 
-from multirace.tracks import TrackError, list_tracks, load_track
+from multirace.sim.tracks import TrackError, list_tracks, load_track
 
 ALL_TRACKS = list_tracks()
 
 
-def test_twelve_bundled_tracks_load_with_known_lengths():
-    assert len(ALL_TRACKS) == 12
+def test_all_41_bundled_tracks_load_with_known_lengths():
+    assert len(ALL_TRACKS) == 41
     lengths = {name: load_track(name).length for name in ALL_TRACKS}
     # centre-line lengths from the tracks' README
     assert lengths["reinvent_base"] == pytest.approx(17.71, abs=0.01)

@@ -7,11 +7,11 @@ import json
 import numpy as np
 import pytest
 
-from multirace.agentfile import AgentController, load_agent
-from multirace.race import RaceConfig, run_race
+from multirace.racing.agentfile import AgentController, load_agent
+from multirace.racing.runner import RaceConfig, run_race
 from multirace.train.config import PRESETS, TrainConfig, describe, make_config
 from multirace.train.nature import Nature, UNCERTAINTY_SET, scale_randomization
-from multirace.randomize import Randomization
+from multirace.environment.randomize import Randomization
 
 
 @pytest.fixture(scope="module")

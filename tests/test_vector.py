@@ -3,8 +3,8 @@ import functools
 
 import numpy as np
 
-from multirace.env import RaceEnv
-from multirace.vector import SubprocVectorEnv
+from multirace.environment.race_env import RaceEnv
+from multirace.environment.vector import SubprocVectorEnv
 
 
 def test_vector_env_matches_the_env_and_auto_resets():

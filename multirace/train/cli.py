@@ -82,13 +82,16 @@ def cmd_train(args) -> int:
         return 0
     if not args.out:
         raise ValueError("--out FILE.pt is required")
+    config = config_from_args(args)
     if args.engine == "rllib":
+        if args.resume or args.init:
+            raise ValueError("--engine rllib: --resume and --init are local-engine options (resume an RLlib run "
+                             "with ray.rllib.algorithms.Algorithm.from_checkpoint(FILE.rllib))")
         from .rllib import train_rllib
 
-        return train_rllib(args)
+        return train_rllib(config, args.out, envs=args.envs, address=args.address)
     from .ppo import train
 
-    config = config_from_args(args)
     command = shlex.join(["multirace", *sys.argv[1:]]) if sys.argv and sys.argv[0].endswith("multirace") else None
     summary = train(config, args.out, init=args.init, resume=args.resume, command=command)
     first = summary["first_success_seconds"]

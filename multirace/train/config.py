@@ -25,9 +25,10 @@ import dataclasses
 import json
 from pathlib import Path
 
-from ..nets import SHALLOW, TINY
+from ..racing.nets import SHALLOW, TINY
+from ..resources import agents_dir
 
-SHIPPED_AGENTS = Path(__file__).resolve().parents[2] / "agents"
+SHIPPED_AGENTS = agents_dir()
 
 
 @dataclasses.dataclass
@@ -37,7 +38,7 @@ class TrainConfig:
     # ---- what to train on
     tracks: tuple = ("reinvent_base",)  # bundled track names or .npy paths; several = multi-track training
     reverse: str = "no"  # "no", "yes" or "both": the direction(s) each track is raced in
-    procedural_tracks: int = 0  # seeded generated tracks (multirace.trackgen) added to the track list
+    procedural_tracks: int = 0  # seeded generated tracks (multirace.sim.trackgen) added to the track list
     action_space: object = None  # model_metadata.json path or dict; None = DeepRacer's 10 discrete actions
     reward: str = "progress"  # "progress" (built-in shaped), "centre" (DeepRacer default) or a reward .py file
     camera: tuple = (120, 160)  # camera (height, width), grayscale as DeepRacer

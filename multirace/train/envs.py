@@ -99,8 +99,8 @@ class TrainEnv:
     # -------------------------------------------------------------- envs
     def _env_for(self, k: int):
         if k not in self._envs:
-            from ..env import RaceEnv
-            from ..tracks import Track
+            from ..environment.race_env import RaceEnv
+            from ..sim.tracks import Track
 
             track, reverse = self.runs[k]
             if isinstance(track, np.ndarray):
@@ -114,7 +114,7 @@ class TrainEnv:
 
     def _episode_randomization(self):
         """This episode's randomisation: the configured one or nature's pick, scaled by the curriculum."""
-        from ..randomize import Randomization
+        from ..environment.randomize import Randomization
         from .nature import scale_randomization
 
         self.perturbation = -1
@@ -168,7 +168,7 @@ class TrainEnv:
         if not known:
             return -1 if space.discrete else [math.nan, math.nan]
         if self._expert is None:  # every run shares the action space, so one driver at its top speed serves all
-            from ..bots import Bot
+            from ..environment.bots import Bot
 
             top = max(a[1] for a in space.actions) if space.discrete else float(space.high[1])
             self._expert = Bot(kind="pass", speed=top)

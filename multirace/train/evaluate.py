@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..tracks import list_tracks
+from ..sim.tracks import list_tracks
 from .nature import UNCERTAINTY_SET
 
 GRID = [("none", None), ("mild", "mild"), ("strong", "strong")] + [
@@ -45,9 +45,9 @@ def race_agent(agent_path, track="reinvent_base", reverse=False, laps=2, seed=0,
     report should not turn on how busy the machine is; on a 2-core machine shared with other training
     runs a tiny CNN step was seen to take 0.6-1.9 s, which forfeited races under a 0.5 s budget).
     """
-    from ..agentfile import AgentController
-    from ..env import RaceEnv
-    from ..race import COMMAND_SPACE, Forfeit
+    from ..racing.agentfile import AgentController
+    from ..environment.race_env import RaceEnv
+    from ..racing.entrant import COMMAND_SPACE, Forfeit
 
     controller = AgentController(agent_path, step_budget=step_budget)
     env = RaceEnv(track=track, reverse=reverse, num_cars=1, race=race, laps=laps, bots=bots,
@@ -79,7 +79,7 @@ def race_agent(agent_path, track="reinvent_base", reverse=False, laps=2, seed=0,
 
 
 def trained_tracks(agent_path) -> set:
-    from ..agentfile import parse_metadata, read_payload
+    from ..racing.agentfile import parse_metadata, read_payload
 
     try:
         meta = parse_metadata(read_payload(agent_path), str(agent_path))

@@ -19,7 +19,7 @@ import dataclasses
 
 import numpy as np
 
-from ..randomize import Randomization
+from ..environment.randomize import Randomization
 
 # (name, randomize config): each element is one model the adversary may pick for an episode.
 UNCERTAINTY_SET = [

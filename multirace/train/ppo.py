@@ -26,9 +26,9 @@ import torch
 from torch import nn
 from torch.distributions import Categorical, Normal
 
-from ..actions import load_action_space
-from ..agentfile import lidar_samples, make_metadata, read_payload, parse_metadata, save_agent
-from ..nets import CameraNet, add_lidar_inputs, build_net
+from ..environment.actions import load_action_space
+from ..racing.agentfile import lidar_samples, make_metadata, read_payload, parse_metadata, save_agent
+from ..racing.nets import CameraNet, add_lidar_inputs, build_net
 from .config import TrainConfig
 from .envs import INFO_KEYS, TrainEnv, env_settings
 
@@ -125,7 +125,7 @@ def training_runs(config: TrainConfig) -> list:
     """(track, reverse) pairs to train on: named tracks x directions, plus generated tracks."""
     runs = [(t, r) for t in config.tracks for r in config.directions()]
     if config.procedural_tracks:
-        from ..trackgen import generate_track
+        from ..sim.trackgen import generate_track
 
         for k in range(int(config.procedural_tracks)):
             rows = generate_track(seed=10_000 + config.seed * 1000 + k).rows
@@ -139,7 +139,7 @@ def check_reward_file(config: TrainConfig, runs) -> None:
     """Load and call a reward .py file once here, so a bad file fails with its message, not a dead worker."""
     if config.reward in ("progress", "centre", None):
         return
-    from ..rewards import RewardFunctionError
+    from ..environment.rewards import RewardFunctionError
 
     probe = TrainEnv(runs[:1], num_cars=1, action_space=config.action_space, reward=config.reward,
                      camera=config.camera, episode_steps=3)
@@ -154,7 +154,7 @@ def check_reward_file(config: TrainConfig, runs) -> None:
 
 
 def make_vector_env(config: TrainConfig, shared=None, cars=None, bots=None):
-    from ..vector import SubprocVectorEnv
+    from ..environment.vector import SubprocVectorEnv
 
     runs = training_runs(config)
     check_reward_file(config, runs)
@@ -172,8 +172,8 @@ def evaluate_time_trial(agent_path, track: str, laps: int = 3, seed: int = 0, re
     With `bots`: a head-to-head race against them instead, in which each collision the agent caused
     counts like an off-track reset in the row's "resets" (so the best-policy choice avoids both).
     """
-    from ..agentfile import AgentController
-    from ..race import RaceConfig, run_race
+    from ..racing.agentfile import AgentController
+    from ..racing.runner import RaceConfig, run_race
 
     if bots:
         from .evaluate import race_agent

@@ -163,7 +163,7 @@ def _module_class():
             import gymnasium as gym
             import torch
 
-            from ..nets import CONTINUOUS_OUTPUTS, TINY, CameraNet
+            from ..racing.nets import CONTINUOUS_OUTPUTS, TINY, CameraNet
 
             network = (self.model_config or {}).get("network", TINY)
             discrete = isinstance(self.action_space, gym.spaces.Discrete)
@@ -311,23 +311,22 @@ def default_env_runners(config, explicit_envs) -> int:
     return max(1, min(int(config.num_envs), (os.cpu_count() or 2) - 1))
 
 
-def train_rllib(args, log=print) -> int:
-    """`multirace train --engine rllib`: see the module docstring."""
+def train_rllib(config, out, envs=None, address=None, log=print) -> int:
+    """`multirace train --engine rllib` with `config` (a TrainConfig), writing the agent file `out`.
+
+    `envs` is the number of env runners asked for (None: the config's, capped by the cores);
+    `address` a Ray cluster to join (None: a local Ray instance). See the module docstring.
+    """
     require_rllib()
     import ray
     import torch
     from ray.tune.registry import register_env
 
-    from ..actions import load_action_space
-    from ..agentfile import make_metadata, save_agent
-    from ..nets import CameraNet, num_outputs_for
-    from .cli import config_from_args
+    from ..environment.actions import load_action_space
+    from ..racing.agentfile import make_metadata, save_agent
+    from ..racing.nets import CameraNet, num_outputs_for
     from .ppo import check_reward_file, training_runs
 
-    if getattr(args, "resume", None) or getattr(args, "init", None):
-        raise ValueError("--engine rllib: --resume and --init are local-engine options (resume an RLlib run with "
-                         "ray.rllib.algorithms.Algorithm.from_checkpoint(FILE.rllib))")
-    config = config_from_args(args)
     if config.lidar:
         raise ValueError("--engine rllib: lidar=true is a local-engine option for now: with camera + LIDAR dict "
                          "observations RLlib's PettingZoo wrapper loses the per-car episode ids' observations "
@@ -335,8 +334,8 @@ def train_rllib(args, log=print) -> int:
     if config.opponent_pool or config.nature or config.curriculum:
         log("note: --engine rllib ignores the opponent pool, nature adversary and curriculum "
             "(env randomisation and procedural tracks are kept)")
-    num_env_runners = default_env_runners(config, getattr(args, "envs", None))
-    out = Path(args.out)
+    num_env_runners = default_env_runners(config, envs)
+    out = Path(out)
     ckpt_dir = out.with_name(out.stem + ".rllib").resolve()
     runs = training_runs(config)
     check_reward_file(config, runs)
@@ -346,7 +345,6 @@ def train_rllib(args, log=print) -> int:
     except ValueError as exc:
         raise ValueError(f"--set camera / --network: {exc}") from None
 
-    address = getattr(args, "address", None)
     started = time.perf_counter()
     own_ray = not ray.is_initialized()
     if own_ray:

@@ -48,7 +48,7 @@ class OpponentPool:
         self._load_shipped(shipped_dir)
 
     def _load_shipped(self, folder) -> None:
-        from ..agentfile import AgentFileError, load_agent
+        from ..racing.agentfile import AgentFileError, load_agent
 
         for path in sorted(Path(folder).glob("*.pt")) if folder and Path(folder).is_dir() else []:
             try:

@@ -1,0 +1,564 @@
+"""The multirace PettingZoo environment: camera cars racing on a DeepRacer track.
+
+``parallel_env(**config)`` builds a `RaceEnv` (a PettingZoo ParallelEnv);
+``env(**config)`` its AEC form. Agents are ``car_0 .. car_{n-1}`` and stay in
+`agents` for the whole episode: a car that goes off track is reset by the
+race rules, a car whose run is over is parked off the scene and its actions
+are ignored until every car is done.
+
+Per step (15 Hz): actions -> commands (with DeepRacer's steering and speed
+noise) -> physics -> measurements (projection on the track, wheels on track,
+contacts) -> DeepRacer reward params -> rewards -> race rules (laps,
+penalties, resets) -> camera images.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from gymnasium import spaces
+from pettingzoo import ParallelEnv
+from pettingzoo.utils import OrderEnforcingWrapper, parallel_to_aec
+
+from .actions import load_action_space
+from .bots import parse_bot
+from ..sensors.camera import CameraSpec, camera_poses
+from ..sensors.renderers import make_renderer
+from ..sim.car import CarSpec
+from ..sensors.lidar import Lidar
+from ..sim.objects import objects_seen
+from .randomize import Randomization, apply_command, apply_image
+from .rewards import load_reward_function
+from .rules import CarRace, make_rules
+from ..sim.texture import DEFAULT_PALETTE, TrackTexture
+from ..sim.tracks import Track, load_track
+from ..sim.world import World
+
+ACTION_HZ = 15
+MAX_CARS = 8
+MIN_AVERAGE_SPEED = 0.4  # m/s; sets the default step limit of a race
+CAMERA_RANGE = 8.0  # m; objects farther ahead do not count as `object_in_camera`
+CLEAR_RADIUS = 0.45  # m; a reset spot closer than this to another body is taken
+
+
+def parallel_env(**config) -> "RaceEnv":
+    """The multirace env as a PettingZoo ParallelEnv (keywords: see RaceEnv)."""
+    return RaceEnv(**config)
+
+
+def env(**config):
+    """The multirace env in PettingZoo's AEC form (same keywords as parallel_env)."""
+    return OrderEnforcingWrapper(parallel_to_aec(RaceEnv(**config)))
+
+
+class RaceEnv(ParallelEnv):
+    """Several DeepRacer cars with front cameras racing in one PyBullet world.
+
+    Keywords follow DESIGN.md's public contract: track, reverse, num_cars,
+    race, laps, obstacles, bots, action_space, reward_function, camera,
+    grayscale, lidar, renderer, randomize, render_mode, max_steps; plus
+    `physics_hz` (default 60) and `car_names` (names used in results).
+
+    Observations are camera images, uint8 (H, W, C); with ``lidar=True`` each
+    is a dict ``{"camera": image, "lidar": 64 float32 ranges}`` (see `lidar`).
+    """
+
+    metadata = {"name": "multirace_v0", "render_modes": ["rgb_array"], "render_fps": ACTION_HZ,
+                "is_parallelizable": True}
+
+    def __init__(self, track="reinvent_base", reverse=False, num_cars=4, race="time_trial", laps=3,
+                 obstacles=None, bots=(), action_space=None, reward_function=None, camera=(120, 160),
+                 grayscale=True, lidar=False, renderer="fast", randomize=None, render_mode=None, max_steps=None,
+                 physics_hz=60, car_names=None):
+        self.track: Track = track if isinstance(track, Track) else load_track(track, reverse=reverse)
+        self.rules = make_rules(race, laps, obstacles)
+        self.bots = [parse_bot(b) for b in bots]
+        if not 1 <= int(num_cars) + len(self.bots) <= MAX_CARS or int(num_cars) < 1:
+            raise ValueError(f"num_cars: need 1 to {MAX_CARS} cars in all, got {num_cars} "
+                             f"learning cars and {len(self.bots)} bots")
+        self.num_cars = int(num_cars)
+        self._camera_cars = np.arange(self.num_cars)
+        self.total_cars = self.num_cars + len(self.bots)
+        self.actions = load_action_space(action_space)
+        self.reward_function = load_reward_function(reward_function)
+        self.randomization = Randomization.from_config(randomize)
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode: {render_mode!r} is not supported; use None or 'rgb_array'")
+        self.render_mode = render_mode
+        try:
+            height, width = (int(v) for v in camera)
+        except (TypeError, ValueError):
+            raise ValueError(f"camera: expected (height, width), got {camera!r}") from None
+        if not (16 <= height <= 1080 and 16 <= width <= 1920):
+            raise ValueError(f"camera: size {height}x{width} out of range 16x16 .. 1080x1920")
+        self.camera = CameraSpec(height=height, width=width, grayscale=bool(grayscale))
+        if renderer not in ("fast", "pybullet"):
+            raise ValueError(f"renderer: unknown renderer {renderer!r}; choose 'fast' or 'pybullet'")
+        self.renderer_name = renderer
+        self.car_spec = CarSpec()
+        self._wheels = np.array(self.car_spec.wheel_offsets())
+        self.dt = 1.0 / ACTION_HZ
+        self.world = World(self.car_spec, self.total_cars, self.rules.obstacles, physics_hz, ACTION_HZ)
+        self.max_steps = int(max_steps) if max_steps is not None else self._default_max_steps()
+
+        self.possible_agents = [f"car_{i}" for i in range(self.num_cars)]
+        self.agents: list[str] = []
+        names = list(car_names) if car_names is not None else list(self.possible_agents)
+        if len(names) != self.num_cars:
+            raise ValueError(f"car_names: expected {self.num_cars} names, got {len(names)}")
+        self.car_names = names + [bot.name for bot in self.bots]
+        obs_space = spaces.Box(0, 255, (height, width, self.camera.channels), np.uint8)
+        self.lidar = Lidar(self.car_spec) if lidar else None
+        if self.lidar is not None:
+            spec = self.lidar.spec
+            obs_space = spaces.Dict({"camera": obs_space, "lidar": spaces.Box(
+                spec.min_range, spec.max_range, (spec.samples,), np.float32)})
+        self.observation_spaces = {a: obs_space for a in self.possible_agents}
+        self.action_spaces = {a: self.actions.space for a in self.possible_agents}
+
+        self._renderer = None
+        self._texture = None
+        self._rng = np.random.default_rng()
+        self._randomizer_rng = np.random.default_rng()
+        self._lidar_rng = np.random.default_rng()  # LIDAR noise: its own stream, so a scan changes no other draw
+        self._draw = None  # this episode's domain-randomisation draw
+        self.races: list[CarRace] = []
+        self.steps = 0
+        self.sim_time = 0.0
+
+    # ------------------------------------------------------------ spaces
+    def observation_space(self, agent):
+        return self.observation_spaces[agent]
+
+    def action_space(self, agent):
+        return self.action_spaces[agent]
+
+    def _default_max_steps(self) -> int:
+        if self.rules.time_limit is not None:
+            return int(math.ceil(self.rules.time_limit * ACTION_HZ)) + 1
+        seconds = max(60.0, self.rules.laps * self.track.length / MIN_AVERAGE_SPEED)
+        return int(math.ceil(seconds * ACTION_HZ))
+
+    @property
+    def texture(self) -> TrackTexture:
+        """The track's top-down texture (built on first use)."""
+        if self._texture is None:
+            self._texture = TrackTexture(self.track)
+        return self._texture
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        state.update(_renderer=None, _texture=None)
+        return state
+
+    # ------------------------------------------------------------- reset
+    def reset(self, seed=None, options=None):
+        if seed is not None:
+            self._rng = np.random.default_rng(seed)
+            self._randomizer_rng = np.random.default_rng([seed, 3])  # its own stream: same grid either way
+            self._lidar_rng = np.random.default_rng([seed, 5])
+        self.world.connect()
+        self._draw = None
+        palette = DEFAULT_PALETTE
+        if self.randomization.enabled:
+            self._draw = self.randomization.draw_episode(self._randomizer_rng, self.total_cars)
+            palette = self._draw.palette
+        if self.renderer_name == "fast" and palette != self.texture.palette:  # (un)tinted track colours
+            self._texture = TrackTexture(self.track, palette)
+            self._renderer = None
+        if self._renderer is None:
+            self._renderer = make_renderer(self.renderer_name, self.camera, self.texture)
+        self.steps = 0
+        self.sim_time = 0.0
+        self._touching: set = set()
+        track = self.track
+        self.races = []
+        self._s = [0.0] * self.total_cars
+        self._commands = [(0.0, 0.0)] * self.total_cars  # (steer rad, speed m/s) per car
+        for i, (s, lateral) in enumerate(track.start_grid(self.total_cars)):
+            # the grid slot is where DeepRacer's reported point (ahead of the body centre) starts
+            self.world.place_car(i, *track.point_at(s - self.car_spec.reported_point_offset, lateral))
+        self._place_obstacles()
+        self._measure_all()
+        for i, geo in enumerate(self._geometry):
+            s = geo["proj"].s
+            signed = s - track.length if s > track.length / 2 else s
+            self._s[i] = s
+            self.races.append(CarRace(name=self.car_names[i], distance=signed, start_distance=signed,
+                                      lap_start_distance=signed, last_on_track_s=s,
+                                      segment_hint=geo["proj"].segment))
+        self.agents = list(self.possible_agents)
+        table = self._object_table()
+        params = [self._params(i, set(), table) for i in range(self.num_cars)]
+        observations = self._observe()
+        ranks = self.ranks()
+        infos = {a: self._info(i, params[i], set(), ranks) for i, a in enumerate(self.agents)}
+        return observations, infos
+
+    def _place_obstacles(self) -> None:
+        """Boxes spread around the lap, in alternating lanes, with seeded jitter."""
+        count = self.rules.obstacles
+        self.obstacle_slots = []
+        self._obstacle_rows = []
+        if not count:
+            return
+        track, rng = self.track, self._rng
+        spacing = 0.75 * track.length / count
+        first = 0.15 * track.length + rng.uniform(0, 0.1) * track.length
+        lane = int(rng.integers(2))
+        for k in range(count):
+            s = (first + k * spacing + rng.uniform(-0.1, 0.1) * spacing) % track.length
+            lateral = track.lane_offset(lane, s)
+            x, y, yaw = track.point_at(s, lateral)
+            self.world.place_obstacle(k, x, y, yaw)
+            self.obstacle_slots.append((s, lane))
+            self._obstacle_rows.append((-1, x, y, lateral > 0, 0.0, math.degrees(yaw), abs(lateral), s))
+            lane = 1 - lane
+
+    # -------------------------------------------------------------- step
+    def step(self, actions):
+        if not self.agents:
+            raise RuntimeError("step() called on a finished episode; call reset() first")
+        spec = self.car_spec
+        noise = self._rng.standard_normal((self.num_cars, 2)).tolist()  # DeepRacer's action noise
+        for i, agent in enumerate(self.possible_agents):
+            if self.races[i].racing and agent in actions:
+                steer, speed = self.actions.command(actions[agent])
+                if self._draw is not None and self.randomization.dynamics_enabled:
+                    steer, speed = apply_command(steer, speed, self._draw, self._randomizer_rng, i, spec)
+                    steer = math.radians(steer)
+                else:
+                    steer = math.radians(steer) + spec.steer_noise * noise[i][0]
+                    speed = speed + spec.speed_noise * noise[i][1]
+                self._commands[i] = spec.clamp_command(steer, speed)
+        for b, bot in enumerate(self.bots):
+            i = self.num_cars + b
+            if self.races[i].racing:
+                steer, speed = bot.command(self.track, spec, self.world.poses[i], self.sim_time,
+                                           self.races[i].segment_hint, self.traffic(i))
+                self._commands[i] = spec.clamp_command(math.radians(steer), speed)
+        contacts = self.world.step(self._commands)
+        prev_time = self.sim_time
+        self.steps += 1
+        self.sim_time = self.steps * self.dt
+
+        prev_distance = [race.distance for race in self.races]
+        self._measure_all()
+        self._advance_distances()
+        touched = self._apply_contacts(contacts)
+        params, rewards = [], {}
+        table = self._object_table()
+        for i, agent in enumerate(self.possible_agents):
+            p = self._params(i, touched[i], table)
+            params.append(p)
+            rewards[agent] = self.reward_function(p, self.steps, agent) if self.races[i].racing else 0.0
+        events = [self._apply_rules(i, prev_distance[i], prev_time, touched[i]) for i in range(self.total_cars)]
+        if self.rules.time_limit is not None and self.sim_time >= self.rules.time_limit - 1e-9:
+            for i, race in enumerate(self.races):
+                if race.racing:
+                    self._end_run(i, "timed_out", f"{self.rules.time_limit:g} s window ended")
+
+        done = not any(race.racing for race in self.races)
+        truncated = not done and self.steps >= self.max_steps
+        if truncated:
+            for i, race in enumerate(self.races):
+                if race.racing:
+                    self._end_run(i, "not_finished", f"step limit {self.max_steps} reached")
+        observations = self._observe()
+        ranks = self.ranks()
+        infos = {a: self._info(i, params[i], touched[i], ranks, events[i])
+                 for i, a in enumerate(self.possible_agents)}
+        terminations = {a: done for a in self.possible_agents}
+        truncations = {a: truncated for a in self.possible_agents}
+        if done or truncated:
+            self.agents = []
+        return observations, rewards, terminations, truncations, infos
+
+    # ------------------------------------------------------- measurement
+    def _measure_all(self) -> None:
+        """Project every racing car on the track and test its wheels."""
+        self._geometry = [None] * self.total_cars
+        cars = [i for i in range(self.total_cars) if i >= len(self.races) or self.races[i].racing]
+        if cars:
+            for i, geo in zip(cars, self._locate(cars)):
+                self._geometry[i] = geo
+
+    def _measure(self, i: int) -> dict | None:
+        """Car i's geometry (None when its run is over)."""
+        racing = i >= len(self.races) or self.races[i].racing
+        return self._locate([i])[0] if racing else None
+
+    def _locate(self, cars: list[int]) -> list[dict]:
+        """Geometry of these cars: reported point, heading, projection and wheels on track."""
+        hints = [self.races[i].segment_hint if i < len(self.races) else None for i in cars]
+        hints = np.array([-1 if hint is None else hint for hint in hints], np.int64)
+        poses = self.world.poses[cars]
+        located = self.track.locate_cars(poses, hints, self.car_spec.reported_point_offset, self._wheels)
+        geometry = []
+        for i, yaw, (px, py, proj, wheels_on) in zip(cars, poses[:, 2].tolist(), located):
+            if i < len(self.races):
+                self.races[i].segment_hint = proj.segment
+            geometry.append({"x": px, "y": py, "yaw": yaw, "proj": proj, "wheels_on": wheels_on})
+        return geometry
+
+    def _advance_distances(self) -> None:
+        """Add what each car drove along the centre line since the last step to its race distance."""
+        for i, geo in enumerate(self._geometry):
+            if geo is not None:
+                s = geo["proj"].s
+                self.races[i].distance += self.track.wrap_ds(s - self._s[i])
+                self._s[i] = s
+
+    def _apply_contacts(self, contacts) -> list[set]:
+        """Record contacts; penalise a striker in head-to-head. Returns who each car touched."""
+        touched = [set() for _ in range(self.total_cars)]
+        now = set()
+        for contact in contacts:
+            pair = (contact.a, contact.b)
+            now.add(pair)
+            is_new = pair not in self._touching
+            for me, other in ((contact.a, contact.b), (contact.b, contact.a)):
+                if me[0] != "car":
+                    continue
+                touched[me[1]].add(other)
+                if is_new:
+                    caused = contact.striker == me
+                    other_name = self.car_names[other[1]] if other[0] == "car" else f"obstacle_{other[1]}"
+                    race = self.races[me[1]]
+                    race.collisions.append({"time": round(race.clock(self.sim_time), 3), "with": other_name,
+                                            "caused": caused})
+                    if caused and other[0] == "car" and self.rules.penalise_striker:
+                        race.penalty_time += self.rules.crash_penalty
+                        race.penalties += 1
+        self._touching = now
+        return touched
+
+    # ------------------------------------------------------------- rules
+    def _apply_rules(self, i: int, prev_distance: float, prev_time: float, touched: set) -> list[str]:
+        """Laps, off-track and crash resets for car i; returns the step's events."""
+        race, geo = self.races[i], self._geometry[i]
+        if geo is None:
+            return []
+        track, rules = self.track, self.rules
+        events = []
+        proj = geo["proj"]
+        # laps: every crossing of a lap boundary, timed by interpolation within the step
+        while race.racing and race.distance >= (race.laps + 1) * track.length:
+            boundary = (race.laps + 1) * track.length
+            moved = max(race.distance - prev_distance, 1e-9)
+            t_cross = prev_time + self.dt * min(max((boundary - prev_distance) / moved, 0.0), 1.0)
+            clock = race.clock(t_cross)
+            race.lap_times.append(round(clock - race.lap_start_time, 4))
+            race.laps += 1
+            race.lap_start_time = clock
+            race.lap_start_distance = boundary
+            events.append("lap_complete")
+            if race.laps >= rules.laps:
+                self._end_run(i, "finished", "", clock)
+                return events
+        if geo["wheels_on"] == 0:
+            events.append("off_track")
+            race.off_tracks += 1
+            if rules.max_resets is not None and race.resets >= rules.max_resets:
+                self._end_run(i, "out_of_resets", f"off track after {race.resets} resets")
+                return events
+            race.resets += 1
+            if rules.off_track_penalty:
+                race.penalty_time += rules.off_track_penalty
+                race.penalties += 1
+            self._reset_car(i, race.last_on_track_s, 0.0)
+            return events
+        race.last_on_track_s = proj.s
+        hit_box = [o for o in touched if o[0] == "obstacle"]
+        if hit_box and rules.crash_resets:
+            events.append("crashed")
+            s_box, lane = self.obstacle_slots[hit_box[0][1]]
+            race.resets += 1
+            race.penalty_time += rules.crash_penalty
+            race.penalties += 1
+            s_back = s_box - rules.reset_behind_obstacle
+            self._reset_car(i, s_back, track.lane_offset(1 - lane, s_back))
+        return events
+
+    def _reset_car(self, i: int, s: float, lateral: float) -> None:
+        """Put car i back on the track at arc length s, facing along the track, at rest.
+
+        If another car or a box occupies the spot, the car is put further back until it is clear.
+        """
+        track = self.track
+        others = [self.world.poses[j][:2] for j in range(self.total_cars)
+                  if j != i and not self.world.parked[j]] + [p[:2] for p in self.world.obstacle_poses]
+        for _ in range(8):
+            x, y, yaw = track.point_at(s, lateral)
+            if all(math.hypot(x - ox, y - oy) > CLEAR_RADIUS for ox, oy in others):
+                break
+            s -= CLEAR_RADIUS
+        self.world.place_car(i, x, y, yaw)
+        geo = self._measure(i)
+        self.races[i].distance += track.wrap_ds(geo["proj"].s - self._s[i])
+        self._s[i] = geo["proj"].s
+        self._geometry[i] = geo
+
+    def move_cars(self, slots: dict) -> dict:
+        """Put cars at rest at {car index: (arc length from the start line, lateral offset)}, as a reset does.
+
+        For training set-ups (bots started ahead of the learners). Returns the camera cars' new observations.
+        """
+        for i, (s, lateral) in slots.items():
+            self._reset_car(i, s % self.track.length, lateral)
+        return self._observe()
+
+    def traffic(self, i: int) -> list[tuple[float, float, float]]:
+        """The other cars on track as seen from car i: (metres ahead, lateral offset, speed)."""
+        mine = self._geometry[i]
+        if mine is None:
+            return []
+        s_i, lateral_i = mine["proj"].s, mine["proj"].lateral
+        length = self.track.length
+        return [((geo["proj"].s - s_i) % length, geo["proj"].lateral - lateral_i, float(self.world.drive_speed[j]))
+                for j, geo in enumerate(self._geometry) if geo is not None and j != i]
+
+    def forfeit(self, i: int, reason: str) -> None:
+        """End car i's run now (its agent failed); the race goes on for the others."""
+        if self.races[i].racing:
+            self._end_run(i, "forfeit", reason)
+
+    def _end_run(self, i: int, status: str, reason: str, clock: float | None = None) -> None:
+        race = self.races[i]
+        race.status, race.reason = status, reason
+        race.finish_time = round(clock if clock is not None else race.clock(self.sim_time), 4)
+        self.world.park(i)
+
+    # ----------------------------------------------------------- outputs
+    def _observe(self) -> dict:
+        draw = self._draw
+        jitter = None
+        if draw is not None and self.randomization.camera_enabled:
+            jitter = np.array(draw.camera_jitter[:self.num_cars])
+        eyes, rotations = camera_poses(self.camera, self.world.poses[:self.num_cars], jitter)
+        images = self._renderer.render_many(self.world, self._camera_cars, eyes, rotations)
+        if draw is not None and self.randomization.perception_enabled:
+            images = [apply_image(image, self._randomizer_rng, draw) for image in images]
+        if self.lidar is None:
+            return dict(zip(self.possible_agents, images))
+        ranges = self.lidar.scan(self.world, self._camera_cars, self._lidar_rng)
+        return {agent: {"camera": image, "lidar": scan}
+                for agent, image, scan in zip(self.possible_agents, images, ranges)}
+
+    def _params(self, i: int, touched: set, table: tuple) -> dict:
+        """The 27 DeepRacer reward params of car i, in DeepRacer's units."""
+        geo = self._geometry[i] if self._geometry[i] is not None else self._last_params_geometry(i)
+        race, track = self.races[i], self.track
+        proj = geo["proj"]
+        steer, speed = self._commands[i]
+        objects = self._objects_for(i, table)
+        return {
+            "all_wheels_on_track": geo["wheels_on"] == 4,
+            "x": geo["x"],
+            "y": geo["y"],
+            "heading": math.degrees(geo["yaw"]),
+            "distance_from_center": abs(proj.lateral),
+            "projection_distance": proj.s,
+            "progress": race.lap_progress(track.length) if race.racing else 100.0 * (race.status == "finished"),
+            "steps": self.steps,
+            "speed": float(speed),
+            "steering_angle": math.degrees(steer),
+            "track_width": proj.width,
+            "track_length": track.length,
+            "waypoints": track.waypoints,
+            "closest_waypoints": list(track.closest_waypoints(proj)),
+            "is_left_of_center": proj.lateral > 0,
+            "is_reversed": track.reverse,
+            **objects,
+            "is_crashed": bool(touched),
+            "is_offtrack": geo["wheels_on"] == 0,
+            "sim_time": self.sim_time,
+        }
+
+    def _last_params_geometry(self, i: int) -> dict:
+        """Geometry of a parked car: where it was when its run ended."""
+        x, y, yaw = self.world.poses[i]
+        return {"x": x, "y": y, "yaw": yaw, "proj": self.track.project(x, y), "wheels_on": 4}
+
+    def _object_table(self) -> tuple:
+        """Every object a car can see this step (boxes, then cars on track), as columns:
+
+        (car index or -1, x, y, left_of_centre, speed, heading_deg, distance_from_centre, s),
+        then per learning car `object_in_camera` and `closest_objects` (see `objects.objects_seen`).
+        """
+        rows = list(self._obstacle_rows)
+        for j, geo in enumerate(self._geometry):
+            if geo is None:
+                continue
+            proj = geo["proj"]
+            rows.append((j, geo["x"], geo["y"], proj.lateral > 0, float(self.world.drive_speed[j]),
+                         math.degrees(geo["yaw"]), abs(proj.lateral), proj.s))
+        columns = tuple(list(column) for column in zip(*rows)) if rows else ([],) * 8
+        car_s = [geo["proj"].s if geo is not None else self._s[i]
+                 for i, geo in enumerate(self._geometry[:self.num_cars])]
+        in_camera, closest = objects_seen(np.array(columns[0], np.int64), np.array(columns[1], float),
+                                          np.array(columns[2], float), np.array(columns[7], float),
+                                          self.world.poses[:self.num_cars], np.array(car_s), self.track.length,
+                                          math.tan(self.camera.hfov / 2), CAMERA_RANGE)
+        return columns, in_camera.tolist(), closest.tolist()
+
+    def _objects_for(self, i: int, table: tuple) -> dict:
+        """DeepRacer's object params for car i: the boxes and every other car on track."""
+        columns, in_camera, closest = table
+        owners = columns[0]
+        if i in owners:  # leave car i itself out of every column
+            k = owners.index(i)
+            xs, ys, left, speed, heading, from_centre, along = (c[:k] + c[k + 1:] for c in columns[1:])
+        else:
+            xs, ys, left, speed, heading, from_centre, along = (list(c) for c in columns[1:])
+        return {
+            "closest_objects": closest[i],
+            "objects_location": list(zip(xs, ys)),
+            "objects_left_of_center": left,
+            "object_in_camera": in_camera[i],
+            "objects_speed": speed,
+            "objects_heading": heading,
+            "objects_distance_from_center": from_centre,
+            "objects_distance": along,
+        }
+
+    def ranks(self) -> list[int]:
+        """Current position (1 = leading) of every car, learning cars then bots."""
+        order = self.rules.ranking(self.races, self.track.length)
+        positions = [0] * len(order)
+        for place, i in enumerate(order):
+            positions[i] = place + 1
+        return positions
+
+    def _info(self, i: int, params: dict, touched: set, ranks: list[int], events=()) -> dict:
+        """Car i's info: its reward params (the same dict, extended) plus its race state."""
+        race = self.races[i]
+        names = sorted(self.car_names[o[1]] if o[0] == "car" else f"obstacle_{o[1]}" for o in touched)
+        params.update(
+            lap=race.laps + (1 if race.racing else 0),
+            laps_completed=race.laps,
+            lap_times=list(race.lap_times),
+            race_time=race.clock(self.sim_time) if race.racing else race.finish_time,
+            resets=race.resets,
+            penalties=race.penalties,
+            penalty_time=race.penalty_time,
+            off_track=params["is_offtrack"],
+            collisions=names,
+            rank=ranks[i],
+            status=race.status,
+            events=list(events),
+        )
+        return params
+
+    # ------------------------------------------------------------ render
+    def render(self):
+        if self.render_mode != "rgb_array":
+            return None
+        from ..sensors.topdown import render_topdown
+
+        return render_topdown(self)
+
+    def close(self):
+        if self._renderer is not None:
+            self._renderer.close()
+        self.world.close()

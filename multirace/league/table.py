@@ -1,0 +1,317 @@
+"""League tables: OpenSkill ratings, time-trial standings, clean driving; Markdown, CSV, JSON, HTML, PNG.
+
+Ratings: OpenSkill's Plackett-Luce model, one update per head-to-head heat
+with the heat's finishing order, heats taken in schedule order (so the
+ratings are deterministic); the rating shown is the ordinal, mu - 3 sigma.
+Time-trial standings (reset rule): best lap, completion rate (the share of
+trials that completed every lap), average lap. Clean driving: collisions the
+entrant caused per lap driven, over all its races.
+"""
+from __future__ import annotations
+
+import base64
+import csv
+import html
+import io
+import json
+import math
+import os
+from pathlib import Path
+
+from .core import connect, entrants, load_config, sync_schedule
+
+COLUMNS = ["rank", "entrant", "rating", "mu", "sigma", "heats", "wins", "avg_position", "tt_best_lap",
+           "tt_completion", "tt_avg_lap", "collisions_caused_per_lap", "forfeits"]
+
+
+def _mean(values):
+    return sum(values) / len(values) if values else None
+
+
+def compute_table(folder) -> dict:
+    """Everything a league table shows, from the SQLite store (deterministic for the same results)."""
+    from openskill.models import PlackettLuce
+
+    folder = Path(folder)
+    config = load_config(folder)
+    conn = connect(folder)
+    try:
+        schedule = sync_schedule(folder, config, conn)
+        current = {row["match_id"] for row in schedule}
+        rows = conn.execute(
+            "SELECT s.match_id, s.seq, s.kind, s.round, s.spec, r.status, r.result, r.reason, r.replay "
+            "FROM schedule s LEFT JOIN results r USING (match_id) ORDER BY s.seq").fetchall()
+        names = [e["name"] for e in entrants(folder, config, conn)]
+    finally:
+        conn.close()
+    rows = [r for r in rows if r[0] in current]
+    model = PlackettLuce()
+    ratings = {name: model.rating(name=name) for name in names}
+    stats = {name: {"heats": 0, "wins": 0, "positions": [], "tt_trials": 0, "tt_finished": 0, "tt_best": [],
+                    "tt_laps": [], "laps": 0, "caused": 0, "forfeits": 0, "forfeit_reasons": []} for name in names}
+    history = []  # (round, {name: ordinal}) after each head-to-head round
+    matches, failed = [], []
+    current_round = None
+    pending = 0
+
+    def snapshot(round_no):
+        history.append({"round": round_no, "ordinal": {n: round(ratings[n].ordinal(), 4) for n in names}})
+
+    for match_id, seq, kind, round_no, spec, status, result, reason, replay in rows:
+        spec = json.loads(spec)
+        if status is None:
+            pending += 1
+            continue
+        entry = {"match_id": match_id, "seq": seq, "kind": kind, "round": round_no, "track": spec["track"],
+                 "reverse": spec["reverse"], "seed": spec["seed"], "status": status,
+                 "entrants": [e["name"] for e in spec["entrants"]], "replay": replay}
+        if status == "failed":
+            entry["reason"] = reason
+            failed.append({"match_id": match_id, "kind": kind, "entrants": entry["entrants"], "reason": reason})
+            matches.append(entry)
+            continue
+        result = json.loads(result)
+        cars = [c for c in result["cars"] if c["name"] in stats]
+        entry["order"] = [c["name"] for c in sorted(cars, key=lambda c: c["position"])]
+        entry["cars"] = [{k: c[k] for k in ("name", "position", "laps", "best_lap", "total_time", "status", "reason")}
+                         for c in cars]
+        matches.append(entry)
+        for car in cars:
+            s = stats[car["name"]]
+            s["laps"] += car["laps"]
+            s["caused"] += car.get("collisions_caused", 0) or 0
+            if car["status"] == "forfeit":
+                s["forfeits"] += 1
+                if car["reason"] and car["reason"] not in s["forfeit_reasons"]:
+                    s["forfeit_reasons"].append(car["reason"])
+        if kind == "time_trial":
+            for car in cars:
+                s = stats[car["name"]]
+                s["tt_trials"] += 1
+                s["tt_finished"] += car["status"] == "finished"
+                if car["best_lap"] is not None:
+                    s["tt_best"].append(car["best_lap"])
+                s["tt_laps"].extend(car["lap_times"] if "lap_times" in car else [])
+        elif kind == "head_to_head" and len(cars) >= 2:
+            if current_round is not None and round_no != current_round:
+                snapshot(current_round)
+            current_round = round_no
+            ordered = sorted(cars, key=lambda c: c["position"])
+            teams = [[ratings[c["name"]]] for c in ordered]
+            new = model.rate(teams, ranks=[c["position"] for c in ordered])
+            for c, team in zip(ordered, new):
+                ratings[c["name"]] = team[0]
+                s = stats[c["name"]]
+                s["heats"] += 1
+                s["positions"].append(c["position"])
+                s["wins"] += c["position"] == 1
+    if current_round is not None:
+        snapshot(current_round)
+    standings = []
+    for name in names:
+        s, r = stats[name], ratings[name]
+        standings.append({
+            "entrant": name,
+            "rating": round(r.ordinal(), 3), "mu": round(r.mu, 3), "sigma": round(r.sigma, 3),
+            "heats": s["heats"], "wins": s["wins"],
+            "avg_position": round(_mean(s["positions"]), 3) if s["positions"] else None,
+            "tt_best_lap": round(min(s["tt_best"]), 4) if s["tt_best"] else None,
+            "tt_completion": round(s["tt_finished"] / s["tt_trials"], 4) if s["tt_trials"] else None,
+            "tt_avg_lap": round(_mean(s["tt_laps"]), 4) if s["tt_laps"] else None,
+            "collisions_caused_per_lap": round(s["caused"] / s["laps"], 4) if s["laps"] else None,
+            "forfeits": s["forfeits"],
+            "forfeit_reasons": s["forfeit_reasons"],
+        })
+    has_h2h = any(s["heats"] for s in standings)
+    standings.sort(key=lambda s: ((-s["rating"]) if has_h2h else 0,
+                                  s["tt_best_lap"] if s["tt_best_lap"] is not None else math.inf,
+                                  s["entrant"]))
+    for i, s in enumerate(standings, 1):
+        s["rank"] = i
+    time_trials = sorted((s for s in standings if s["tt_completion"] is not None),
+                         key=lambda s: (s["tt_best_lap"] if s["tt_best_lap"] is not None else math.inf,
+                                        -s["tt_completion"], s["entrant"]))
+    return {"league": config.name, "scheduled": len(rows), "recorded": len(rows) - pending, "pending": pending,
+            "failed": failed, "standings": standings,
+            "time_trials": [{"rank": i, **{k: s[k] for k in ("entrant", "tt_best_lap", "tt_completion", "tt_avg_lap")}}
+                            for i, s in enumerate(time_trials, 1)],
+            "rating_history": history, "matches": matches,
+            "tracks": [{"name": t.name, "directions": list(t.directions)} for t in config.tracks]}
+
+
+# ------------------------------------------------------------------ text formats
+def _cell(value) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.3f}"
+    return str(value)
+
+
+def to_markdown(table: dict) -> str:
+    lines = [f"# {table['league']}", "",
+             f"{table['recorded']} of {table['scheduled']} matches recorded"
+             + (f", {len(table['failed'])} failed" if table["failed"] else "")
+             + (f", {table['pending']} pending" if table["pending"] else ""), "",
+             "| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+    for s in table["standings"]:
+        lines.append("| " + " | ".join(_cell(s[c]) for c in COLUMNS) + " |")
+    if table["time_trials"]:
+        lines += ["", "## Time trials (reset rule)", "", "| rank | entrant | best lap | completion | avg lap |",
+                  "|---|---|---|---|---|"]
+        for s in table["time_trials"]:
+            lines.append(f"| {s['rank']} | {s['entrant']} | {_cell(s['tt_best_lap'])} | "
+                         f"{_cell(s['tt_completion'])} | {_cell(s['tt_avg_lap'])} |")
+    reasons = [(s["entrant"], r) for s in table["standings"] for r in s["forfeit_reasons"]]
+    if reasons:
+        lines += ["", "## Forfeits", ""] + [f"- {name}: {reason}" for name, reason in reasons]
+    if table["failed"]:
+        lines += ["", "## Failed matches", ""] + [f"- {f['match_id']} ({f['kind']}, {', '.join(f['entrants'])}): "
+                                                    f"{f['reason']}" for f in table["failed"]]
+    return "\n".join(lines) + "\n"
+
+
+def to_csv(table: dict) -> str:
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(COLUMNS)
+    for s in table["standings"]:
+        writer.writerow(["" if s[c] is None else s[c] for c in COLUMNS])
+    return out.getvalue()
+
+
+def to_json(table: dict) -> str:
+    return json.dumps(table, indent=2, sort_keys=True) + "\n"
+
+
+# ------------------------------------------------------------------ plots and HTML
+def _png_bytes(fig) -> bytes:
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=100, bbox_inches="tight")
+    return buffer.getvalue()
+
+
+def rating_plot_png(table: dict) -> bytes:
+    """PNG of every entrant's rating (ordinal) after each head-to-head round."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    history = table["rating_history"]
+    rounds = [0] + [h["round"] + 1 for h in history]
+    for s in table["standings"]:
+        values = [0.0] + [h["ordinal"][s["entrant"]] for h in history]  # ordinal of a new rating is 0
+        ax.plot(rounds, values, marker="o", markersize=3, label=s["entrant"])
+    ax.set_xlabel("head-to-head round")
+    ax.set_ylabel("rating (mu - 3 sigma)")
+    ax.set_title(f"{table['league']}: ratings over rounds")
+    ax.grid(alpha=0.3)
+    if table["standings"]:
+        ax.legend(fontsize=8, loc="best")
+    data = _png_bytes(fig)
+    plt.close(fig)
+    return data
+
+
+def track_map_png(name: str) -> bytes:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..sim.tracks import load_track
+
+    track = load_track(name)
+    fig, ax = plt.subplots(figsize=(4, 3))
+    ax.fill(track.outer[:, 0], track.outer[:, 1], color="#555555")
+    ax.fill(track.inner[:, 0], track.inner[:, 1], color="white")
+    for line in (track.inner, track.outer):
+        ax.plot(line[:, 0], line[:, 1], color="black", linewidth=1)
+    ax.plot(track.center[:, 0], track.center[:, 1], "--", color="yellow", linewidth=0.8)
+    ax.plot(track.center[0, 0], track.center[0, 1], "o", color="red")
+    ax.set_aspect("equal")
+    ax.set_title(f"{name} ({track.length:.1f} m)")
+    ax.axis("off")
+    data = _png_bytes(fig)
+    plt.close(fig)
+    return data
+
+
+def _img(data: bytes, alt: str) -> str:
+    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{base64.b64encode(data).decode()}">'
+
+
+def to_html(table: dict, replay_base: str = "") -> str:
+    """A self-contained leaderboard page: standings, rating plot, track maps, matches with replay links.
+
+    Replay links are `replay_base` + the path relative to the league folder."""
+    e = html.escape
+    head = "".join(f"<th>{e(c)}</th>" for c in COLUMNS)
+    body = "".join("<tr>" + "".join(f"<td>{e(_cell(s[c]))}</td>" for c in COLUMNS) + "</tr>"
+                   for s in table["standings"])
+    tt = "".join(f"<tr><td>{s['rank']}</td><td>{e(s['entrant'])}</td><td>{_cell(s['tt_best_lap'])}</td>"
+                 f"<td>{_cell(s['tt_completion'])}</td><td>{_cell(s['tt_avg_lap'])}</td></tr>"
+                 for s in table["time_trials"])
+    maps = "".join(f"<figure>{_img(track_map_png(t['name']), t['name'])}<figcaption>{e(t['name'])} "
+                   f"({e(', '.join(t['directions']))})</figcaption></figure>" for t in table["tracks"])
+    match_rows = []
+    for m in table["matches"]:
+        replay = f'<a href="{e(replay_base + m["replay"])}">replay</a>' if m.get("replay") else "-"
+        outcome = e(" > ".join(m["order"])) if "order" in m else e(f"failed: {m.get('reason', '')}")
+        direction = "reverse" if m["reverse"] else "forward"
+        match_rows.append(f"<tr><td>{m['seq']}</td><td>{e(m['kind'])}</td><td>{e(m['track'])} {direction}</td>"
+                          f"<td>{m['seed']}</td><td>{outcome}</td><td>{replay}</td></tr>")
+    forfeits = "".join(f"<li>{e(s['entrant'])}: {e(r)}</li>" for s in table["standings"]
+                       for r in s["forfeit_reasons"])
+    summary = (f"{table['recorded']} of {table['scheduled']} matches recorded, {len(table['failed'])} failed, "
+               f"{table['pending']} pending")
+    return f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>{e(table['league'])}</title>
+<style>
+body {{ font-family: system-ui, sans-serif; margin: 2em; color: #222; }}
+table {{ border-collapse: collapse; margin: 1em 0; }}
+th, td {{ border: 1px solid #ccc; padding: 4px 8px; text-align: right; }}
+th {{ background: #eee; }} td:nth-child(2) {{ text-align: left; }}
+figure {{ display: inline-block; margin: 0 1em 1em 0; }}
+</style></head><body>
+<h1>{e(table['league'])}</h1>
+<p>{e(summary)}. Rating: OpenSkill Plackett-Luce ordinal (mu - 3 sigma) from head-to-head finishing orders;
+time trials under the reset rule; collisions caused per lap driven.</p>
+<h2>Standings</h2>
+<table><tr>{head}</tr>{body}</table>
+<h2>Ratings over rounds</h2>
+{_img(rating_plot_png(table), 'ratings over rounds')}
+<h2>Time trials (reset rule)</h2>
+<table><tr><th>rank</th><th>entrant</th><th>best lap (s)</th><th>completion</th><th>avg lap (s)</th></tr>{tt}</table>
+<h2>Tracks</h2>
+{maps}
+{'<h2>Forfeits</h2><ul>' + forfeits + '</ul>' if forfeits else ''}
+<h2>Matches</h2>
+<p>Replays open with <code>rerun FILE.rrd</code> or <code>multirace replay FILE.rrd</code>.</p>
+<table><tr><th>#</th><th>format</th><th>track</th><th>seed</th><th>finishing order</th><th>replay</th></tr>
+{''.join(match_rows)}</table>
+</body></html>
+"""
+
+
+def write_table(folder, fmt: str = "md", out=None) -> str:
+    """Render the league table in `fmt` (md, csv, json, html); writes `out` if given, and always the
+    rating plot `ratings.png` in the league folder. Returns the text."""
+    folder = Path(folder)
+    table = compute_table(folder)
+    renderers = {"md": to_markdown, "csv": to_csv, "json": to_json, "html": to_html}
+    if fmt not in renderers:
+        raise ValueError(f"--format: unknown table format {fmt!r}; choose one of {', '.join(renderers)}")
+    if fmt == "html":
+        base = os.path.relpath(folder.resolve(), Path(out).resolve().parent) if out else "."
+        text = to_html(table, "" if base == "." else base.replace(os.sep, "/") + "/")
+    else:
+        text = renderers[fmt](table)
+    (folder / "ratings.png").write_bytes(rating_plot_png(table))
+    if out:
+        Path(out).write_text(text)
+    return text
+
+

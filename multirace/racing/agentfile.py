@@ -1,0 +1,425 @@
+"""Agent files: a camera policy's weights plus its DeepRacer-style model_metadata, in one `.pt`.
+
+An agent file is a ``torch.save`` of a plain dict::
+
+    {"format": "multirace-agent", "format_version": 1,
+     "metadata": "<model_metadata JSON text>",
+     "state_dict": {parameter name: tensor, ...}}
+
+The metadata is DeepRacer's ``model_metadata.json`` (``sensor``,
+``neural_network``, ``action_space``, ``action_space_type``, ``version``,
+``training_algorithm``) plus ``name`` (the agent's name), ``image``
+(``{"height", "width", "channels"}`` of the camera it expects) and optional
+``training`` notes. ``sensor`` is ``["FRONT_FACING_CAMERA"]``, or
+``["FRONT_FACING_CAMERA", "LIDAR"]`` for a policy that also reads DeepRacer's
+64-beam LIDAR (see `lidar`). The network is rebuilt from its name (`nets.NETWORKS`),
+so a custom network travels without Python source.
+
+Loading never unpickles arbitrary objects: files are read with
+``torch.load(..., weights_only=True)``, which only accepts tensors and plain
+containers; a pickle that would import or call anything else is refused.
+Validation on load checks the metadata, the weights against the architecture,
+the output shape against the action space, and a smoke inference (finite
+output, within the time budget). Every error names the file and the field.
+"""
+from __future__ import annotations
+
+import io
+import json
+import math
+import pickle
+import time
+import warnings
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..environment.actions import ActionSpace, ActionSpaceError
+from ..sensors.lidar import SENSOR_NAME as LIDAR, LidarSpec
+from .nets import NETWORKS, CameraNet, num_outputs_for, parameter_count
+from .entrant import Controller, Forfeit, file_sha256
+
+FORMAT = "multirace-agent"
+FORMAT_VERSION = 1
+CAMERA = "FRONT_FACING_CAMERA"
+SENSORS = (CAMERA, LIDAR)
+DEFAULT_STEP_BUDGET = 1.0 / 15  # seconds: one 15 Hz frame (DeepRacer's control rate)
+WARMUP_STEPS = 2  # first steps of a race not held to the time budget (allocator / cache warm-up)
+
+
+class AgentFileError(ValueError):
+    """An agent file is unreadable, unsafe or inconsistent; the message names the file and the problem."""
+
+
+def make_metadata(action_space, network: str, name: str, image_shape=(120, 160, 1), version: str = "5",
+                  training_algorithm: str = "dagger", lidar: bool = False, **extra) -> dict:
+    """A model_metadata dict for an agent file (`lidar`: the policy also reads the LIDAR)."""
+    height, width, channels = (int(v) for v in image_shape)
+    metadata = {
+        "name": str(name),
+        "sensor": [CAMERA, LIDAR] if lidar else [CAMERA],
+        "image": {"height": height, "width": width, "channels": channels},
+        "neural_network": network,
+        "training_algorithm": training_algorithm,
+        **action_space.to_metadata(),
+        "version": str(version),
+    }
+    metadata.update(extra)
+    return metadata
+
+
+def save_agent(path, net: CameraNet, metadata: dict) -> Path:
+    """Write `net`'s weights and `metadata` (a model_metadata dict) as an agent file; returns the path.
+
+    The metadata is checked against the net (network name, image shape, outputs)
+    before anything is written.
+    """
+    path = Path(path)
+    metadata = dict(metadata)
+    metadata.setdefault("name", path.stem)
+    metadata.setdefault("neural_network", net.network)
+    h, w, c = net.image_shape
+    metadata.setdefault("image", {"height": h, "width": w, "channels": c})
+    metadata.setdefault("sensor", [CAMERA, LIDAR] if net.lidar_samples else [CAMERA])
+    metadata.setdefault("version", "5")
+    _, space, network, image_shape = check_metadata(metadata, str(path))
+    if network != net.network or tuple(image_shape) != tuple(net.image_shape):
+        raise AgentFileError(f"{path}: metadata says {network} on {image_shape} images but the net is "
+                             f"{net.network} on {net.image_shape}")
+    if lidar_samples(metadata) != net.lidar_samples:
+        raise AgentFileError(f"{path}: metadata field 'sensor' {metadata['sensor']!r} does not match the net "
+                             f"({net.lidar_samples} LIDAR inputs)")
+    if num_outputs_for(space) != net.num_outputs:
+        raise AgentFileError(f"{path}: the net has {net.num_outputs} outputs but the action space needs "
+                             f"{num_outputs_for(space)}")
+    state = {k: v.detach().cpu().contiguous().clone() for k, v in net.state_dict().items()}
+    payload = {"format": FORMAT, "format_version": FORMAT_VERSION,
+               "metadata": json.dumps(metadata, indent=2, sort_keys=True), "state_dict": state}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    buffer = io.BytesIO()
+    torch.save(payload, buffer)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(buffer.getvalue())
+    tmp.replace(path)
+    return path
+
+
+# ------------------------------------------------------------------ loading
+def read_payload(path) -> dict:
+    """The raw dict of an agent file, loaded safely (weights_only); AgentFileError if unreadable or unsafe."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such agent file")
+    if path.is_dir():
+        raise AgentFileError(f"{path}: is a directory, not an agent file")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            payload = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        first = str(exc).strip().splitlines()
+        detail = next((line.strip() for line in first if "Unsupported" in line or "global" in line.lower()),
+                      first[0] if first else "")
+        if "operand" in detail and "global" not in detail.lower():  # an opcode the safe loader lacks: garbage
+            raise AgentFileError(f"{path}: unreadable agent file: not a weights-only torch file ({detail}); "
+                                 "nothing in it was run") from None
+        raise AgentFileError(f"{path}: refused: the file's pickle holds more than tensors and plain data "
+                             f"(it would import or call code; agent files may hold only tensors and "
+                             f"metadata): {detail}") from None
+    except (RuntimeError, EOFError, zipfile.BadZipFile, OSError, ValueError, KeyError, IndexError) as exc:
+        message = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+        message = f"{type(exc).__name__}: {message.split('. ')[0][:160]}"
+        raise AgentFileError(f"{path}: unreadable or truncated agent file ({message})") from None
+    except Exception as exc:  # anything else torch.load may raise on garbage
+        raise AgentFileError(f"{path}: unreadable agent file ({type(exc).__name__}: {exc})") from None
+    if not isinstance(payload, dict):
+        raise AgentFileError(f"{path}: not an agent file (expected a dict, found {type(payload).__name__})")
+    if payload.get("format") != FORMAT:
+        raise AgentFileError(f"{path}: field 'format' is {payload.get('format')!r}, expected {FORMAT!r} "
+                             "(save agents with multirace.racing.agentfile.save_agent)")
+    if payload.get("format_version") != FORMAT_VERSION:
+        raise AgentFileError(f"{path}: field 'format_version' is {payload.get('format_version')!r}, "
+                             f"this multirace reads version {FORMAT_VERSION}")
+    return payload
+
+
+def parse_metadata(payload: dict, source: str) -> dict:
+    """The metadata dict of a payload (JSON text inside the file)."""
+    raw = payload.get("metadata")
+    if raw is None:
+        raise AgentFileError(f"{source}: field 'metadata' is missing")
+    if not isinstance(raw, str):
+        raise AgentFileError(f"{source}: field 'metadata' must be model_metadata JSON text")
+    try:
+        metadata = json.loads(raw)
+    except json.JSONDecodeError as exc:
+        raise AgentFileError(f"{source}: field 'metadata' is not valid JSON ({exc})") from None
+    if not isinstance(metadata, dict):
+        raise AgentFileError(f"{source}: field 'metadata' must be a JSON object")
+    return metadata
+
+
+def check_metadata(metadata: dict, source: str):
+    """Validate a model_metadata dict; returns (metadata, ActionSpace, network name, image shape)."""
+    sensor = metadata.get("sensor")
+    if sensor is None:
+        raise AgentFileError(f"{source}: metadata field 'sensor' is missing")
+    if isinstance(sensor, str):
+        sensor = [sensor]
+    if not isinstance(sensor, list) or not sensor or any(s not in SENSORS for s in sensor):
+        raise AgentFileError(f"{source}: metadata field 'sensor' is {metadata.get('sensor')!r}; "
+                             f"supported: {list(SENSORS)}")
+    if CAMERA not in sensor:
+        raise AgentFileError(f"{source}: metadata field 'sensor' is {metadata.get('sensor')!r}; "
+                             f"every agent drives from its {CAMERA!r}")
+    image = metadata.get("image")
+    if not isinstance(image, dict):
+        raise AgentFileError(f"{source}: metadata field 'image' is missing or not "
+                             "{'height', 'width', 'channels'}")
+    try:
+        shape = tuple(int(image[k]) for k in ("height", "width", "channels"))
+    except (KeyError, TypeError, ValueError):
+        raise AgentFileError(f"{source}: metadata field 'image' needs integer 'height', 'width' and "
+                             f"'channels', got {image!r}") from None
+    if not (32 <= shape[0] <= 1080 and 32 <= shape[1] <= 1920 and shape[2] in (1, 3)):
+        raise AgentFileError(f"{source}: metadata field 'image' {image!r} out of range "
+                             "(32-1080 x 32-1920 pixels, 1 or 3 channels)")
+    network = metadata.get("neural_network")
+    if network not in NETWORKS:
+        raise AgentFileError(f"{source}: metadata field 'neural_network' is {network!r}; known networks: "
+                             f"{', '.join(NETWORKS)}")
+    try:
+        space = ActionSpace(metadata, f"{source}: metadata")
+    except ActionSpaceError as exc:
+        raise AgentFileError(str(exc)) from None
+    name = metadata.get("name")
+    if name is not None and (not isinstance(name, str) or not name.strip()):
+        raise AgentFileError(f"{source}: metadata field 'name' must be a non-empty string")
+    return metadata, space, network, shape
+
+
+def lidar_samples(metadata: dict) -> int:
+    """How many LIDAR ranges the agent of a (checked) model_metadata reads: 0 without a LIDAR."""
+    sensor = metadata.get("sensor")
+    return LidarSpec().samples if LIDAR in ([sensor] if isinstance(sensor, str) else sensor) else 0
+
+
+class Agent:
+    """A loaded, validated agent: net (eval mode), metadata, action space."""
+
+    def __init__(self, path: Path, net: CameraNet, metadata: dict, space: ActionSpace, sha256: str):
+        self.path, self.net, self.metadata, self.action_space, self.sha256 = path, net, metadata, space, sha256
+        self.name = metadata.get("name") or path.stem
+
+    @property
+    def image_shape(self) -> tuple[int, int, int]:
+        return self.net.image_shape
+
+    @property
+    def lidar_samples(self) -> int:
+        return self.net.lidar_samples
+
+    def outputs(self, observation) -> np.ndarray:
+        """The net's raw output row for one uint8 (H, W, C) image (LIDAR agents: the env's dict)."""
+        with torch.no_grad():
+            if self.lidar_samples:
+                out = self.net({"camera": torch.from_numpy(np.ascontiguousarray(observation["camera"])),
+                                "lidar": torch.from_numpy(np.asarray(observation["lidar"], np.float32))})
+            else:
+                out = self.net(torch.from_numpy(np.ascontiguousarray(observation)))
+        return out.numpy()
+
+    def decide(self, output: np.ndarray):
+        """The greedy action for an output row: argmax index, or the [steer, speed] mean."""
+        if self.action_space.discrete:
+            return int(np.argmax(output))
+        return output[:2]
+
+
+def load_agent(path, step_budget: float | None = DEFAULT_STEP_BUDGET, smoke_runs: int = 5) -> Agent:
+    """Load and validate an agent file (see the module docstring); AgentFileError names the problem.
+
+    The smoke inference runs on a blank image (up to `smoke_runs` tries); the
+    fastest must finish within `step_budget` seconds (None: no time check).
+    """
+    path = Path(path)
+    payload = read_payload(path)
+    source = str(path)
+    metadata, space, network, shape = check_metadata(parse_metadata(payload, source), source)
+    state = payload.get("state_dict")
+    if not isinstance(state, dict) or not all(isinstance(k, str) and isinstance(v, torch.Tensor)
+                                              for k, v in state.items()):
+        raise AgentFileError(f"{source}: field 'state_dict' must map parameter names to tensors")
+    value_head = any(k.startswith("value_head.") for k in state)
+    head = state.get("head.weight")
+    expected = num_outputs_for(space)
+    if isinstance(head, torch.Tensor) and head.dim() == 2 and head.shape[0] != expected:
+        raise AgentFileError(f"{source}: output shape: the net outputs {head.shape[0]} values but the "
+                             f"{space.kind} action space needs {expected}")
+    try:
+        net = CameraNet(network, shape, expected, value_head=value_head, lidar_samples=lidar_samples(metadata))
+    except ValueError as exc:
+        raise AgentFileError(f"{source}: metadata field 'image': {exc}") from None
+    try:
+        net.load_state_dict(state, strict=True)
+    except RuntimeError as exc:
+        lines = [line.strip() for line in str(exc).splitlines() if line.strip()][1:4]
+        with_lidar = f" and {lidar_samples(metadata)} LIDAR ranges" if lidar_samples(metadata) else ""
+        raise AgentFileError(f"{source}: weights do not match the {network} architecture for "
+                             f"{shape[0]}x{shape[1]}x{shape[2]} images{with_lidar}: {' '.join(lines)}") from None
+    net.eval()
+    agent = Agent(path, net, metadata, space, file_sha256(path))
+    smoke_test(agent, step_budget, smoke_runs)
+    return agent
+
+
+def smoke_test(agent: Agent, step_budget: float | None, runs: int = 5) -> None:
+    """One inference on a blank image (and an empty LIDAR scan): right shape, finite, and within budget.
+
+    Timed on one torch thread (as `AgentController` runs); up to `runs` tries, the
+    fastest counts, so a busy machine's hiccup does not reject a good agent.
+    """
+    source = str(agent.path)
+    blank = np.zeros(agent.image_shape, dtype=np.uint8)
+    if agent.lidar_samples:
+        blank = {"camera": blank, "lidar": np.full(agent.lidar_samples, LidarSpec().max_range, np.float32)}
+    fastest = math.inf
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        for _ in range(max(1, runs)):
+            start = time.perf_counter()
+            try:
+                out = agent.outputs(blank)
+            except Exception as exc:
+                raise AgentFileError(f"{source}: smoke inference failed ({type(exc).__name__}: {exc})") from None
+            fastest = min(fastest, time.perf_counter() - start)
+            if step_budget is None or fastest <= step_budget:
+                break
+    finally:
+        torch.set_num_threads(threads)
+    expected = num_outputs_for(agent.action_space)
+    if out.shape != (1, expected):
+        raise AgentFileError(f"{source}: output shape {tuple(out.shape)} does not match the action space "
+                             f"(expected (1, {expected}))")
+    if not np.all(np.isfinite(out)):
+        raise AgentFileError(f"{source}: smoke inference gave non-finite output (NaN or inf)")
+    if step_budget is not None and fastest > step_budget:
+        raise AgentFileError(f"{source}: smoke inference took {fastest * 1000:.1f} ms, over the "
+                             f"{step_budget * 1000:.1f} ms step budget")
+
+
+def inspect_agent(path) -> dict:
+    """What `multirace agent inspect` prints: metadata, parameter count, sha256, validity."""
+    path = Path(path)
+    info = {"file": str(path), "sha256": file_sha256(path), "size_bytes": path.stat().st_size}
+    try:
+        agent = load_agent(path, step_budget=None)
+    except AgentFileError as exc:
+        info.update(valid=False, error=str(exc))
+        try:
+            info["metadata"] = parse_metadata(read_payload(path), str(path))
+        except AgentFileError:
+            pass
+        return info
+    info.update(valid=True, name=agent.name, network=agent.net.network,
+                parameters=parameter_count(agent.net), outputs=agent.net.num_outputs,
+                value_head=agent.net.has_value, metadata=agent.metadata)
+    return info
+
+
+# --------------------------------------------------------------- controller
+class AgentController(Controller):
+    """Drives a car with an agent file's policy, from the camera alone.
+
+    A file that exists but is bad does not stop the race: the load error is
+    kept and the agent forfeits with that reason on its first step. Each step's
+    inference must finish within `step_budget` seconds (after `WARMUP_STEPS`
+    steps); NaN or wrong-shaped output, an exception or an over-budget step
+    forfeits. A missing file raises FileNotFoundError (a typo, not a bad agent).
+    `threads` sets torch's intra-op threads (None leaves them).
+    """
+
+    def __init__(self, path, step_budget: float = DEFAULT_STEP_BUDGET, threads: int | None = 1,
+                 warmup_steps: int = WARMUP_STEPS):
+        self.path = Path(path)
+        if not self.path.exists():
+            raise FileNotFoundError(f"{self.path}: no such agent file")
+        if threads is not None:
+            torch.set_num_threads(int(threads))
+        self.step_budget = float(step_budget)
+        self.warmup_steps = int(warmup_steps)
+        self.name = self.path.stem
+        try:
+            self.file_sha256 = file_sha256(self.path)
+        except OSError:
+            self.file_sha256 = None
+        self.agent: Agent | None = None
+        self.error: str | None = None
+        try:
+            self.agent = load_agent(self.path, step_budget=self.step_budget)
+            self.name = self.agent.name
+        except AgentFileError as exc:
+            self.error = str(exc)
+            try:  # name the car after its metadata even when the file is bad, if that is readable
+                meta = parse_metadata(read_payload(self.path), str(self.path))
+                if isinstance(meta.get("name"), str) and meta["name"].strip():
+                    self.name = meta["name"]
+            except (AgentFileError, FileNotFoundError):
+                pass
+        self.steps = 0
+        self.step_times: list[float] = []
+
+    @property
+    def uses_lidar(self) -> bool:
+        return self.agent is not None and self.agent.lidar_samples > 0
+
+    def reset(self, env, car: int) -> None:
+        super().reset(env, car)
+        self.steps = 0
+        self.step_times = []
+
+    def act(self, observation, info):
+        if self.agent is None:
+            raise Forfeit(f"bad agent file: {self.error}")
+        self.steps += 1
+        obs = self._checked_observation(observation)
+        start = time.perf_counter()
+        try:
+            out = self.agent.outputs(obs)
+        except Exception as exc:
+            raise Forfeit(f"inference raised {type(exc).__name__}: {exc}") from None
+        elapsed = time.perf_counter() - start
+        self.step_times.append(elapsed)
+        expected = num_outputs_for(self.agent.action_space)
+        if out.shape != (1, expected):
+            raise Forfeit(f"output shape {tuple(out.shape)} does not match the action space (1, {expected})")
+        if not np.all(np.isfinite(out)):
+            raise Forfeit(f"non-finite output (NaN or inf) at step {self.steps}")
+        if self.steps > self.warmup_steps and elapsed > self.step_budget:
+            raise Forfeit(f"step {self.steps} inference took {elapsed * 1000:.1f} ms, over the "
+                          f"{self.step_budget * 1000:.1f} ms budget")
+        try:
+            steer, speed = self.agent.action_space.command(self.agent.decide(out[0]))
+        except Exception as exc:
+            raise Forfeit(f"could not turn output into a command ({type(exc).__name__}: {exc})") from None
+        return float(steer), float(speed)
+
+    def _checked_observation(self, observation):
+        """The part of the env's observation this agent reads, checked against its model_metadata."""
+        scan = None
+        if isinstance(observation, dict):
+            observation, scan = observation.get("camera"), observation.get("lidar")
+        image = np.asarray(observation)
+        if image.shape != tuple(self.agent.image_shape) or image.dtype != np.uint8:
+            raise Forfeit(f"observation {image.shape} {image.dtype} does not match the agent's model_metadata "
+                          f"image {tuple(self.agent.image_shape)} uint8")
+        if not self.agent.lidar_samples:
+            return image
+        scan = np.asarray(scan if scan is not None else [], np.float32)
+        if scan.shape != (self.agent.lidar_samples,):
+            raise Forfeit(f"LIDAR observation of shape {scan.shape} does not match the agent's "
+                          f"{self.agent.lidar_samples} ranges (sensor {LIDAR!r} in its model_metadata)")
+        return {"camera": image, "lidar": scan}

@@ -1,0 +1,105 @@
+"""Running a race between entrants (agent files and bots) and writing its result record.
+
+Every entrant is a `Controller` that turns its car's camera image (its LIDAR
+scan too, if it reads one; for bots, the privileged state) into a command
+(steering degrees, speed m/s).
+The env is built with the full continuous command range so that entrants with
+different action spaces can race each other; each controller maps its own
+actions to commands. A controller that fails forfeits; the race goes on.
+"""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from ..environment.race_env import RaceEnv
+from .entrant import COMMAND_SPACE, BotController, Controller, Forfeit
+
+
+def make_controller(spec: str, **agent_options) -> Controller:
+    """A controller from `bot:KIND@SPEED` or the path of an agent file."""
+    if spec.startswith("bot:"):
+        return BotController(spec)
+    from .agentfile import AgentController  # torch is only needed for agent files
+
+    return AgentController(Path(spec), **agent_options)
+
+
+@dataclasses.dataclass
+class RaceConfig:
+    """What race to run."""
+
+    track: str = "reinvent_base"
+    reverse: bool = False
+    race: str = "time_trial"
+    laps: int = 3
+    seed: int = 0
+    obstacles: int | None = None
+    max_steps: int | None = None
+    renderer: str = "fast"
+
+
+def run_race(controllers: list[Controller], config: RaceConfig, recorders=()) -> dict:
+    """Race `controllers` against each other; returns the result record (DESIGN.md format).
+
+    `recorders` get `start(env)`, `step(env, observations, rewards, infos)` and
+    `finish(env, result)` calls (replays, sim-trace logs, videos).
+    """
+    if not controllers:
+        raise ValueError("a race needs at least one entrant")
+    env = RaceEnv(track=config.track, reverse=config.reverse, num_cars=len(controllers), race=config.race,
+                  laps=config.laps, obstacles=config.obstacles, action_space=COMMAND_SPACE,
+                  lidar=any(c.uses_lidar for c in controllers),
+                  max_steps=config.max_steps, renderer=config.renderer,
+                  car_names=[c.name for c in controllers])
+    try:
+        observations, infos = env.reset(seed=config.seed)
+        for i, controller in enumerate(controllers):
+            controller.reset(env, i)
+        for recorder in recorders:
+            recorder.start(env)
+        while env.agents:
+            actions = {}
+            for i, agent in enumerate(env.possible_agents):
+                if not env.races[i].racing:
+                    continue
+                try:
+                    actions[agent] = controllers[i].act(observations[agent], infos[agent])
+                except Forfeit as exc:
+                    env.forfeit(i, str(exc))
+            observations, rewards, _, _, infos = env.step(actions)
+            for recorder in recorders:
+                recorder.step(env, observations, rewards, infos)
+        result = race_result(env, controllers, config)
+        for recorder in recorders:
+            recorder.finish(env, result)
+        return result
+    finally:
+        env.close()
+
+
+def race_result(env: RaceEnv, controllers: list[Controller], config: RaceConfig) -> dict:
+    """The result record of a finished race."""
+    positions = env.ranks()
+    cars = []
+    for i, race in enumerate(env.races):
+        controller = controllers[i]
+        cars.append({
+            "name": controller.name,
+            "file_sha256": controller.file_sha256,
+            "position": positions[i],
+            "laps": race.laps,
+            "lap_times": list(race.lap_times),
+            "best_lap": race.best_lap,
+            "total_time": race.finish_time,
+            "resets": race.resets,
+            "penalties": race.penalties,
+            "collisions": len(race.collisions),
+            "collisions_caused": race.collisions_caused(),
+            "progress": round(race.race_progress(env.track.length, env.rules.laps), 2),
+            "status": race.status,
+            "reason": race.reason,
+        })
+    cars.sort(key=lambda c: c["position"])
+    return {"format": config.race, "track": env.track.name, "reverse": config.reverse, "seed": config.seed,
+            "laps": config.laps, "cars": cars}

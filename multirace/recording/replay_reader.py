@@ -1,0 +1,180 @@
+"""Reading a race replay back with rerun's own reader (`rerun.chunk.RrdReader`).
+
+`replay_summary(path)` returns what a file holds: cars, steps, duration, laps,
+events, image counts and each car's pose per step; `open_viewer` opens the
+rerun viewer on it where one can run.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from .replay import END_TEXT
+
+
+def record_column(batch, name):
+    idx = batch.schema.get_field_index(name)
+    return None if idx < 0 else batch.column(idx)
+
+
+def first_items(values):
+    """The first item of each row's component batch (rows are lists)."""
+    return [None if v is None or len(v) == 0 else v[0] for v in values]
+
+
+def read_chunks(path) -> dict:
+    """Every chunk's record batch in an .rrd, grouped by entity path (leading '/' removed)."""
+    from rerun.chunk import RrdReader
+
+    by_entity: dict[str, list] = {}
+    for chunk in RrdReader(str(path)).stream():
+        by_entity.setdefault(chunk.entity_path.lstrip("/"), []).append(chunk.to_record_batch())
+    return by_entity
+
+
+def index_values(batch, name):
+    import pyarrow as pa
+
+    col = record_column(batch, name)
+    if col is None:
+        return None
+    if pa.types.is_duration(col.type):
+        return np.asarray(col.cast(pa.int64()).to_numpy(zero_copy_only=False), dtype=np.float64) * 1e-9
+    return np.asarray(col.to_numpy(zero_copy_only=False))
+
+
+def replay_summary(path, poses: bool = True) -> dict:
+    """What a replay holds, read back with rerun's own reader.
+
+    Returns {"track", "format", "laps", "cars": [{"id", "name", "laps", "lap_times", "images",
+    "pose_steps", "lidar_scans", "lidar_echoes", "status"}], "steps", "duration", "events": [{"step",
+    "race_time", "car", "name", "kind", "clock", "text"}], "result"} and, with `poses`, "poses":
+    {car id: array (k, 4) of step, x, y, yaw} sorted by step.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"replay {path}: no such file")
+    chunks = read_chunks(path)
+    info = static_text(chunks, "race/info")
+    if info is None:
+        raise ValueError(f"replay {path}: not a multirace replay (no race/info)")
+    info = json.loads(info)
+    result_text = static_text(chunks, "race/result")
+    result = json.loads(result_text) if result_text else None
+    names = {c["id"]: c["name"] for c in info["cars"]}
+    all_steps: set[int] = set()
+    max_time = 0.0
+    pose_rows: dict[str, dict[int, tuple]] = {c["id"]: {} for c in info["cars"]}
+    image_counts = {c["id"]: 0 for c in info["cars"]}
+    lidar_echoes: dict[str, list] = {c["id"]: [] for c in info["cars"]}  # echo count per recorded scan
+    events = []
+    for entity, batches in chunks.items():
+        parts = entity.split("/")
+        for batch in batches:
+            steps = index_values(batch, "step")
+            times = index_values(batch, "race_time")
+            if steps is None:
+                continue
+            all_steps.update(int(s) for s in steps)
+            if times is not None and len(times):
+                max_time = max(max_time, float(times.max()))
+            if parts[:2] == ["world", "cars"] and len(parts) == 3:
+                trans = record_column(batch, "Transform3D:translation")
+                quat = record_column(batch, "Transform3D:quaternion")
+                if trans is None or quat is None:
+                    continue
+                for s, t, q in zip(steps, first_items(trans.to_pylist()), first_items(quat.to_pylist())):
+                    if t is None or q is None:
+                        continue
+                    qx, qy, qz, qw = q
+                    yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+                    pose_rows[parts[2]][int(s)] = (float(t[0]), float(t[1]), float(yaw))
+            elif parts[:2] == ["world", "lidar"] and len(parts) == 3:
+                positions = record_column(batch, "Points3D:positions")
+                if positions is not None:
+                    lidar_echoes[parts[2]].extend(len(p or ()) for p in positions.to_pylist())
+            elif parts[0] == "cameras" and len(parts) == 2:
+                blob = record_column(batch, "EncodedImage:blob")
+                if blob is not None:
+                    image_counts[parts[1]] = image_counts.get(parts[1], 0) + sum(
+                        1 for b in blob.to_pylist() if b)
+            elif parts[0] == "events" and len(parts) == 2:
+                texts = first_items(record_column(batch, "TextLog:text").to_pylist())
+                kinds = first_items(record_column(batch, "kind").to_pylist()) if record_column(batch, "kind") is not None \
+                    else [None] * len(texts)
+                clocks = first_items(record_column(batch, "clock").to_pylist()) if record_column(batch, "clock") is not None \
+                    else [None] * len(texts)
+                for s, t, text, kind, clock in zip(steps, times, texts, kinds, clocks):
+                    events.append({"step": int(s), "race_time": round(float(t), 6), "car": parts[1],
+                                   "name": names.get(parts[1], parts[1]), "kind": kind, "clock": clock,
+                                   "text": text})
+    events.sort(key=lambda e: (e["step"], e["car"]))
+    cars = []
+    for c in info["cars"]:
+        laps = [e for e in events if e["car"] == c["id"] and e["kind"] == "lap"]
+        ends = [e["kind"] for e in events if e["car"] == c["id"] and e["kind"] in END_TEXT]
+        lap_times = [float(e["text"].rsplit(" in ", 1)[1].split()[0]) for e in laps]
+        cars.append({"id": c["id"], "name": c["name"], "laps": len(laps), "lap_times": lap_times,
+                     "images": image_counts.get(c["id"], 0), "pose_steps": len(pose_rows[c["id"]]),
+                     "lidar_scans": len(lidar_echoes[c["id"]]), "lidar_echoes": sum(lidar_echoes[c["id"]]),
+                     "status": ends[-1] if ends else "racing"})
+    summary = {
+        "file": str(path), "size_mb": round(path.stat().st_size / 1e6, 3),
+        "track": info["track"], "reverse": info["reverse"], "format": info["format"], "laps": info["laps"],
+        "cars": cars, "steps": (max(all_steps) if all_steps else 0), "duration": round(max_time, 6),
+        "events": events, "result": result,
+    }
+    if poses:
+        summary["poses"] = {cid: np.array([(s, *p) for s, p in sorted(rows.items())], dtype=np.float64).reshape(-1, 4)
+                            for cid, rows in pose_rows.items()}
+    return summary
+
+
+def static_text(chunks: dict, entity: str) -> str | None:
+    for batch in chunks.get(entity, []):
+        col = record_column(batch, "TextDocument:text")
+        if col is not None:
+            values = [v for v in first_items(col.to_pylist()) if v is not None]
+            if values:
+                return values[-1]
+    return None
+
+
+def format_summary(summary: dict) -> str:
+    """A short human-readable text of a replay summary."""
+    lines = [f"{summary['file']} ({summary['size_mb']:.2f} MB): {summary['format']} on {summary['track']}"
+             f"{' (reverse)' if summary['reverse'] else ''}, {summary['laps']} laps, "
+             f"{summary['steps']} steps, {summary['duration']:.2f} s"]
+    for c in summary["cars"]:
+        laps = ", ".join(f"{t:.2f}" for t in c["lap_times"]) or "-"
+        lines.append(f"  {c['id']} {c['name']}: {c['laps']} laps ({laps}), {c['status']}, "
+                     f"{c['pose_steps']} poses, {c['images']} images")
+    lines.append(f"  {len(summary['events'])} events:")
+    for e in summary["events"]:
+        lines.append(f"    {e['race_time']:8.3f} s  step {e['step']:5d}  {e['text']}")
+    return "\n".join(lines)
+
+
+def open_viewer(path) -> int:
+    """Open the rerun viewer on a replay, or say how when it is not available."""
+    import shutil
+    import subprocess
+
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"replay {path}: no such file")
+    import os
+    import sys
+
+    exe = shutil.which("rerun")
+    headless = sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+    if exe is None or headless:
+        why = "no display here" if exe is not None else "the `rerun` viewer is not installed"
+        print(f"Cannot open the rerun viewer ({why}). On a machine with a display, install it with "
+              f"`pip install rerun-sdk==0.41.*` and run `rerun {path}`; here, print the contents with "
+              f"`multirace replay {path} --summary`.")
+        return 1
+    return subprocess.call([exe, str(path)])

@@ -1,0 +1,243 @@
+"""`multirace bench`: throughput figures and ratios, all from one run on this machine.
+
+Measures agent-steps per second (one car's observation, reward and info per
+15 Hz step) of the full env (cameras, physics with collisions, obstacles,
+random actions, full reward params and infos) for 1, 2, 4 and 8 cars with the
+fast renderer and with the PyBullet renderer, and for 4 cars with the LIDAR
+scanned too; the floor (the same run's
+physics steps alone, replayed, plus one bare texture warp per camera); the
+speed-up of two worker processes over one; memory; and the cost of recording
+a replay.
+"""
+from __future__ import annotations
+
+import functools
+import resource
+import time
+
+import cv2
+import numpy as np
+
+from ..sensors.camera import camera_pose
+from ..environment.race_env import RaceEnv
+
+CAR_COUNTS = (1, 2, 4, 8)
+WINDOWS = 15  # each figure is the best of this many equal time windows, taken in turns
+WARM_UP = 0.1  # untimed lead-in of each window, as a share of the window
+OBSTACLES = 3
+CARS_PER_WORKER = 4  # cars in each env of the worker-process figures
+
+
+def _interleaved_rates(workloads: dict, seconds: float, windows: int = WINDOWS) -> dict:
+    """Agent-steps per wall-clock second and per CPU second of this thread, of each workload.
+
+    `workloads` maps a name to (step function, agents per step). Each figure is
+    the best of several short windows (other processes on a 2-core machine slow
+    some windows down, and the best is the closest to what the code costs), and
+    the windows of all workloads take turns, so that a slow patch of the
+    machine hits them alike and their ratios stay meaningful. Each window
+    starts with an untimed lead-in (`WARM_UP`), so that a workload whose worker
+    processes slept through the other windows is timed awake. The CPU figure
+    does not count time spent waiting for a core.
+    """
+    best = {name: (0.0, 0.0) for name in workloads}
+    for _ in range(windows):
+        for name, (step, agents_per_step) in workloads.items():
+            warm_up = time.perf_counter() + WARM_UP * seconds / windows
+            while time.perf_counter() < warm_up:  # untimed: wake the workload's processes, refill its caches
+                step()
+            steps, start, start_cpu = 0, time.perf_counter(), time.thread_time()
+            while time.perf_counter() - start < seconds / windows:
+                step()
+                steps += 1
+            wall, cpu = time.perf_counter() - start, time.thread_time() - start_cpu
+            best_wall, best_cpu = best[name]
+            best[name] = (max(best_wall, agents_per_step * steps / wall),
+                          max(best_cpu, agents_per_step * steps / max(cpu, 1e-9)))
+    return best
+
+
+def _random_driving(num_cars: int, renderer: str = "fast", seed: int = 0, lidar: bool = False):
+    """The benchmark's env, reset, and a step function driving it with random actions (resetting when done)."""
+    env = RaceEnv(num_cars=num_cars, obstacles=OBSTACLES, renderer=renderer, max_steps=2000, lidar=lidar)
+    rng = np.random.default_rng(seed)
+    env.reset(seed=seed)
+    n_actions = env.actions.space.n
+
+    def step():
+        if not env.agents:
+            env.reset()
+        env.step({a: int(rng.integers(n_actions)) for a in env.agents})
+
+    return env, step
+
+
+def _env_stepper(num_cars: int, renderer: str, seed: int = 0, lidar: bool = False):
+    """(step, close) of the env with random actions."""
+    env, step = _random_driving(num_cars, renderer, seed, lidar)
+    step()  # warm-up
+    return step, env.close
+
+
+def _floor_stepper(num_cars: int, seed: int = 0, steps: int = 900):
+    """(step, close) of the bare minimum of the env benchmark's run: its physics alone plus one texture warp per camera.
+
+    A run of the env benchmark (same cars, obstacles, random actions and seed)
+    is recorded first: the commands of every physics step, and every time a car
+    or box is put somewhere (an off-track car reset onto the track, say). The
+    floor replays exactly that into the world alone, in a loop, so its PyBullet
+    work, collisions included, is the env's; each step then warps one bare
+    image per camera.
+    """
+    env, drive = _random_driving(num_cars, seed=seed)
+    world = env.world
+    start = (world.poses.tolist(), world.obstacle_poses.tolist())
+    actions = {name: getattr(world, name) for name in ("place_car", "park", "place_obstacle", "step")}
+    script, moves = [], []  # per step: (moves since the last physics step, commands)
+
+    def recorder(name):
+        def record(*args):
+            if name == "step":
+                script.append((list(moves), np.array(args[0])))
+                moves.clear()
+            else:
+                moves.append((name, args))
+            return actions[name](*args)
+        return record
+
+    for name in actions:
+        setattr(world, name, recorder(name))
+    for _ in range(steps):
+        drive()
+    for name in actions:
+        delattr(world, name)  # the world's own methods again
+
+    def restart():
+        car_poses, obstacle_poses = start
+        for i, pose in enumerate(car_poses):
+            world.place_car(i, *pose)
+        for k, pose in enumerate(obstacle_poses):
+            world.place_obstacle(k, *pose)
+
+    renderer = env._renderer
+    ground = renderer._ground
+    size = (env.camera.width, env.camera.height)
+    homographies = [renderer.ground_homography(camera_pose(env.camera, world.poses[i])) for i in range(num_cars)]
+    position = [0]
+    restart()
+
+    def step():
+        placements, commands = script[position[0]]
+        for name, args in placements:
+            getattr(world, name)(*args)
+        world.step(commands)
+        for homography in homographies:
+            cv2.warpPerspective(ground, homography, size, flags=cv2.INTER_NEAREST)
+        position[0] = (position[0] + 1) % len(script)
+        if position[0] == 0:
+            restart()
+
+    return step, env.close
+
+
+def _workers_stepper(num_workers: int, num_cars: int):
+    """(step, close) of `num_workers` env processes stepped in lock-step."""
+    from ..environment.vector import SubprocVectorEnv
+
+    make = functools.partial(RaceEnv, num_cars=num_cars, obstacles=OBSTACLES, max_steps=2000)
+    vec = SubprocVectorEnv([make] * num_workers, info_keys=())
+    rng = np.random.default_rng(0)
+    vec.reset(seeds=list(range(num_workers)))
+
+    def step():
+        vec.step(rng.integers(10, size=(num_workers, num_cars)))
+
+    step()
+    return step, vec.close
+
+
+def _resident_mb() -> float:
+    """This process's resident memory now, MB (Linux)."""
+    with open("/proc/self/statm") as statm:
+        return int(statm.read().split()[1]) * resource.getpagesize() / 2**20
+
+
+def run_bench(seconds: float = 3.0, replay_seconds: float = 240.0, progress=print,
+              training_seconds: float = 40.0) -> dict:
+    """All figures of the benchmark; `seconds` is the time spent per measurement."""
+    cv2.setNumThreads(1)  # one core per process, as in training workers
+    steppers = {("fast", 1): _env_stepper(1, "fast")}  # loads the compiled kernels once
+    before = _resident_mb()
+    steppers[("fast", 4)] = _env_stepper(4, "fast")
+    env_mb = _resident_mb() - before
+    steppers.update({("fast", n): _env_stepper(n, "fast") for n in CAR_COUNTS if n not in (1, 4)})
+    steppers.update({("pybullet", n): _env_stepper(n, "pybullet") for n in (1, 4)})
+    steppers[("lidar", 4)] = _env_stepper(4, "fast", lidar=True)
+    steppers.update({("floor", n): _floor_stepper(n) for n in (1, 4)})
+    steppers.update({("workers", n): _workers_stepper(n, CARS_PER_WORKER) for n in (1, 2)})
+    try:
+        workloads = {key: (step, key[1] * CARS_PER_WORKER if key[0] == "workers" else key[1])
+                     for key, (step, _) in steppers.items()}
+        progress(f"measuring {len(workloads)} workloads, {WINDOWS} interleaved windows each ...")
+        rates = _interleaved_rates(workloads, seconds)
+    finally:
+        for _, close in steppers.values():
+            close()
+    kinds = ("fast", "pybullet", "lidar", "floor")
+    figures: dict = {"agent_steps_per_s": {kind: {} for kind in kinds},
+                     "agent_steps_per_cpu_s": {kind: {} for kind in kinds}}
+    per_s, per_cpu_s = figures["agent_steps_per_s"], figures["agent_steps_per_cpu_s"]
+    for kind in kinds:
+        for (name, n), (wall, cpu) in sorted(rates.items()):
+            if name == kind:
+                per_s[kind][str(n)], per_cpu_s[kind][str(n)] = round(wall, 1), round(cpu, 1)
+                progress(f"{kind}, {n} cars: {wall:.0f} agent-steps/s ({cpu:.0f} per CPU second)")
+    for suffix, rates_of in (("", per_s), ("_cpu", per_cpu_s)):
+        figures["fast_over_pybullet_4" + suffix] = round(rates_of["fast"]["4"] / rates_of["pybullet"]["4"], 1)
+        figures["fast_over_floor_4" + suffix] = round(rates_of["fast"]["4"] / rates_of["floor"]["4"], 3)
+        figures["lidar_over_fast_4" + suffix] = round(rates_of["lidar"]["4"] / rates_of["fast"]["4"], 3)
+    per_agent_us = {n: 1e6 / per_cpu_s["fast"][str(n)] for n in CAR_COUNTS}
+    figures["per_agent_cost_growth_1_to_8"] = round(per_agent_us[8] / per_agent_us[1], 3)
+    one, two = rates[("workers", 1)][0], rates[("workers", 2)][0]
+    figures["workers_agent_steps_per_s"] = {"1": round(one, 1), "2": round(two, 1)}
+    figures["workers_speedup_2"] = round(two / one, 3)
+    progress(f"worker processes, 4 cars each: 1 -> {one:.0f}, 2 -> {two:.0f} agent-steps/s")
+    figures["env_memory_mb_4_cars"] = round(env_mb, 1)
+    if replay_seconds:
+        from .replay_cost import replay_cost
+
+        cost = replay_cost(seconds=replay_seconds, repeats=5)  # best of 5: one race takes about 1.5 s
+        figures["replay"] = cost
+        progress(f"replay of a 4-car {replay_seconds:g} s race: {cost['replay_mb']} MB, "
+                 f"race speed -{cost['speed_loss_percent']}%")
+    if training_seconds:  # the full PPO loop (sampling + updates) on 2 worker processes
+        from ..train.throughput import training_throughput
+
+        figures["training"] = training_throughput(seconds=training_seconds)
+        progress(f"training (PPO, sampling + updates, 2 workers): {figures['training']['agent_steps_per_s']:.0f} "
+                 "agent-steps/s")
+    figures["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
+    return figures
+
+
+def format_table(figures: dict) -> list[tuple[str, str]]:
+    """(label, value) rows for printing."""
+    per_s, per_cpu_s = figures["agent_steps_per_s"], figures["agent_steps_per_cpu_s"]
+    rows = [(f"{kind}, {n} cars (agent-steps/s; per CPU s)", f"{v:,.0f}; {per_cpu_s[kind][n]:,.0f}")
+            for kind in per_s for n, v in per_s[kind].items()]
+    rows += [
+        ("fast / pybullet, 4 cars (wall; CPU)", f"{figures['fast_over_pybullet_4']}x; "
+                                                f"{figures['fast_over_pybullet_4_cpu']}x"),
+        ("fast / floor, 4 cars (wall; CPU)", f"{figures['fast_over_floor_4']}; {figures['fast_over_floor_4_cpu']}"),
+        ("with LIDAR / without, 4 cars (wall; CPU)", f"{figures['lidar_over_fast_4']}; "
+                                                     f"{figures['lidar_over_fast_4_cpu']}"),
+        ("per-agent CPU cost, 8 cars / 1 car", f"{figures['per_agent_cost_growth_1_to_8']}x"),
+        ("2 workers / 1 worker", f"{figures['workers_speedup_2']}x"),
+        ("memory of one 4-car env (MB)", f"{figures['env_memory_mb_4_cars']}"),
+        ("peak RSS of the bench process (MB)", f"{figures['peak_rss_mb']}"),
+    ]
+    if "replay" in figures:
+        replay = figures["replay"]
+        rows.append((f"replay, 4 cars, {replay['steps'] / 15:g} s race", f"{replay['replay_mb']} MB, "
+                     f"race speed -{replay['speed_loss_percent']}%"))
+    return rows
