@@ -10,7 +10,7 @@ from rich.console import Console
 from rich.table import Table
 
 from .environment.rules import FORMATS
-from .sim.tracks import TrackError, list_tracks
+from .resources import list_tracks
 
 
 def _format_time(value) -> str:
@@ -298,7 +298,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (TrackError, ValueError, FileNotFoundError) as exc:
+    except (ValueError, FileNotFoundError) as exc:  # TrackError, AgentFileError... are ValueErrors
         print(f"multirace {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

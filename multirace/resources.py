@@ -29,3 +29,8 @@ def agents_dir() -> Path:
 def league_dir() -> Path:
     """The shipped league definitions (default.toml)."""
     return data_dir("league")
+
+
+def list_tracks() -> list[str]:
+    """Names of the bundled tracks."""
+    return sorted(p.stem for p in tracks_dir().glob("*.npy"))

@@ -21,7 +21,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from ..resources import tracks_dir
+from ..resources import list_tracks, tracks_dir
 
 TRACKS_DIR = tracks_dir()
 MIN_POINTS = 4
@@ -29,11 +29,6 @@ MIN_POINTS = 4
 
 class TrackError(ValueError):
     """A track file is missing or malformed; the message names the file."""
-
-
-def list_tracks() -> list[str]:
-    """Names of the bundled tracks."""
-    return sorted(p.stem for p in TRACKS_DIR.glob("*.npy"))
 
 
 def resolve_track_path(track: str | Path) -> Path:

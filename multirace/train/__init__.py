@@ -1,6 +1,20 @@
 """Training: PPO with shared parameters (`ppo`), its config (`config`), the training env (`envs`),
-self-play opponent pools (`selfplay`), the nature adversary (`nature`) and robustness evaluation
-(`evaluate`)."""
-from .config import PRESETS, TrainConfig, make_config
+self-play opponent pools (`selfplay`), the nature adversary (`nature`), DAgger imitation (`imitate`)
+and robustness evaluation (`evaluate`).
+
+`PRESETS`, `TrainConfig` and `make_config` load on first use, so that the command line's parser
+(which imports `multirace.train.cli`) does not import torch.
+"""
+from __future__ import annotations
+
+import importlib
 
 __all__ = ["PRESETS", "TrainConfig", "make_config"]
+
+
+def __getattr__(name: str):
+    if name in __all__:
+        value = getattr(importlib.import_module("multirace.train.config"), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'multirace.train' has no attribute {name!r}")
