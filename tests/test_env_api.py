@@ -18,7 +18,7 @@ def test_parallel_api_with_pybullet_renderer():
 
 
 def test_aec_api():
-    env = multirace.environment.race_env(num_cars=2, obstacles=2, max_steps=60)
+    env = multirace.env(num_cars=2, obstacles=2, max_steps=60)
     api_test(env, num_cycles=80)
 
 

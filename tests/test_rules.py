@@ -5,7 +5,7 @@ import pytest
 
 import multirace
 from multirace.environment.bots import PurePursuit
-from multirace.environment.rules import CarRace, make_rules
+from multirace.environment.rules import CarRace, StepMeasure, make_rules
 from helpers import CONTINUOUS, drive_expert
 
 
@@ -125,3 +125,36 @@ def test_unknown_format_and_bad_laps():
         make_rules("drift")
     with pytest.raises(ValueError, match="laps"):
         make_rules("time_trial", laps=0)
+
+
+def test_a_car_that_leaves_the_track_right_after_every_reset_ends_its_run_in_a_time_trial():
+    # a time trial allows unlimited resets; full lock at 2 m/s leaves the track within a second of each one
+    env = multirace.parallel_env(num_cars=1, race="time_trial", action_space=CONTINUOUS)
+    env.reset(seed=0)
+    history = _leave_track_repeatedly(env)
+    race = env.races[0]
+    assert race.status == "out_of_resets" and race.reason.startswith("reset loop")
+    rules = env.rules
+    assert race.off_tracks == race.resets + 1 and race.resets <= rules.reset_loop_count + 1
+    assert len(history) < 200  # the run ended long before the step limit
+    assert env.agents == []
+
+
+def test_reset_cap_ends_a_run_with_unlimited_resets():
+    rules = make_rules("time_trial", reset_cap=7, reset_loop_count=1000)
+    race = CarRace(name="car")
+    off = StepMeasure(prev_distance=0.0, dt=1 / 15, track_length=20.0, wheels_on=0, s=1.0)
+    rulings = [rules.judge(race, off, sim_time=10.0 * k) for k in range(1, 10)]
+    assert [r.reset is not None for r in rulings[:7]] == [True] * 7
+    assert rulings[7].end == ("out_of_resets", "reset cap: off track after 7 resets", None)
+    assert race.resets == 7 and race.penalties == 7 and race.penalty_time == pytest.approx(14.0)
+
+
+def test_driving_on_between_off_tracks_is_not_a_reset_loop():
+    rules = make_rules("time_trial")
+    race = CarRace(name="car")
+    off = StepMeasure(prev_distance=0.0, dt=1 / 15, track_length=20.0, wheels_on=0, s=1.0)
+    for k in range(20):  # an off-track every 3 s: each long after the reset before it
+        ruling = rules.judge(race, off, sim_time=3.0 * (k + 1))
+        assert ruling.end is None and ruling.reset == (0.0, None)
+    assert race.resets == 20 and race.quick_off_tracks == 0

@@ -29,7 +29,7 @@ from ..sensors.lidar import Lidar
 from ..sim.objects import objects_seen
 from .randomize import Randomization, apply_command, apply_image
 from .rewards import load_reward_function
-from .rules import CarRace, make_rules
+from .rules import CarRace, StepMeasure, make_rules
 from ..sim.texture import DEFAULT_PALETTE, TrackTexture
 from ..sim.tracks import Track, load_track
 from ..sim.world import World
@@ -238,7 +238,6 @@ class RaceEnv(ParallelEnv):
                                            self.races[i].segment_hint, self.traffic(i))
                 self._commands[i] = spec.clamp_command(math.radians(steer), speed)
         contacts = self.world.step(self._commands)
-        prev_time = self.sim_time
         self.steps += 1
         self.sim_time = self.steps * self.dt
 
@@ -252,8 +251,8 @@ class RaceEnv(ParallelEnv):
             p = self._params(i, touched[i], table)
             params.append(p)
             rewards[agent] = self.reward_function(p, self.steps, agent) if self.races[i].racing else 0.0
-        events = [self._apply_rules(i, prev_distance[i], prev_time, touched[i]) for i in range(self.total_cars)]
-        if self.rules.time_limit is not None and self.sim_time >= self.rules.time_limit - 1e-9:
+        events = [self._apply_rules(i, prev_distance[i], touched[i]) for i in range(self.total_cars)]
+        if self.rules.time_up(self.sim_time):
             for i, race in enumerate(self.races):
                 if race.racing:
                     self._end_run(i, "timed_out", f"{self.rules.time_limit:g} s window ended")
@@ -322,63 +321,30 @@ class RaceEnv(ParallelEnv):
                     continue
                 touched[me[1]].add(other)
                 if is_new:
-                    caused = contact.striker == me
                     other_name = self.car_names[other[1]] if other[0] == "car" else f"obstacle_{other[1]}"
                     race = self.races[me[1]]
-                    race.collisions.append({"time": round(race.clock(self.sim_time), 3), "with": other_name,
-                                            "caused": caused})
-                    if caused and other[0] == "car" and self.rules.penalise_striker:
-                        race.penalty_time += self.rules.crash_penalty
-                        race.penalties += 1
+                    self.rules.contact(race, race.clock(self.sim_time), other_name, caused=contact.striker == me,
+                                       with_car=other[0] == "car")
         self._touching = now
         return touched
 
     # ------------------------------------------------------------- rules
-    def _apply_rules(self, i: int, prev_distance: float, prev_time: float, touched: set) -> list[str]:
-        """Laps, off-track and crash resets for car i; returns the step's events."""
+    def _apply_rules(self, i: int, prev_distance: float, touched: set) -> list[str]:
+        """Ask the rules about car i's step and carry out their ruling; returns the step's events."""
         race, geo = self.races[i], self._geometry[i]
-        if geo is None:
+        if geo is None or not race.racing:
             return []
-        track, rules = self.track, self.rules
-        events = []
-        proj = geo["proj"]
-        # laps: every crossing of a lap boundary, timed by interpolation within the step
-        while race.racing and race.distance >= (race.laps + 1) * track.length:
-            boundary = (race.laps + 1) * track.length
-            moved = max(race.distance - prev_distance, 1e-9)
-            t_cross = prev_time + self.dt * min(max((boundary - prev_distance) / moved, 0.0), 1.0)
-            clock = race.clock(t_cross)
-            race.lap_times.append(round(clock - race.lap_start_time, 4))
-            race.laps += 1
-            race.lap_start_time = clock
-            race.lap_start_distance = boundary
-            events.append("lap_complete")
-            if race.laps >= rules.laps:
-                self._end_run(i, "finished", "", clock)
-                return events
-        if geo["wheels_on"] == 0:
-            events.append("off_track")
-            race.off_tracks += 1
-            if rules.max_resets is not None and race.resets >= rules.max_resets:
-                self._end_run(i, "out_of_resets", f"off track after {race.resets} resets")
-                return events
-            race.resets += 1
-            if rules.off_track_penalty:
-                race.penalty_time += rules.off_track_penalty
-                race.penalties += 1
-            self._reset_car(i, race.last_on_track_s, 0.0)
-            return events
-        race.last_on_track_s = proj.s
-        hit_box = [o for o in touched if o[0] == "obstacle"]
-        if hit_box and rules.crash_resets:
-            events.append("crashed")
-            s_box, lane = self.obstacle_slots[hit_box[0][1]]
-            race.resets += 1
-            race.penalty_time += rules.crash_penalty
-            race.penalties += 1
-            s_back = s_box - rules.reset_behind_obstacle
-            self._reset_car(i, s_back, track.lane_offset(1 - lane, s_back))
-        return events
+        hit_box = sorted(o[1] for o in touched if o[0] == "obstacle")
+        measure = StepMeasure(prev_distance=prev_distance, dt=self.dt, track_length=self.track.length,
+                              wheels_on=geo["wheels_on"], s=geo["proj"].s,
+                              obstacle_hit=self.obstacle_slots[hit_box[0]] if hit_box else None)
+        ruling = self.rules.judge(race, measure, self.sim_time)
+        if ruling.reset is not None:
+            s, lane = ruling.reset
+            self._reset_car(i, s, 0.0 if lane is None else self.track.lane_offset(lane, s))
+        if ruling.end is not None:
+            self._end_run(i, *ruling.end)
+        return ruling.events
 
     def _reset_car(self, i: int, s: float, lateral: float) -> None:
         """Put car i back on the track at arc length s, facing along the track, at rest.

@@ -1,8 +1,10 @@
 """Race formats and scoring: what happens on a lap, an off-track, a crash, and who wins.
 
 Each format is a `RaceRules` object that the env consults every step. The env
-measures (distance driven, wheels on track, contacts); the rules decide
-(penalties, resets, end of a car's run) and rank the cars. All times are
+measures (distance driven, wheels on track, contacts: a `StepMeasure`); the
+rules decide (laps, penalties, resets, the end of a car's run: a `Ruling`,
+with the car's `CarRace` state updated) and rank the cars; the env then only
+carries out what they decided (moves a car back, parks it). All times are
 simulated race time in seconds, not wall time.
 
 Formats (DeepRacer's, see DESIGN.md "Race formats and scoring"):
@@ -14,6 +16,11 @@ Formats (DeepRacer's, see DESIGN.md "Race formats and scoring"):
   crash into a box costs 5 s and a reset 1.0 m behind the box in the other lane.
 - ``head_to_head``: 2-8 cars on a staggered grid; the car that ran into the
   other is penalised 5 s. Ranked by laps, then total time, then progress.
+
+No reset loops: in every format a car that leaves the track again within
+`reset_loop_seconds` of each of its last `reset_loop_count` resets, or that
+needs more than `reset_cap` resets (formats with unlimited resets; 100 as in
+DeepRacer-for-Cloud), ends its run as ``out_of_resets`` with the reason.
 """
 from __future__ import annotations
 
@@ -45,6 +52,8 @@ class CarRace:
     finish_time: float | None = None  # race clock when the run ended
     last_on_track_s: float = 0.0  # arc length where the car was last on the road
     segment_hint: int | None = None
+    last_reset_time: float | None = None  # sim time of the last reset
+    quick_off_tracks: int = 0  # off-tracks in a row, each soon after the reset before it
 
     @property
     def racing(self) -> bool:
@@ -73,6 +82,27 @@ class CarRace:
         return sum(1 for c in self.collisions if c["caused"])
 
 
+@dataclasses.dataclass(frozen=True)
+class StepMeasure:
+    """What the env measured of one car over one action step: the rules' input."""
+
+    prev_distance: float  # race distance (m along the centre line) before the step
+    dt: float  # the step's length, s
+    track_length: float
+    wheels_on: int  # wheels on the road now
+    s: float  # arc length of the car's point on the centre line now
+    obstacle_hit: tuple[float, int] | None = None  # (arc length, lane) of a box touched this step
+
+
+@dataclasses.dataclass
+class Ruling:
+    """What the rules decided for one car this step; the env carries it out."""
+
+    events: list = dataclasses.field(default_factory=list)
+    reset: tuple[float, int | None] | None = None  # put the car back at (arc length, lane; None: centre line)
+    end: tuple[str, str, float | None] | None = None  # end its run: (status, reason, race clock or None: now)
+
+
 @dataclasses.dataclass
 class RaceRules:
     """A race format with its parameters; see the module docstring."""
@@ -86,11 +116,80 @@ class RaceRules:
     obstacles: int = 0  # boxes placed; object_avoidance default 3
     penalise_striker: bool = False  # head_to_head: the car that ran into the other pays
     reset_behind_obstacle: float = 1.0  # object_avoidance: metres behind the box, other lane
+    reset_cap: int = 100  # formats with unlimited resets: the run ends after this many (DeepRacer-for-Cloud's)
+    reset_loop_count: int = 5  # off-tracks in a row, each within reset_loop_seconds of the reset before it,
+    reset_loop_seconds: float = 1.0  # end the run: the car cannot drive on from where it is put back
 
     @property
     def crash_resets(self) -> bool:
         """Does a crash into a box reset the car (object avoidance)?"""
         return self.name == "object_avoidance"
+
+    def time_up(self, sim_time: float) -> bool:
+        """Has the format's time window (reset_rule: 4 minutes) ended?"""
+        return self.time_limit is not None and sim_time >= self.time_limit - 1e-9
+
+    def contact(self, race: CarRace, clock: float, other: str, caused: bool, with_car: bool) -> None:
+        """A new contact of `race`'s car with `other` (a car or a box): record it, penalise a striker."""
+        race.collisions.append({"time": round(clock, 3), "with": other, "caused": caused})
+        if caused and with_car and self.penalise_striker:
+            race.penalty_time += self.crash_penalty
+            race.penalties += 1
+
+    def judge(self, race: CarRace, step: StepMeasure, sim_time: float) -> Ruling:
+        """Laps, off-track and crash resets for one racing car after a step; updates `race`."""
+        ruling = Ruling()
+        # laps: every crossing of a lap boundary, timed by interpolation within the step
+        while race.distance >= (race.laps + 1) * step.track_length:
+            boundary = (race.laps + 1) * step.track_length
+            moved = max(race.distance - step.prev_distance, 1e-9)
+            t_cross = sim_time - step.dt + step.dt * min(max((boundary - step.prev_distance) / moved, 0.0), 1.0)
+            clock = race.clock(t_cross)
+            race.lap_times.append(round(clock - race.lap_start_time, 4))
+            race.laps += 1
+            race.lap_start_time = clock
+            race.lap_start_distance = boundary
+            ruling.events.append("lap_complete")
+            if race.laps >= self.laps:
+                ruling.end = ("finished", "", clock)
+                return ruling
+        if step.wheels_on == 0:
+            ruling.events.append("off_track")
+            race.off_tracks += 1
+            ruling.end = self._no_more_resets(race, sim_time)
+            if ruling.end is None:
+                race.resets += 1
+                race.last_reset_time = sim_time
+                if self.off_track_penalty:
+                    race.penalty_time += self.off_track_penalty
+                    race.penalties += 1
+                ruling.reset = (race.last_on_track_s, None)
+            return ruling
+        race.last_on_track_s = step.s
+        if step.obstacle_hit is not None and self.crash_resets:
+            ruling.events.append("crashed")
+            s_box, lane = step.obstacle_hit
+            race.resets += 1
+            race.last_reset_time = sim_time
+            race.penalty_time += self.crash_penalty
+            race.penalties += 1
+            ruling.reset = (s_box - self.reset_behind_obstacle, 1 - lane)
+        return ruling
+
+    def _no_more_resets(self, race: CarRace, sim_time: float) -> tuple[str, str, None] | None:
+        """The end of a run that left the track and may not be put back again, or None."""
+        if self.max_resets is not None and race.resets >= self.max_resets:
+            return ("out_of_resets", f"off track after {race.resets} resets", None)
+        if race.last_reset_time is not None and sim_time - race.last_reset_time <= self.reset_loop_seconds:
+            race.quick_off_tracks += 1
+        else:
+            race.quick_off_tracks = 0
+        if race.quick_off_tracks >= self.reset_loop_count:
+            return ("out_of_resets", f"reset loop: off track within {self.reset_loop_seconds:g} s of each of "
+                                     f"the last {self.reset_loop_count} resets", None)
+        if self.max_resets is None and race.resets >= self.reset_cap:
+            return ("out_of_resets", f"reset cap: off track after {race.resets} resets", None)
+        return None
 
     def rank_key(self, car: CarRace, track_length: float):
         """Sort key: smaller ranks first."""
