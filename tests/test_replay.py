@@ -63,7 +63,7 @@ class Capture:
 def recorded(tmp_path_factory):
     path = tmp_path_factory.mktemp("replay") / "race.rrd"
     capture = Capture()
-    controllers = [Wild("bot:follow@0.6", (200, 240), steer=-30.0), Blind("bot:follow@2.0")]
+    controllers = [Wild("bot:follow@0.6", (200, 225), steer=-30.0), Blind("bot:follow@2.0")]  # 4 off-tracks, then on
     result = run_race(controllers, RaceConfig(laps=1, race="head_to_head", seed=1),
                       recorders=[ReplayRecorder(path, image_every=2), capture])
     return path, capture, result

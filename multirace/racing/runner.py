@@ -37,6 +37,10 @@ class RaceConfig:
     obstacles: int | None = None
     max_steps: int | None = None
     renderer: str = "fast"
+    bots: tuple = ()  # scripted cars the env drives itself (`follow@0.8`), after the entrants
+    randomize: str | dict | None = None  # domain randomisation (see environment.randomize)
+    camera: tuple = (120, 160)  # (height, width) of every entrant's camera
+    grayscale: bool = True
 
 
 def run_race(controllers: list[Controller], config: RaceConfig, recorders=()) -> dict:
@@ -48,8 +52,9 @@ def run_race(controllers: list[Controller], config: RaceConfig, recorders=()) ->
     if not controllers:
         raise ValueError("a race needs at least one entrant")
     env = RaceEnv(track=config.track, reverse=config.reverse, num_cars=len(controllers), race=config.race,
-                  laps=config.laps, obstacles=config.obstacles, action_space=COMMAND_SPACE,
-                  lidar=any(c.uses_lidar for c in controllers),
+                  laps=config.laps, obstacles=config.obstacles, bots=config.bots, action_space=COMMAND_SPACE,
+                  lidar=any(c.uses_lidar for c in controllers), randomize=config.randomize,
+                  camera=config.camera, grayscale=config.grayscale,
                   max_steps=config.max_steps, renderer=config.renderer,
                   car_names=[c.name for c in controllers])
     try:
@@ -79,20 +84,21 @@ def run_race(controllers: list[Controller], config: RaceConfig, recorders=()) ->
 
 
 def race_result(env: RaceEnv, controllers: list[Controller], config: RaceConfig) -> dict:
-    """The result record of a finished race."""
+    """The result record of a finished race: every car, the entrants' and the env's bots, in finishing order."""
     positions = env.ranks()
     cars = []
     for i, race in enumerate(env.races):
-        controller = controllers[i]
         cars.append({
-            "name": controller.name,
-            "file_sha256": controller.file_sha256,
+            "car": f"car_{i}",  # its slot: entrants first, in the order given, then the env's bots
+            "name": env.car_names[i],
+            "file_sha256": controllers[i].file_sha256 if i < len(controllers) else None,
             "position": positions[i],
             "laps": race.laps,
             "lap_times": list(race.lap_times),
             "best_lap": race.best_lap,
             "total_time": race.finish_time,
             "resets": race.resets,
+            "off_tracks": race.off_tracks,
             "penalties": race.penalties,
             "collisions": len(race.collisions),
             "collisions_caused": race.collisions_caused(),

@@ -41,11 +41,13 @@ import numpy as np
 import torch
 from torch import nn
 
+from ..environment.race_env import ACTION_HZ
 from ..racing.agentfile import load_agent
+from ..racing.entrant import Controller
+from ..racing.runner import RaceConfig, run_race
+from ..recording.replay import SCALARS, ReplayRecorder
 from ..sensors.camera import camera_pose
 from ..sensors.fast_renderer import FastRenderer
-from ..racing.entrant import COMMAND_SPACE
-from ..recording.replay import SCALARS, ReplayRecorder
 
 FLOOR, ROAD, BORDER, CENTRE, SKY = 0, 1, 2, 3, 4
 LABEL_NAMES = ("floor", "road", "border", "centre", "sky")
@@ -240,6 +242,36 @@ class ExplainRecorder(ReplayRecorder):
         self.rec.log("explain/car_0", rr.EncodedImage(contents=jpg.tobytes(), media_type="image/jpeg"))
 
 
+class ExplainController(Controller):
+    """Drives with an agent's greedy actions and keeps, for every frame it acts on, its Grad-CAM evidence."""
+
+    def __init__(self, agent, target: str, align: bool, recorder: ExplainRecorder | None, keep_images: bool):
+        self.agent, self.name, self.recorder, self.keep_images = agent, agent.name, recorder, keep_images
+        self.cam = GradCam(agent.net, agent.action_space.discrete, target, align=align)
+        self.images, self.heats, self.labels, self.overlays, self.rows = [], [], [], [], []
+
+    def reset(self, env, car: int) -> None:
+        super().reset(env, car)
+        self.renderer = FastRenderer(env.camera, env.texture)
+
+    def act(self, observation, info):
+        heat, output, _ = self.cam(observation)
+        labels = scene_labels(self.env, self.car, self.renderer)
+        shares = heat_shares(heat, labels)
+        if not math.isnan(shares["heat_on_track"]):
+            self.rows.append(shares)
+        pic = overlay(observation, heat)
+        if self.recorder is not None:
+            self.recorder.log_heat(self.env.steps, self.env.sim_time, pic)
+        self.overlays.append(pic)
+        if self.keep_images:
+            self.images.append(np.array(observation))
+            self.heats.append(heat)
+            self.labels.append(labels)
+        steer, speed = self.agent.action_space.command(self.agent.decide(output))
+        return float(steer), float(speed)
+
+
 def explain(agent_file, track: str = "reinvent_base", steps: int = DEFAULT_STEPS, out=None, replay=None,
             reverse: bool = False, seed: int = 0, target: str = "steer", scale: int = 3,
             strip_frames: int = 8, keep_frames: bool = False, align: bool = True) -> dict:
@@ -250,58 +282,32 @@ def explain(agent_file, track: str = "reinvent_base", steps: int = DEFAULT_STEPS
     pixels over their area share, per frame, averaged), "shares" (mean per-label heat and area
     shares), "status"} and, with `keep_frames`, "images", "heats", "labels" (lists, one per frame).
     """
-    from ..environment.race_env import RaceEnv
-
     agent = load_agent(agent_file, step_budget=None)
     if agent.lidar_samples:
         raise ValueError(f"{agent_file}: explain computes Grad-CAM of camera-only agents; this agent "
                          "also reads the LIDAR (sensor LIDAR in its model_metadata)")
     height, width, channels = agent.image_shape
-    env = RaceEnv(track=track, reverse=reverse, num_cars=1, race="time_trial", laps=1, action_space=COMMAND_SPACE,
-                  camera=(height, width), grayscale=channels == 1, max_steps=int(steps), car_names=[agent.name])
-    cam = GradCam(agent.net, agent.action_space.discrete, target, align=align)
+    config = RaceConfig(track=track, reverse=reverse, race="time_trial", laps=1, seed=seed, max_steps=int(steps),
+                        camera=(height, width), grayscale=channels == 1)
     recorder = ExplainRecorder(replay) if replay else None
-    images, heats, labels_list, overlays, rows = [], [], [], [], []
+    driver = ExplainController(agent, target, align, recorder,
+                               keep_images=keep_frames or (out is not None and str(out).lower().endswith(".png")))
     try:
-        observations, _ = env.reset(seed=seed)
-        renderer = FastRenderer(env.camera, env.texture)
-        if recorder is not None:
-            recorder.start(env)
-        while env.agents:
-            image = observations["car_0"]
-            heat, output, _ = cam(image)
-            labels = scene_labels(env, 0, renderer)
-            shares = heat_shares(heat, labels)
-            if not math.isnan(shares["heat_on_track"]):
-                rows.append(shares)
-            pic = overlay(image, heat)
-            if recorder is not None:
-                recorder.log_heat(env.steps, env.sim_time, pic)
-            overlays.append(pic)
-            if keep_frames or (out is not None and str(out).lower().endswith(".png")):
-                images.append(np.array(image))
-                heats.append(heat)
-                labels_list.append(labels)
-            steer, speed = agent.action_space.command(agent.decide(output))
-            observations, rewards, _, _, infos = env.step({"car_0": (float(steer), float(speed))})
-            if recorder is not None:
-                recorder.step(env, observations, rewards, infos)
-        if recorder is not None:
-            recorder.finish(env, None)
-            recorder = None
-        status = env.races[0].status
-    finally:
-        cam.close()
+        result = run_race([driver], config, recorders=[recorder] if recorder is not None else [])
+    except BaseException:
         if recorder is not None:
             recorder.close()
-        env.close()
+        raise
+    finally:
+        driver.cam.close()
+    rows, overlays = driver.rows, driver.overlays
     written = None
     if out is not None:
-        written = _write(out, overlays, images, heats, scale, strip_frames, 1.0 / env.dt)
+        written = _write(out, overlays, driver.images, driver.heats, scale, strip_frames, ACTION_HZ)
     mean = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]} if rows else {}
     result = {
         "agent": agent.name, "track": track, "frames": len(overlays), "out": written,
-        "replay": str(replay) if replay else None, "status": status,
+        "replay": str(replay) if replay else None, "status": result["cars"][0]["status"],
         "heat_on_track": mean.get("heat_on_track", math.nan), "track_fraction": mean.get("track_fraction", math.nan),
         "frames_with_heat": len(rows), "shares": mean,
     }
@@ -311,7 +317,7 @@ def explain(agent_file, track: str = "reinvent_base", steps: int = DEFAULT_STEPS
     result["lift"] = (result["heat_on_track"] / result["track_fraction"]
                       if result["track_fraction"] and not math.isnan(result["track_fraction"]) else math.nan)
     if keep_frames:
-        result.update(images=images, heats=heats, labels=labels_list)
+        result.update(images=driver.images, heats=driver.heats, labels=driver.labels)
     return result
 
 

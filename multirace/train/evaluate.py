@@ -42,40 +42,24 @@ def race_agent(agent_path, track="reinvent_base", reverse=False, laps=2, seed=0,
     """One race of an agent file (with optional randomisation and bots); the agent's result figures.
 
     Inference is allowed `step_budget` seconds a step (far more than a league's 1/15 s: a robustness
-    report should not turn on how busy the machine is; on a 2-core machine shared with other training
-    runs a tiny CNN step was seen to take 0.6-1.9 s, which forfeited races under a 0.5 s budget).
+    report judges driving, not speed of inference).
     """
     from ..racing.agentfile import AgentController
-    from ..environment.race_env import RaceEnv
-    from ..racing.entrant import COMMAND_SPACE, Forfeit
+    from ..racing.runner import RaceConfig, run_race
 
     controller = AgentController(agent_path, step_budget=step_budget)
-    env = RaceEnv(track=track, reverse=reverse, num_cars=1, race=race, laps=laps, bots=bots,
-                  action_space=COMMAND_SPACE, randomize=randomize, max_steps=max_steps, lidar=controller.uses_lidar,
-                  car_names=[controller.name])
-    try:
-        obs, infos = env.reset(seed=seed)
-        controller.reset(env, 0)
-        while env.agents:
-            actions = {}
-            if env.races[0].racing:
-                try:
-                    actions["car_0"] = controller.act(obs["car_0"], infos["car_0"])
-                except Forfeit as exc:
-                    env.forfeit(0, str(exc))
-            obs, _, _, _, infos = env.step(actions)
-        race_ = env.races[0]
-        driven = max(race_.race_progress(env.track.length, laps) * laps / 100.0, 1e-9)
-        position = env.ranks()[0]
-        return {"track": env.track.name, "reverse": reverse, "seed": seed, "laps": race_.laps, "target": laps,
-                "completion": race_.laps / laps, "best_lap": race_.best_lap, "off_tracks": race_.off_tracks,
-                "resets": race_.resets, "total_time": race_.finish_time,
-                "laps_driven": round(driven, 3), "off_tracks_per_lap": race_.off_tracks / max(driven, 0.25),
-                "collisions": len(race_.collisions), "collisions_caused": race_.collisions_caused(),
-                "collisions_per_lap": len(race_.collisions) / max(driven, 0.25),
-                "position": position, "status": race_.status, "reason": race_.reason}
-    finally:
-        env.close()
+    config = RaceConfig(track=track, reverse=reverse, race=race, laps=laps, seed=seed, max_steps=max_steps,
+                        bots=tuple(bots), randomize=randomize)
+    result = run_race([controller], config)
+    car = next(c for c in result["cars"] if c["car"] == "car_0")
+    driven = max(car["progress"] * laps / 100.0, 1e-9)
+    return {"track": result["track"], "reverse": reverse, "seed": seed, "laps": car["laps"], "target": laps,
+            "completion": car["laps"] / laps, "best_lap": car["best_lap"], "off_tracks": car["off_tracks"],
+            "resets": car["resets"], "total_time": car["total_time"],
+            "laps_driven": round(driven, 3), "off_tracks_per_lap": car["off_tracks"] / max(driven, 0.25),
+            "collisions": car["collisions"], "collisions_caused": car["collisions_caused"],
+            "collisions_per_lap": car["collisions"] / max(driven, 0.25),
+            "position": car["position"], "status": car["status"], "reason": car["reason"]}
 
 
 def trained_tracks(agent_path) -> set:
