@@ -112,11 +112,14 @@ def add_evaluate_parser(sub) -> None:
                                    "traffic, as a table and a PNG.")
     p.add_argument("agents", nargs="+", metavar="FILE.pt", help="agent file(s) to evaluate")
     p.add_argument("--json", metavar="FILE", help="write the report as JSON")
-    p.add_argument("--png", metavar="FILE.png", help="write the report plot (default: next to the first agent)")
-    p.add_argument("--tracks", default=None, help="comma-separated tracks (default: the held-out set)")
+    p.add_argument("--png", metavar="FILE.png",
+                   help="write the report plot (default: next to --json, else AGENT.eval.png in the working folder)")
+    p.add_argument("--tracks", default=None,
+                   help="comma-separated tracks (default: every bundled track the agent did not train on)")
     p.add_argument("--laps", type=int, default=2, help="laps per run (default 2)")
     p.add_argument("--seeds", type=int, default=1, help="seeds per cell (default 1)")
-    p.add_argument("--quick", action="store_true", help="fewer tracks and perturbations")
+    p.add_argument("--quick", action="store_true",
+                   help="fewer perturbations, and 3 tracks of the declared held-out split the agent did not train on")
     p.set_defaults(func=cmd_evaluate)
 
 

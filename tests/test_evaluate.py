@@ -1,0 +1,31 @@
+"""`multirace evaluate`: held-out tracks are tracks the agent never trained on; outputs land where asked."""
+import json
+
+from multirace.cli import main
+from multirace.resources import agents_dir
+from multirace.train.evaluate import HELD_OUT_TRACKS, held_out_tracks, trained_tracks
+
+AGENT = agents_dir() / "dagger_small.pt"
+
+
+def test_quick_split_never_holds_out_a_track_the_agent_trained_on():
+    seen = trained_tracks(AGENT)
+    assert {"Oval_track", "Bowtie_track", "reInvent2019_track", "reinvent_base"} <= seen
+    quick = held_out_tracks(seen, quick=True)
+    assert len(quick) == 3 and not set(quick) & seen and set(quick) <= set(HELD_OUT_TRACKS)
+    assert not set(held_out_tracks(seen)) & seen
+
+
+def test_evaluate_labels_trained_tracks_and_writes_its_png_next_to_the_json(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "report" / "r.json"
+    out.parent.mkdir()
+    assert main(["evaluate", str(AGENT), "--quick", "--tracks", "Oval_track,Mexico_track", "--laps", "1",
+                 "--json", str(out)]) == 0
+    report = json.loads(out.read_text())
+    rows = {r["track"]: r for r in report["held_out"]}
+    assert rows["Oval_track"]["trained_on"] and not rows["Mexico_track"]["trained_on"]
+    assert (tmp_path / "report" / "r.png").stat().st_size > 1000
+    assert not (agents_dir() / "dagger_small.eval.png").exists()
+    # the held-out figures leave out the track it trained on
+    assert report["summary"]["held_out_completion"] == rows["Mexico_track"]["completion"]
