@@ -120,3 +120,24 @@ def test_write_video_from_iterator(tmp_path):
         write_video([], tmp_path / "empty.mp4")
     with pytest.raises(ValueError):
         write_video([np.zeros((64, 96, 3), np.uint8), np.zeros((32, 32, 3), np.uint8)], tmp_path / "bad.mp4")
+
+
+def test_videos_are_h264_in_mp4_as_browsers_play_them(tmp_path):
+    # read back with OpenCV's own FFmpeg, not the PyAV that wrote it
+    path = tmp_path / "odd.mp4"
+    frames = [np.full((61, 97, 3), 20 * k, np.uint8) for k in range(10)]  # odd sizes are padded for yuv420p
+    assert write_video(frames, path) == 10
+    assert path.read_bytes()[4:8] == b"ftyp"  # an MP4 (ISO base media) file
+    capture = cv2.VideoCapture(str(path))
+    fourcc = int(capture.get(cv2.CAP_PROP_FOURCC)).to_bytes(4, "little").decode().lower()
+    assert fourcc in ("avc1", "h264")
+    assert capture.get(cv2.CAP_PROP_FPS) == pytest.approx(15.0)
+    decoded = []
+    while True:
+        ok, frame = capture.read()
+        if not ok:
+            break
+        decoded.append(frame)
+    capture.release()
+    assert len(decoded) == 10 and decoded[0].shape[:2] == (62, 98)
+    assert [int(round(f[:61, :97].mean())) for f in decoded] == pytest.approx([20 * k for k in range(10)], abs=3)
