@@ -54,22 +54,23 @@ def env(**config):
 class RaceEnv(ParallelEnv):
     """Several DeepRacer cars with front cameras racing in one PyBullet world.
 
-    Keywords follow DESIGN.md's public contract: track, reverse, num_cars,
+    Keywords (the public contract): track, reverse, num_cars,
     race, laps, obstacles, bots, action_space, reward_function, camera,
-    grayscale, lidar, renderer, randomize, render_mode, max_steps; plus
+    grayscale, lidar, renderer, randomize, render_mode ("human" or "rgb_array"),
+    max_steps (or PettingZoo's `max_cycles`); plus
     `physics_hz` (default 60) and `car_names` (names used in results).
 
     Observations are camera images, uint8 (H, W, C); with ``lidar=True`` each
     is a dict ``{"camera": image, "lidar": 64 float32 ranges}`` (see `lidar`).
     """
 
-    metadata = {"name": "multirace_v0", "render_modes": ["rgb_array"], "render_fps": ACTION_HZ,
+    metadata = {"name": "multirace_v0", "render_modes": ["human", "rgb_array"], "render_fps": ACTION_HZ,
                 "is_parallelizable": True}
 
     def __init__(self, track="reinvent_base", reverse=False, num_cars=4, race="time_trial", laps=3,
                  obstacles=None, bots=(), action_space=None, reward_function=None, camera=(120, 160),
                  grayscale=True, lidar=False, renderer="fast", randomize=None, render_mode=None, max_steps=None,
-                 physics_hz=60, car_names=None):
+                 physics_hz=60, car_names=None, max_cycles=None):
         self.track: Track = track if isinstance(track, Track) else load_track(track, reverse=reverse)
         self.rules = make_rules(race, laps, obstacles)
         self.bots = [parse_bot(b) for b in bots]
@@ -82,9 +83,14 @@ class RaceEnv(ParallelEnv):
         self.actions = load_action_space(action_space)
         self.reward_function = load_reward_function(reward_function)
         self.randomization = Randomization.from_config(randomize)
-        if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"render_mode: {render_mode!r} is not supported; use None or 'rgb_array'")
+        if render_mode not in (None, *self.metadata["render_modes"]):
+            raise ValueError(f"render_mode: {render_mode!r} is not supported; use None, 'human' or 'rgb_array'")
         self.render_mode = render_mode
+        self._window = None  # render_mode="human": opened on the first render()
+        if max_cycles is not None:  # PettingZoo's name for the step limit
+            if max_steps is not None and max_steps != max_cycles:
+                raise ValueError(f"max_cycles={max_cycles} and max_steps={max_steps}: give one step limit")
+            max_steps = max_cycles
         try:
             height, width = (int(v) for v in camera)
         except (TypeError, ValueError):
@@ -148,7 +154,7 @@ class RaceEnv(ParallelEnv):
 
     def __getstate__(self):
         state = self.__dict__.copy()
-        state.update(_renderer=None, _texture=None)
+        state.update(_renderer=None, _texture=None, _window=None)
         return state
 
     # ------------------------------------------------------------- reset
@@ -518,13 +524,25 @@ class RaceEnv(ParallelEnv):
 
     # ------------------------------------------------------------ render
     def render(self):
-        if self.render_mode != "rgb_array":
+        """The top-down race view: an RGB array ("rgb_array"), shown in a window ("human"), or None."""
+        if self.render_mode is None:
             return None
         from ..sensors.topdown import render_topdown
 
-        return render_topdown(self)
+        frame = render_topdown(self)
+        if self.render_mode == "rgb_array":
+            return frame
+        if self._window is None:
+            from ..sensors.window import RaceWindow
+
+            self._window = RaceWindow()
+        self._window.show(frame)
+        return None
 
     def close(self):
+        if self._window is not None:
+            self._window.close()
+            self._window = None
         if self._renderer is not None:
             self._renderer.close()
         self.world.close()
