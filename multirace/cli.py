@@ -10,7 +10,7 @@ from rich.console import Console
 from rich.table import Table
 
 from .environment.rules import FORMATS
-from .resources import list_tracks
+from .resources import list_agents, list_tracks
 
 
 def _format_time(value) -> str:
@@ -182,7 +182,9 @@ def build_parser() -> argparse.ArgumentParser:
     race = sub.add_parser("race", help="race agent files and bots against each other",
                           description="Race agent files (.pt) and scripted bots (bot:follow@1.5, "
                                       "bot:lanes@1.0) and print the result.")
-    race.add_argument("entrants", nargs="+", help="agent files or bot:KIND@SPEED (KIND: follow, lanes, pass)")
+    race.add_argument("entrants", nargs="+",
+                      help=f"agent files, shipped agents by name ({', '.join(list_agents())}) or bot:KIND@SPEED "
+                           "(KIND: follow, lanes, pass)")
     race.add_argument("--track", default="reinvent_base",
                       help=f"bundled track name or .npy path (bundled: {', '.join(list_tracks())})")
     race.add_argument("--reverse", action="store_true", help="race the track in the other direction")

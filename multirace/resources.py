@@ -34,3 +34,8 @@ def league_dir() -> Path:
 def list_tracks() -> list[str]:
     """Names of the bundled tracks."""
     return sorted(p.stem for p in tracks_dir().glob("*.npy"))
+
+
+def list_agents() -> list[str]:
+    """Names of the shipped agent files (`multirace race dagger_fast` races one by name)."""
+    return sorted(p.stem for p in agents_dir().glob("*.pt"))

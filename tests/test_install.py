@@ -23,3 +23,20 @@ def test_parser_and_every_subcommand_help_import_no_heavy_library():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
     assert out[0] == "[]", f"building the CLI parser imported {out}"
     assert int(out[-1]) >= 10  # race, agent, imitate, replay, explain, plot, bench, train, evaluate, league
+
+
+def test_shipped_agents_race_by_name(tmp_path, monkeypatch):
+    from multirace.cli import main
+
+    monkeypatch.chdir(tmp_path)  # away from the checkout's agents/ folder
+    out = tmp_path / "r.json"
+    assert main(["race", "dagger_small", "bot:follow@1.5", "--laps", "1", "--json", str(out)]) == 0
+    import json
+
+    import hashlib
+
+    from multirace.resources import agents_dir
+
+    cars = {c["name"]: c for c in json.loads(out.read_text())["cars"]}
+    shipped = hashlib.sha256((agents_dir() / "dagger_small.pt").read_bytes()).hexdigest()
+    assert cars["dagger_small"]["file_sha256"] == shipped and cars["dagger_small"]["status"] != "forfeit"

@@ -13,16 +13,26 @@ import dataclasses
 from pathlib import Path
 
 from ..environment.race_env import RaceEnv
+from ..resources import agents_dir
 from .entrant import COMMAND_SPACE, BotController, Controller, Forfeit
 
 
 def make_controller(spec: str, **agent_options) -> Controller:
-    """A controller from `bot:KIND@SPEED` or the path of an agent file."""
+    """A controller from `bot:KIND@SPEED`, the path of an agent file, or a shipped agent's name (`dagger_fast`)."""
     if spec.startswith("bot:"):
         return BotController(spec)
     from .agentfile import AgentController  # torch is only needed for agent files
 
-    return AgentController(Path(spec), **agent_options)
+    return AgentController(resolve_agent_path(spec), **agent_options)
+
+
+def resolve_agent_path(spec: str) -> Path:
+    """The agent file `spec` names: a path, or else the name of an agent shipped with multirace."""
+    path = Path(spec)
+    shipped = agents_dir() / f"{spec}.pt"
+    if not path.exists() and path.name == spec and shipped.exists():
+        return shipped
+    return path
 
 
 @dataclasses.dataclass
