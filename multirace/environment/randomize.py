@@ -15,7 +15,7 @@ API (for wiring into `env.py`)
 ``Randomization.draw_episode(rng, num_cars=1) -> EpisodeDraw``
     Call once per ``reset`` (after seeding). Fixes for the episode: the scene
     `palette` (rebuild ``TrackTexture(track, draw.palette)`` and the renderer
-    when ``draw.palette != texture.palette``; a texture costs about 26 ms),
+    when ``draw.palette != texture.palette``; building a texture is costly),
     `camera_jitter[i]` per car (pass to ``camera_pose(spec, pose,
     jitter=draw.camera_jitter[i])``), the lighting (brightness, contrast, hue,
     saturation), noise level, blur kernel, shadow shapes, and per-car dynamics
@@ -24,12 +24,9 @@ API (for wiring into `env.py`)
     Per camera frame: uint8 (H, W, 1) or (H, W, 3) in, a new uint8 array of
     the same shape out. Order: shadows, blur, lighting (brightness, contrast,
     hue, saturation), sensor noise. Consumes exactly one ``rng.random(5)``
-    per call whatever is enabled, so streams stay aligned. Measured on this
-    2-core machine (quiet; about 2x more under load), 160x120: gray "mild"
-    16 us, "strong" 23 us, every effect on every frame 33-38 us; RGB "mild"
-    24 us, "strong" 39 us, every effect 67-70 us. The noise field and shadow
-    masks are made once per episode and image shape (about 1 ms), so each
-    frame only crops/selects them.
+    per call whatever is enabled, so streams stay aligned. The noise field
+    and shadow masks are made once per episode and image shape, so each
+    frame only crops/selects them (`multirace bench` measures the cost).
 ``apply_command(steer_deg, speed, draw, rng, car=0, spec=None) -> (steer_deg, speed)``
     Per car per step, on the commanded action before ``spec.clamp_command``:
     adds the steering offset, multiplies by the speed gain, and adds

@@ -7,7 +7,7 @@ with the car's `CarRace` state updated) and rank the cars; the env then only
 carries out what they decided (moves a car back, parks it). All times are
 simulated race time in seconds, not wall time.
 
-Formats (DeepRacer's, see DESIGN.md "Race formats and scoring"):
+Formats (DeepRacer's):
 - ``time_trial``: N laps; off track costs a 2 s penalty and a reset onto the
   centre line where the car left. Ranked by total time (time + penalties).
 - ``reset_rule``: AWS Summit rules, a 4-minute window and up to 3 resets; the

@@ -6,8 +6,8 @@ has a fixed shape lives in shared memory, one block per kind with a slot per
 worker: the actions the learner writes, and the camera images (and LIDAR
 ranges, for envs that scan one), rewards and done flags the workers write. A
 step is then one command byte down each pipe and one byte back (or, when info
-keys were asked for, a small pickled list of those infos): on this machine the
-pipe round trip is the largest cost of a worker step after the env itself. The
+keys were asked for, a small pickled list of those infos): the pipe round
+trip is the largest cost of a worker step after the env itself. The
 full DeepRacer params (waypoint lists) are costly to send and stay behind.
 
 After each reply a worker polls for its next command for `spin_wait` seconds

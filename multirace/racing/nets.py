@@ -51,8 +51,8 @@ LIDAR_HIDDEN = 64  # width of the two LIDAR layers
 class AveragePool(nn.AvgPool2d):
     """`nn.AvgPool2d(k)` computed as a fixed depthwise convolution: the same numbers, faster on CPU.
 
-    (torch's CPU average pool takes about 0.9 ms for 8 single-channel 120x160 images, the convolution
-    about 0.2 ms.) The kernel is not saved with the weights, so agent files are unchanged.
+    (torch's CPU average pool is several times slower than this convolution on small batches of
+    single-channel images.) The kernel is not saved with the weights, so agent files are unchanged.
     """
 
     def __init__(self, kernel: int, channels: int):

@@ -54,7 +54,11 @@ class RaceConfig:
 
 
 def run_race(controllers: list[Controller], config: RaceConfig, recorders=()) -> dict:
-    """Race `controllers` against each other; returns the result record (DESIGN.md format).
+    """Race `controllers` against each other; returns the result record.
+
+    The record: {"format", "track", "reverse", "seed", "laps", "cars": [{"car", "name", "file_sha256",
+    "position", "laps", "lap_times", "best_lap", "total_time", "resets", "off_tracks", "penalties",
+    "collisions", "collisions_caused", "progress", "status", "reason"}]} in finishing order.
 
     `recorders` get `start(env)`, `step(env, observations, rewards, infos)` and
     `finish(env, result)` calls (replays, sim-trace logs, videos).

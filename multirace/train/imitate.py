@@ -145,8 +145,7 @@ def default_threads() -> int:
     """Torch threads for training: every core on an idle machine, else 1.
 
     On a busy machine several torch threads spin against other processes and a
-    training step gets several times slower than on one thread (measured here:
-    222 ms vs 57 ms for a batch of 64 at load 6 on 2 cores).
+    training step gets several times slower than on one thread.
     """
     cores = os.cpu_count() or 1
     try:
