@@ -216,8 +216,27 @@ def run_bench(seconds: float = 3.0, replay_seconds: float = 240.0, progress=prin
         figures["training"] = training_throughput(seconds=training_seconds)
         progress(f"training (PPO, sampling + updates, 2 workers): {figures['training']['agent_steps_per_s']:.0f} "
                  "agent-steps/s")
+    figures["cli_help_s"] = cli_start_seconds()
+    progress(f"`multirace --help`, whole process: {figures['cli_help_s']['median']} s (median)")
     figures["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
     return figures
+
+
+def cli_start_seconds(runs: int = 9) -> dict:
+    """Wall time of whole `multirace --help` and `multirace race --help` processes: median, min, max of `runs`."""
+    import statistics
+    import subprocess
+    import sys
+    import time
+
+    times = []
+    for k in range(runs):
+        command = [sys.executable, "-m", "multirace.cli"] + (["race"] if k % 2 else []) + ["--help"]
+        start = time.perf_counter()
+        subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
+        times.append(time.perf_counter() - start)
+    return {"median": round(statistics.median(times), 3), "min": round(min(times), 3), "max": round(max(times), 3),
+            "runs": runs}
 
 
 def format_table(figures: dict) -> list[tuple[str, str]]:
@@ -235,6 +254,7 @@ def format_table(figures: dict) -> list[tuple[str, str]]:
         ("2 workers / 1 worker", f"{figures['workers_speedup_2']}x"),
         ("memory of one 4-car env (MB)", f"{figures['env_memory_mb_4_cars']}"),
         ("peak RSS of the bench process (MB)", f"{figures['peak_rss_mb']}"),
+        ("`multirace --help`, whole process (s, median)", f"{figures['cli_help_s']['median']}"),
     ]
     if "replay" in figures:
         replay = figures["replay"]
