@@ -71,8 +71,10 @@ HOOK = textwrap.dedent('''
                     os.kill(os.getpid(), 9)
                 if tag == 3456.5:
                     time.sleep(3600)
-                if tag == 4567.5:
-                    time.sleep(0.25)
+                if tag == 4567.5:  # slow inference: it burns 0.25 s of CPU (budgets count CPU time)
+                    end = time.thread_time() + 0.25
+                    while time.thread_time() < end:
+                        pass
             return original(self, obs)
 
         module.CameraNet.forward = forward
