@@ -13,6 +13,7 @@ penalties, resets) -> camera images.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -22,10 +23,11 @@ from pettingzoo.utils import OrderEnforcingWrapper, parallel_to_aec
 
 from .actions import load_action_space
 from .bots import parse_bot
-from ..sensors.camera import CameraSpec, camera_poses
+from ..sensors.camera import CameraSpec, camera_poses, stereo_poses
 from ..sensors.renderers import make_renderer
 from ..sim.car import CarSpec
-from ..sensors.lidar import Lidar
+from ..sensors.lidar import SECTORS, Lidar, sector_lidar
+from ..sensors.suite import SensorSuite, parse_sensors
 from ..sim.objects import objects_seen
 from .randomize import Randomization, apply_command, apply_image
 from .rewards import load_reward_function
@@ -60,8 +62,12 @@ class RaceEnv(ParallelEnv):
     max_steps (or PettingZoo's `max_cycles`); plus
     `physics_hz` (default 60) and `car_names` (names used in results).
 
-    Observations are camera images, uint8 (H, W, C); with ``lidar=True`` each
-    is a dict ``{"camera": image, "lidar": 64 float32 ranges}`` (see `lidar`).
+    `sensor` is DeepRacer's model_metadata sensor list (default
+    ``["FRONT_FACING_CAMERA"]``; see `sensors.suite`): ``STEREO_CAMERAS`` gives
+    (H, W, 2) grey images [left, right]; ``LIDAR`` (or ``lidar=True``) or
+    ``SECTOR_LIDAR`` make each observation a dict ``{"camera": image, "lidar":
+    64 float32 ranges}`` or ``{"camera": image, "lidar": 8 binary sectors}``.
+    Otherwise observations are camera images, uint8 (H, W, C).
     """
 
     metadata = {"name": "multirace_v0", "render_modes": ["human", "rgb_array"], "render_fps": ACTION_HZ,
@@ -70,7 +76,7 @@ class RaceEnv(ParallelEnv):
     def __init__(self, track="reinvent_base", reverse=False, num_cars=4, race="time_trial", laps=3,
                  obstacles=None, bots=(), action_space=None, reward_function=None, camera=(120, 160),
                  grayscale=True, lidar=False, renderer="fast", randomize=None, render_mode=None, max_steps=None,
-                 physics_hz=60, car_names=None, max_cycles=None):
+                 physics_hz=60, car_names=None, max_cycles=None, sensor=None):
         self.track: Track = track if isinstance(track, Track) else load_track(track, reverse=reverse)
         self.rules = make_rules(race, laps, obstacles)
         self.bots = [parse_bot(b) for b in bots]
@@ -113,12 +119,20 @@ class RaceEnv(ParallelEnv):
         if len(names) != self.num_cars:
             raise ValueError(f"car_names: expected {self.num_cars} names, got {len(names)}")
         self.car_names = names + [bot.name for bot in self.bots]
-        obs_space = spaces.Box(0, 255, (height, width, self.camera.channels), np.uint8)
-        self.lidar = Lidar(self.car_spec) if lidar else None
-        if self.lidar is not None:
+        self.sensors = parse_sensors(sensor) if sensor is not None else SensorSuite()
+        if lidar and self.sensors.lidar is None:
+            self.sensors = dataclasses.replace(self.sensors, lidar="lidar")
+        if self.sensors.camera == "stereo" and not self.camera.grayscale:
+            raise ValueError("sensor: STEREO_CAMERAS are a pair of grey cameras; use grayscale=True")
+        channels = self.sensors.camera_channels or self.camera.channels
+        obs_space = spaces.Box(0, 255, (height, width, channels), np.uint8)
+        self.lidar = Lidar(self.car_spec) if self.sensors.lidar else None
+        if self.sensors.lidar == "lidar":
             spec = self.lidar.spec
             obs_space = spaces.Dict({"camera": obs_space, "lidar": spaces.Box(
                 spec.min_range, spec.max_range, (spec.samples,), np.float32)})
+        elif self.sensors.lidar == "sector":
+            obs_space = spaces.Dict({"camera": obs_space, "lidar": spaces.Box(0.0, 1.0, (SECTORS,), np.float32)})
         self.observation_spaces = {a: obs_space for a in self.possible_agents}
         self.action_spaces = {a: self.actions.space for a in self.possible_agents}
 
@@ -408,14 +422,23 @@ class RaceEnv(ParallelEnv):
         if draw is not None and self.randomization.camera_enabled:
             jitter = np.array(draw.camera_jitter[:self.num_cars])
         eyes, rotations = camera_poses(self.camera, self.world.poses[:self.num_cars], jitter)
-        images = self._renderer.render_many(self.world, self._camera_cars, eyes, rotations)
+        cars = self._camera_cars
+        if self.sensors.camera == "stereo":  # render the left cameras, then the right ones
+            eyes, rotations = stereo_poses(self.camera, eyes, rotations)
+            cars = np.concatenate([cars, cars])
+        images = self._renderer.render_many(self.world, cars, eyes, rotations)
         if draw is not None and self.randomization.perception_enabled:
             images = [apply_image(image, self._randomizer_rng, draw) for image in images]
+        if self.sensors.camera == "stereo":
+            n = self.num_cars
+            images = [np.concatenate([left, right], axis=2) for left, right in zip(images[:n], images[n:])]
         if self.lidar is None:
             return dict(zip(self.possible_agents, images))
-        ranges = self.lidar.scan(self.world, self._camera_cars, self._lidar_rng)
+        scans = self.lidar.scan(self.world, self._camera_cars, self._lidar_rng)
+        if self.sensors.lidar == "sector":
+            scans = sector_lidar(scans)
         return {agent: {"camera": image, "lidar": scan}
-                for agent, image, scan in zip(self.possible_agents, images, ranges)}
+                for agent, image, scan in zip(self.possible_agents, images, scans)}
 
     def _params(self, i: int, touched: set, table: tuple) -> dict:
         """The 27 DeepRacer reward params of car i, in DeepRacer's units."""

@@ -32,6 +32,7 @@ class CameraSpec:
     forward: float = 0.165  # m ahead of the body centre (at the front bumper)
     mount_height: float = 0.14  # m above the ground
     pitch: float = math.radians(15.0)  # tilted down
+    stereo_baseline: float = 0.06  # m between the two cameras of STEREO_CAMERAS (the Evo's pair, estimated)
 
     @property
     def channels(self) -> int:
@@ -120,3 +121,10 @@ class Renderer:
 
     def close(self) -> None:
         """Release what the renderer holds."""
+
+
+def stereo_poses(spec: CameraSpec, eyes: np.ndarray, rotations: np.ndarray):
+    """The stereo pair of each camera pose: eyes (2n, 3) and rotations (2n, 3, 3), the n left cameras
+    first, then the n right ones, each half the baseline to its side, looking the same way."""
+    offsets = rotations[:, 0, :] * (spec.stereo_baseline / 2)  # along each camera's right axis
+    return np.concatenate([eyes - offsets, eyes + offsets]), np.concatenate([rotations, rotations])

@@ -20,6 +20,8 @@ import numpy as np
 from ..sim.car import CarSpec
 
 SENSOR_NAME = "LIDAR"
+SECTORS = 8  # DeepRacer's SECTOR_LIDAR: the 64 beams in 8 sectors of 8 ...
+SECTOR_DISTANCE = 0.5  # m: ... each 1.0 where its nearest echo is nearer than this, else 0.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,3 +88,11 @@ def _with_height(points: np.ndarray, z: float) -> np.ndarray:
     """(..., 2) points as flat (M, 3) rows at height z."""
     flat = points.reshape(-1, 2)
     return np.column_stack([flat, np.full(len(flat), z)])
+
+
+def sector_lidar(ranges: np.ndarray) -> np.ndarray:
+    """DeepRacer's SECTOR_LIDAR from LIDAR scans (..., 64): (..., 8) float32 of 1.0 (something nearer than
+    `SECTOR_DISTANCE` in that sector of consecutive beams) or 0.0."""
+    ranges = np.asarray(ranges, np.float32)
+    sectors = ranges.reshape(*ranges.shape[:-1], SECTORS, ranges.shape[-1] // SECTORS).min(axis=-1)
+    return (sectors < SECTOR_DISTANCE).astype(np.float32)
