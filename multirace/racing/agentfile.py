@@ -38,6 +38,7 @@ import torch
 
 from ..environment.actions import ActionSpace, ActionSpaceError
 from ..sensors.lidar import SENSOR_NAME as LIDAR, LidarSpec
+from ..sensors.suite import SensorSuite
 from .nets import NETWORKS, CameraNet, num_outputs_for, parameter_count
 from .entrant import Controller, Forfeit, file_sha256
 
@@ -381,8 +382,9 @@ class AgentController(Controller):
         self.step_times: list[float] = []
 
     @property
-    def uses_lidar(self) -> bool:
-        return self.agent is not None and self.agent.lidar_samples > 0
+    def sensors(self) -> SensorSuite:
+        """What the agent reads (a bad file reads the camera alone, until it forfeits)."""
+        return SensorSuite() if self.agent is None else SensorSuite("mono", "lidar" if self.agent.lidar_samples else None)
 
     def reset(self, env, car: int) -> None:
         super().reset(env, car)

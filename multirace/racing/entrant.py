@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..environment.bots import parse_bot
+from ..sensors.suite import SensorSuite
 
 if TYPE_CHECKING:
     from ..environment.race_env import RaceEnv
@@ -31,7 +32,7 @@ class Controller:
 
     name: str = "controller"
     file_sha256: str | None = None
-    uses_lidar: bool = False  # the race env scans the LIDAR when any entrant reads it
+    sensors: SensorSuite = SensorSuite()  # what it reads; the race's env provides what every entrant reads
 
     def reset(self, env: RaceEnv, car: int) -> None:
         """Called at the start of a race with the env and the car index it drives."""

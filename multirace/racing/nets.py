@@ -108,8 +108,9 @@ class CameraNet(nn.Module):
         if network not in NETWORKS:
             raise ValueError(f"neural_network: unknown network {network!r}; known: {', '.join(NETWORKS)}")
         height, width, channels = (int(v) for v in image_shape)
-        if min(height, width) < 32 or channels not in (1, 3):
-            raise ValueError(f"image shape {image_shape}: need at least 32x32 pixels and 1 or 3 channels")
+        if min(height, width) < 32 or channels not in (1, 2, 3):
+            raise ValueError(f"image shape {image_shape}: need at least 32x32 pixels and 1 (grey), 2 (stereo "
+                             "grey pair) or 3 (colour) channels")
         if int(num_outputs) < 1:
             raise ValueError(f"num_outputs: must be positive, got {num_outputs}")
         self.network = network

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from ..environment.race_env import RaceEnv
 from ..resources import agents_dir
+from ..sensors.suite import race_suite
 from .entrant import COMMAND_SPACE, BotController, Controller, Forfeit
 
 
@@ -67,7 +68,7 @@ def run_race(controllers: list[Controller], config: RaceConfig, recorders=()) ->
         raise ValueError("a race needs at least one entrant")
     env = RaceEnv(track=config.track, reverse=config.reverse, num_cars=len(controllers), race=config.race,
                   laps=config.laps, obstacles=config.obstacles, bots=config.bots, action_space=COMMAND_SPACE,
-                  lidar=any(c.uses_lidar for c in controllers), randomize=config.randomize,
+                  sensor=race_suite(c.sensors for c in controllers).names, randomize=config.randomize,
                   camera=config.camera, grayscale=config.grayscale,
                   max_steps=config.max_steps, renderer=config.renderer,
                   car_names=[c.name for c in controllers])
