@@ -4,7 +4,9 @@ import math
 import numpy as np
 import pytest
 
-from multirace.sim.tracks import TrackError, list_tracks, load_track
+from pathlib import Path
+
+from multirace.sim.tracks import Track, TrackError, list_tracks, load_track
 
 ALL_TRACKS = list_tracks()
 
@@ -109,3 +111,27 @@ def test_unreadable_and_unknown_tracks(tmp_path):
         load_track("no_such_track")
     with pytest.raises(TrackError, match="no such file"):
         load_track(tmp_path / "missing.npy")
+
+
+def test_tokyo_hairpin_with_skewed_border_rows_loads_at_its_drawn_width():
+    # DeepRacer's Tokyo_Training_track pairs border points far along the track from their centre point
+    # (1.16 m apart for a road whose border lines are 0.66 m apart); widths come from the border lines
+    track = load_track("Tokyo_Training_track")
+    assert track.width.min() > 0.6 and track.median_width == pytest.approx(0.66, abs=0.01)
+    x, y, _ = track.point_at(track.cum_s[116], lateral=0.25)
+    assert track.on_track(track.project(x, y))
+
+
+def test_collapsed_border_rows_are_repaired_from_their_neighbours():
+    rows = np.load(f"{Path(load_track('reinvent_base').source)}").copy()
+    rows[40, 2:4] = rows[40, 0:2]  # inner point on the centre
+    rows[41, 2:6] = np.concatenate([rows[41, 0:2], rows[41, 0:2]])  # both border points on the centre
+    track = Track(rows, name="collapsed")
+    assert track.width.min() == pytest.approx(load_track("reinvent_base").width.min(), abs=0.02)
+
+
+def test_an_open_route_is_refused_as_not_a_closed_loop():
+    s = np.linspace(0.0, 10.0, 50)
+    straight = np.column_stack([s, np.zeros(50), s, np.full(50, 0.4), s, np.full(50, -0.4)])
+    with pytest.raises(TrackError, match="not a closed loop"):
+        Track(straight, source="Straight_track.npy")

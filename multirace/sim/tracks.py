@@ -85,6 +85,45 @@ def find_self_intersection(loop: np.ndarray) -> tuple[int, int] | None:
     return None
 
 
+COLLAPSED = 0.01  # m: a border point this close to its centre point is a degenerate row
+
+
+def repair_collapsed_borders(rows: np.ndarray) -> np.ndarray:
+    """Rows whose border points coincide with the centre (zero width, as DeepRacer's simulator tolerates)
+    get border points interpolated from the nearest sound rows on either side."""
+    rows = rows.copy()
+    n = len(rows) - 1  # the closed loop's rows (the last repeats the first)
+    for cols in (slice(2, 4), slice(4, 6)):
+        bad = np.linalg.norm(rows[:n, cols] - rows[:n, 0:2], axis=1) < COLLAPSED
+        if bad.all():
+            continue  # nothing to interpolate from: the width check names the track
+        good = np.nonzero(~bad)[0]
+        for k in np.nonzero(bad)[0]:
+            before = good[good < k][-1] if np.any(good < k) else good[-1] - n
+            after = good[good > k][0] if np.any(good > k) else good[0] + n
+            t = (k - before) / (after - before)
+            rows[k, cols] = (1 - t) * rows[before % n, cols] + t * rows[after % n, cols]
+        rows[n, cols] = rows[0, cols]
+    return rows
+
+
+BORDER_WINDOW = 15  # border segments searched on each side of a waypoint's own row
+
+
+def border_distances(center: np.ndarray, border: np.ndarray) -> np.ndarray:
+    """Distance from each centre waypoint to the nearest segment of a closed border line, among the
+    border segments within `BORDER_WINDOW` rows of its own (so the far side of a hairpin never counts)."""
+    n = len(center) - 1  # rows of the closed loop (the last repeats the first)
+    a = border[:-1]
+    b = np.roll(a, -1, axis=0)
+    rows = (np.arange(n)[:, None] + np.arange(-BORDER_WINDOW, BORDER_WINDOW + 1)[None, :]) % n
+    a, ab = a[rows], (b - a)[rows]  # (n, window, 2)
+    p = center[:n, None, :]
+    t = np.clip(np.einsum("nwk,nwk->nw", p - a, ab) / np.maximum(np.einsum("nwk,nwk->nw", ab, ab), 1e-12), 0, 1)
+    nearest = np.linalg.norm(p - (a + t[..., None] * ab), axis=2).min(axis=1)
+    return np.append(nearest, nearest[0])
+
+
 @dataclasses.dataclass
 class Projection:
     """Where a point lies relative to the track's centre line."""
@@ -134,8 +173,8 @@ class Track:
         self.seg_heading = np.arctan2(direction[:, 1], direction[:, 0])
         normal = np.stack([-direction[:, 1], direction[:, 0]], axis=1)  # left normal
 
-        # Signed extent of the road to each side, at every waypoint, using the
-        # incoming/outgoing segment normal (averaged) at that waypoint.
+        # Which physical side is "inner": +1 if inner is to the left (a CCW loop), from the
+        # paired border points' side of the centre line (averaged normal at each waypoint).
         wp_normal = np.empty_like(self.center)
         wp_normal[:-1] = normal
         wp_normal[-1] = normal[0]
@@ -143,10 +182,14 @@ class Track:
         wp_normal[0] = wp_normal[-1] = normal[0] + normal[-1]
         wp_normal /= np.maximum(np.linalg.norm(wp_normal, axis=1), 1e-9)[:, None]
         inner_off = np.einsum("ij,ij->i", self.inner - self.center, wp_normal)
-        outer_off = np.einsum("ij,ij->i", self.outer - self.center, wp_normal)
-        self.left_width = np.maximum(inner_off, outer_off)
-        self.right_width = -np.minimum(inner_off, outer_off)
-        self.width = np.linalg.norm(self.inner - self.outer, axis=1)
+        self.inner_side = 1.0 if np.median(inner_off) > 0 else -1.0
+        # The road's extent to each side at every waypoint: the distance from the centre point to the
+        # nearest part of that side's border line (paired border rows can be skewed or coincide with the
+        # centre in hairpins, as in DeepRacer's own Tokyo_Training_track; the border lines are still right).
+        to_inner, to_outer = border_distances(self.center, self.inner), border_distances(self.center, self.outer)
+        self.left_width = to_inner if self.inner_side > 0 else to_outer
+        self.right_width = to_outer if self.inner_side > 0 else to_inner
+        self.width = self.left_width + self.right_width
         self._segments = np.column_stack([  # one row per segment, columns as _project_point reads them
             self.seg_start, self.seg_vec, self.seg_len2, self.seg_dir, self.cum_s[:-1], self.seg_len,
             self.seg_heading, self.left_width[:-1], self.left_width[1:], self.right_width[:-1], self.right_width[1:]])
@@ -154,8 +197,6 @@ class Track:
             bad = int(np.argmin(self.left_width + self.right_width))
             raise TrackError(f"track file {source}: zero width at waypoint {bad}")
         self.median_width = float(np.median(self.width))
-        # Which physical side is "inner": +1 if inner is to the left (a CCW loop).
-        self.inner_side = 1.0 if np.median(inner_off) > 0 else -1.0
         xy = np.vstack([self.inner, self.outer])
         self.bounds = (xy.min(axis=0), xy.max(axis=0))
 
@@ -174,13 +215,16 @@ class Track:
             bad = int(np.argwhere(~np.isfinite(rows))[0][0])
             raise TrackError(f"track file {source}: NaN or infinite value in row {bad}")
         if not np.allclose(rows[0], rows[-1]):
+            gap = float(np.linalg.norm(rows[0, :2] - rows[-1, :2]))
+            step = float(np.median(np.linalg.norm(np.diff(rows[:, :2], axis=0), axis=1)))
+            if gap > max(5 * step, 0.5):
+                raise TrackError(f"track file {source}: not a closed loop (the last waypoint is {gap:.2f} m from "
+                                 "the first); multirace races closed tracks only")
             rows = np.vstack([rows, rows[:1]])
         distinct = len(np.unique(rows[:-1, 0:2].round(6), axis=0))
         if distinct < MIN_POINTS:
             raise TrackError(f"track file {source}: {distinct} distinct points, need at least {MIN_POINTS}")
-        widths = np.linalg.norm(rows[:, 2:4] - rows[:, 4:6], axis=1)
-        if np.any(widths < 0.05):
-            raise TrackError(f"track file {source}: zero width at waypoint {int(np.argmin(widths))}")
+        rows = repair_collapsed_borders(rows)
         for label, cols in (("inner", slice(2, 4)), ("outer", slice(4, 6))):
             crossing = find_self_intersection(rows[:, cols])
             if crossing is not None:
