@@ -289,7 +289,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_train_parser(sub)
     add_evaluate_parser(sub)
 
-    from .league.core import add_league_commands
+    from .league.commands import add_league_commands
 
     add_league_commands(sub)
     return parser

@@ -18,8 +18,11 @@ import torch
 from multirace.environment.actions import load_action_space
 from multirace.racing.agentfile import make_metadata, save_agent
 from multirace.cli import main as cli_main
-from multirace.league.core import (DEFAULT_TOML_TEXT, LeagueError, build_schedule, connect, init_league, load_config,
-                              parse_config, run_league, submit)
+from multirace.league.config import DEFAULT_TOML, LeagueError, load_config, parse_config
+from multirace.league.runner import run_league
+from multirace.league.schedule import build_schedule
+from multirace.league.store import connect
+from multirace.league.submissions import init_league, submit
 from multirace.league.table import compute_table, write_table
 from multirace.racing.nets import SMALL, build_net
 from helpers import overflow_on_camera_images
@@ -145,7 +148,7 @@ def hook_env(tmp_path, monkeypatch):
 # ------------------------------------------------------------------ definitions
 def test_default_toml_and_init(tmp_path):
     config = parse_config((REPO / "league" / "default.toml").read_text(), "league/default.toml")
-    assert (REPO / "league" / "default.toml").read_text() == DEFAULT_TOML_TEXT
+    assert (REPO / "league" / "default.toml").read_text() == DEFAULT_TOML.read_text()
     assert config.time_trial and config.head_to_head and config.bots
     folder = init_league(tmp_path / "new")
     for name in ("league.toml", "submissions", "replays", "results.sqlite"):

@@ -18,7 +18,9 @@ import math
 import os
 from pathlib import Path
 
-from .core import connect, entrants, load_config, sync_schedule
+from .config import load_config
+from .schedule import entrants, sync_schedule
+from .store import connect
 
 COLUMNS = ["rank", "entrant", "rating", "mu", "sigma", "heats", "wins", "avg_position", "tt_best_lap",
            "tt_completion", "tt_avg_lap", "collisions_caused_per_lap", "forfeits"]

@@ -1,0 +1,81 @@
+"""`multirace league init|submit|run|table`: the command-line glue."""
+from __future__ import annotations
+
+import sys
+
+from .config import TOML, LeagueError
+from .runner import run_league
+from .submissions import init_league, submit
+
+
+def add_league_commands(sub) -> None:
+    """Add `multirace league init|submit|run|table` to the CLI's subparsers."""
+    league = sub.add_parser("league", help="run a league: submissions, schedule, ratings, tables",
+                            description="A league is a folder: league.toml, submissions/, results.sqlite, "
+                                        "replays/ and tables.")
+    league_sub = league.add_subparsers(dest="league_command", required=True)
+    init = league_sub.add_parser("init", help="create a league folder from league/default.toml")
+    init.add_argument("dir", help="the league folder to create")
+    init.add_argument("--from", dest="template", metavar="TOML", help="start from this league.toml instead")
+    init.set_defaults(func=_cmd_init)
+    sub_ = league_sub.add_parser("submit", help="validate an agent file and add it to the league",
+                                 description="Validates the file as a race would (safe load, metadata, smoke "
+                                             "inference within the league's step budget) in a subprocess, then "
+                                             "stores it by sha256. Duplicates and bad files are refused.")
+    sub_.add_argument("dir", help="the league folder")
+    sub_.add_argument("file", help="agent file (.pt)")
+    sub_.add_argument("--name", required=True, help="the entrant's name in the league")
+    sub_.set_defaults(func=_cmd_submit)
+    run = league_sub.add_parser("run", help="run every pending match (resumable)",
+                                description="Builds the schedule and runs the matches without a result, in "
+                                            "worker processes; safe to kill and run again.")
+    run.add_argument("dir", help="the league folder")
+    run.add_argument("--workers", type=int, default=None, help="worker processes (default: one per core)")
+    run.add_argument("--ray", metavar="ADDRESS", default=None,
+                     help="run matches as Ray tasks on this cluster (e.g. auto or ray://host:10001)")
+    run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.set_defaults(func=_cmd_run)
+    table = league_sub.add_parser("table", help="print or export the league table",
+                                  description="Ratings (OpenSkill Plackett-Luce ordinal), time-trial standings "
+                                              "and clean driving; also writes DIR/ratings.png.")
+    table.add_argument("dir", help="the league folder")
+    table.add_argument("--format", dest="table_format", default="md", choices=("md", "csv", "json", "html"))
+    table.add_argument("--out", metavar="FILE", help="write the table to FILE instead of printing it")
+    table.set_defaults(func=_cmd_table)
+
+
+def _cmd_init(args) -> int:
+    folder = init_league(args.dir, args.template)
+    print(f"created league {folder} (edit {folder / TOML}, then 'multirace league submit {folder} FILE.pt "
+          f"--name NAME')")
+    return 0
+
+
+def _cmd_submit(args) -> int:
+    try:
+        row = submit(args.dir, args.file, args.name)
+    except LeagueError as exc:
+        print(f"multirace league submit: {exc}", file=sys.stderr)
+        return 1
+    print(f"submitted {row['name']} ({row['sha256'][:12]}) as {row['file']}")
+    return 0
+
+
+def _cmd_run(args) -> int:
+    if args.workers is not None and args.workers < 1:
+        raise LeagueError("--workers: must be at least 1")
+    stats = run_league(args.dir, workers=args.workers, ray_address=args.ray, progress=not args.quiet)
+    print(f"league run: {stats['ran']} matches run, {stats['failed']} failed, {stats['scheduled']} scheduled, "
+          f"{stats['wall_seconds']:.1f} s")
+    return 0
+
+
+def _cmd_table(args) -> int:
+    from .table import write_table
+
+    text = write_table(args.dir, args.table_format, args.out)
+    if args.out:
+        print(f"wrote {args.out}")
+    else:
+        sys.stdout.write(text)
+    return 0

@@ -1,0 +1,97 @@
+"""The league's results store: one SQLite file, written in transactions; results and retries."""
+from __future__ import annotations
+
+import json
+import sqlite3
+import time
+from pathlib import Path
+
+from .config import DB
+
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS submissions (
+    name TEXT PRIMARY KEY,
+    sha256 TEXT NOT NULL UNIQUE,
+    file TEXT NOT NULL,
+    metadata TEXT NOT NULL,
+    step_budget REAL,
+    submitted_at REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS schedule (
+    match_id TEXT PRIMARY KEY,
+    seq INTEGER NOT NULL UNIQUE,
+    kind TEXT NOT NULL,
+    round INTEGER NOT NULL,
+    spec TEXT NOT NULL,
+    status TEXT NOT NULL DEFAULT 'pending' CHECK (status IN ('pending', 'done', 'failed')),
+    attempts INTEGER NOT NULL DEFAULT 0,
+    last_error TEXT
+);
+CREATE TABLE IF NOT EXISTS results (
+    match_id TEXT PRIMARY KEY REFERENCES schedule(match_id),
+    status TEXT NOT NULL CHECK (status IN ('ok', 'failed')),
+    result TEXT,
+    reason TEXT,
+    replay TEXT,
+    wall_seconds REAL,
+    recorded_at REAL NOT NULL
+);
+"""
+
+
+def connect(folder) -> sqlite3.Connection:
+    """The league's SQLite store (created if missing), in WAL mode with a generous busy timeout."""
+    path = Path(folder) / DB
+    conn = sqlite3.connect(path, timeout=60.0, isolation_level=None)
+    conn.execute("PRAGMA journal_mode=WAL")
+    conn.execute("PRAGMA synchronous=FULL")
+    conn.execute("PRAGMA foreign_keys=ON")
+    conn.executescript(SCHEMA)
+    return conn
+
+
+class _Tx:
+    """`with _Tx(conn):` one IMMEDIATE transaction, committed on success, rolled back on error."""
+
+    def __init__(self, conn):
+        self.conn = conn
+
+    def __enter__(self):
+        self.conn.execute("BEGIN IMMEDIATE")
+        return self.conn
+
+    def __exit__(self, kind, exc, tb):
+        self.conn.execute("COMMIT" if kind is None else "ROLLBACK")
+        return False
+
+
+def record_result(conn, match_id: str, result: dict, replay: str | None, wall_seconds: float | None) -> bool:
+    """Write a match result and mark its schedule row done, in one transaction; False if already recorded."""
+    with _Tx(conn):
+        cursor = conn.execute(
+            "INSERT OR IGNORE INTO results (match_id, status, result, reason, replay, wall_seconds, recorded_at) "
+            "VALUES (?, 'ok', ?, NULL, ?, ?, ?)",
+            (match_id, json.dumps(result, sort_keys=True, default=float), replay, wall_seconds, time.time()))
+        conn.execute("UPDATE schedule SET status='done' WHERE match_id=?", (match_id,))
+        return cursor.rowcount == 1
+
+
+def record_attempt_failure(conn, match_id: str, reason: str, max_retries: int) -> bool:
+    """Count a failed attempt; after 1 + max_retries attempts record the match as failed. True if final."""
+    with _Tx(conn):
+        conn.execute("UPDATE schedule SET attempts=attempts+1, last_error=? WHERE match_id=?", (reason, match_id))
+        attempts = conn.execute("SELECT attempts FROM schedule WHERE match_id=?", (match_id,)).fetchone()[0]
+        if attempts <= max_retries:
+            return False
+        conn.execute("INSERT OR IGNORE INTO results (match_id, status, result, reason, replay, wall_seconds, "
+                     "recorded_at) VALUES (?, 'failed', NULL, ?, NULL, NULL, ?)",
+                     (match_id, f"failed after {attempts} attempts: {reason}", time.time()))
+        conn.execute("UPDATE schedule SET status='failed' WHERE match_id=?", (match_id,))
+        return True
+
+
+def pending_matches(conn) -> list[tuple[str, dict]]:
+    rows = conn.execute("SELECT s.match_id, s.spec FROM schedule s LEFT JOIN results r USING (match_id) "
+                        "WHERE r.match_id IS NULL ORDER BY s.seq").fetchall()
+    return [(mid, json.loads(spec)) for mid, spec in rows]

@@ -1,0 +1,99 @@
+"""Creating a league folder and submitting agent files to it (validated in a worker subprocess)."""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import subprocess
+import time
+from pathlib import Path
+
+from .config import (DEFAULT_TOML, REPLAYS, SUBMISSIONS, SUBMIT_TIMEOUT, TOML, LeagueError, load_config,
+                     parse_config)
+from .store import _Tx, connect
+from .worker import _worker_command, _worker_env
+
+
+def init_league(folder, template=None) -> Path:
+    """Create a league folder from a template league.toml (default: league/default.toml)."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise LeagueError(f"{folder}: exists and is not a folder; choose a new folder for the league")
+    if (folder / TOML).exists():
+        raise LeagueError(f"{folder / TOML}: already exists; this folder is a league already")
+    template = Path(template) if template else DEFAULT_TOML
+    if not template.is_file():
+        raise LeagueError(f"{template}: no such league definition (--from names a league.toml file)")
+    text = template.read_text()
+    parse_config(text, str(template))
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / SUBMISSIONS).mkdir(exist_ok=True)
+    (folder / REPLAYS).mkdir(exist_ok=True)
+    (folder / TOML).write_text(text)
+    connect(folder).close()
+    return folder
+
+
+def validate_in_subprocess(path, step_budget: float, timeout: float = SUBMIT_TIMEOUT) -> dict:
+    """Validate an agent file exactly as a race would (safe load, metadata, smoke inference), in a subprocess.
+
+    Returns {"ok": True, "name", "sha256", "metadata"} or {"ok": False, "error"}.
+    """
+    request = json.dumps({"op": "validate", "path": str(Path(path).resolve()), "step_budget": step_budget})
+    try:
+        proc = subprocess.run(_worker_command(), input=request + "\n", capture_output=True, text=True,
+                              timeout=timeout, env=_worker_env())
+    except subprocess.TimeoutExpired:
+        return {"ok": False, "error": f"{path}: validation did not finish within {timeout:.0f} s"}
+    lines = [line for line in proc.stdout.splitlines() if line.strip()]
+    if proc.returncode != 0 or not lines:
+        tail = (proc.stderr or "").strip().splitlines()[-1:] or [f"exit code {proc.returncode}"]
+        return {"ok": False, "error": f"{path}: validation crashed ({tail[0]})"}
+    return json.loads(lines[-1])
+
+
+def submit(folder, path, name: str, step_budget: float | None = None, validate: bool = True) -> dict:
+    """Validate an agent file and store it in the league by content hash; returns its submission row.
+
+    `step_budget` overrides the league's per-step inference budget for this entrant
+    (None: the league's). `validate=False` skips validation (for tests of in-race misbehaviour).
+    """
+    folder = Path(folder)
+    config = load_config(folder)
+    path = Path(path)
+    if not path.is_file():
+        raise LeagueError(f"{path}: no such agent file")
+    if not name or not name.strip() or name.startswith("bot:") or len(name) > 64:
+        raise LeagueError(f"--name: {name!r} is not a valid entrant name (1-64 characters, not 'bot:...')")
+    if name in config.bots:
+        raise LeagueError(f"--name: {name!r} is a bot of this league")
+    data = path.read_bytes()
+    sha = hashlib.sha256(data).hexdigest()
+    conn = connect(folder)
+    try:
+        row = conn.execute("SELECT name FROM submissions WHERE sha256=?", (sha,)).fetchone()
+        if row:
+            raise LeagueError(f"{path}: refused: duplicate of submission {row[0]!r} (same sha256 {sha[:12]})")
+        row = conn.execute("SELECT sha256 FROM submissions WHERE name=?", (name,)).fetchone()
+        if row:
+            raise LeagueError(f"--name: refused: an entrant named {name!r} is already submitted")
+        metadata = {}
+        if validate:
+            check = validate_in_subprocess(path, step_budget or config.step_budget)
+            if not check.get("ok"):
+                raise LeagueError(f"refused: {check.get('error')}")
+            metadata = check.get("metadata") or {}
+        stored = folder / SUBMISSIONS / f"{sha}.pt"
+        stored.parent.mkdir(exist_ok=True)
+        if not stored.exists():
+            tmp = stored.with_name(f".{sha}.{os.getpid()}.tmp")
+            tmp.write_bytes(data)
+            os.replace(tmp, stored)
+        with _Tx(conn):
+            conn.execute("INSERT INTO submissions (name, sha256, file, metadata, step_budget, submitted_at) "
+                         "VALUES (?, ?, ?, ?, ?, ?)",
+                         (name, sha, f"{SUBMISSIONS}/{sha}.pt", json.dumps(metadata, sort_keys=True), step_budget,
+                          time.time()))
+        return {"name": name, "sha256": sha, "file": str(stored), "metadata": metadata}
+    finally:
+        conn.close()
