@@ -27,7 +27,7 @@ def test_reset_rule_allows_three_resets_and_the_fourth_off_track_ends_the_run():
     assert [history[k]["resets"] for k in off_tracks] == [1, 2, 3, 3]
     race = env.races[0]
     assert race.status == "out_of_resets" and race.resets == 3 and race.off_tracks == 4
-    assert race.finish_time == pytest.approx(len(history) / 15, abs=1e-6)
+    assert race.finish_time == pytest.approx(len(history) / 15, abs=1e-4)  # records keep 0.1 ms
     assert env.agents == []  # its run is over, and it was the only car
 
 

@@ -5,7 +5,10 @@ the demo, the test driver, the expert for imitation, and the league's bots:
 ``follow@1.5`` keeps the centre line at 1.5 m/s, ``lanes@1.0`` changes lane
 every few seconds at 1.0 m/s, ``pass@2.0`` keeps the centre line at 2 m/s
 and overtakes slower cars with side room to spare (the expert that teaches
-imitation agents to pass, `multirace imitate --traffic`).
+imitation agents to pass, `multirace imitate --traffic`), and
+``racingline`` (or ``racingline@F``) drives the track's racing line at the
+fastest speeds the tyres and drive train allow (`sim.racingline`), scaled by
+F (default 1.0; ``@0.8`` is a gentler driver): every track's reference lap.
 """
 from __future__ import annotations
 
@@ -14,10 +17,11 @@ import math
 import re
 
 from ..sim.car import CarSpec
+from ..sim.racingline import plan_racing_line
 from ..sim.tracks import Track
 
-BOT_KINDS = ("follow", "lanes", "pass")
-_BOT_PATTERN = re.compile(r"^(?:bot:)?(?P<kind>[a-z]+)@(?P<speed>[0-9]*\.?[0-9]+)$")
+BOT_KINDS = ("follow", "lanes", "pass", "racingline")
+_BOT_PATTERN = re.compile(r"^(?:bot:)?(?P<kind>[a-z]+)(?:@(?P<speed>[0-9]*\.?[0-9]+))?$")
 
 
 @dataclasses.dataclass
@@ -54,6 +58,8 @@ class Bot:
 
     @property
     def name(self) -> str:
+        if self.kind == "racingline" and not self.speed_text:
+            return "bot:racingline"
         return f"bot:{self.kind}@{self.speed_text or format(self.speed, 'g')}"
 
     def command(self, track: Track, spec: CarSpec, pose, sim_time: float, segment_hint=None, traffic=()):
@@ -62,6 +68,8 @@ class Bot:
         `traffic` lists the other cars as (metres ahead along the track, lateral
         offset from this car, speed); a bot slows behind a car in its way.
         """
+        if self.kind == "racingline":
+            return racing_line_command(track, spec, pose, segment_hint, traffic, self.speed)
         if self.kind == "pass":
             proj = track.project(pose[0], pose[1], segment_hint)
             lateral, speed = passing_line(track, spec, proj, traffic, self.speed)
@@ -136,12 +144,46 @@ def passing_line(track: Track, spec: CarSpec, proj, traffic, speed: float) -> tu
     return target, speed
 
 
+def racing_line_command(track: Track, spec: CarSpec, pose, segment_hint, traffic, scale: float):
+    """(steering degrees, speed m/s) of a driver on the racing line at `scale` times its speed profile:
+    pure pursuit of a point ahead on the line, and the profile's speed `DRIVE_LEAD` seconds ahead (so
+    it brakes at the braking point, not after it); it keeps the bots' courtesy behind a car."""
+    line = plan_racing_line(track, spec)
+    x, y, yaw = pose
+    proj = track.project(x, y, segment_hint)
+    i, n = line.index_at(proj.s), len(line.points)
+    here = line.speed[i] * scale
+    ahead = int(round((LINE_LOOKAHEAD + LINE_LOOKAHEAD_TIME * here) / line.spacing))
+    tx, ty = line.points[(i + ahead) % n]
+    rear_x = x - spec.wheelbase / 2 * math.cos(yaw)
+    rear_y = y - spec.wheelbase / 2 * math.sin(yaw)
+    alpha = math.atan2(ty - rear_y, tx - rear_x) - yaw
+    steer = math.atan2(2.0 * spec.wheelbase * math.sin(alpha), math.hypot(tx - rear_x, ty - rear_y))
+    steer = max(-spec.max_steer, min(spec.max_steer, steer))
+    lead = int(round(here * DRIVE_LEAD / line.spacing))
+    speed = scale * float(line.speed[(i + lead) % n])
+    speed = speed_in_traffic(max(spec.min_speed, min(spec.max_speed, speed)), traffic, spec)
+    return math.degrees(steer), speed
+
+
+LINE_LOOKAHEAD = 0.3  # m, plus LINE_LOOKAHEAD_TIME seconds of travel: where a racing-line driver aims
+LINE_LOOKAHEAD_TIME = 0.15
+DRIVE_LEAD = 0.1  # s: a racing-line driver commands the profile's speed this far ahead (the drive train's lag)
+
+
 def parse_bot(text: str) -> Bot:
-    """Parse `bot:follow@1.5` / `lanes@1.0` into a Bot; ValueError with the accepted form otherwise."""
+    """Parse `bot:follow@1.5` / `lanes@1.0` / `racingline@0.9` into a Bot; ValueError with the accepted form
+    otherwise. KIND@SPEED sets a speed in m/s; for `racingline` the number scales its speed profile
+    (default 1.0)."""
     match = _BOT_PATTERN.match(text.strip())
-    if not match or match["kind"] not in BOT_KINDS:
+    if not match or match["kind"] not in BOT_KINDS or (match["speed"] is None and match["kind"] != "racingline"):
         raise ValueError(f"bot {text!r}: expected bot:KIND@SPEED with KIND one of {', '.join(BOT_KINDS)}, "
-                         "e.g. bot:follow@1.5")
+                         "e.g. bot:follow@1.5, or bot:racingline[@SCALE]")
+    if match["kind"] == "racingline":
+        scale = float(match["speed"] or 1.0)
+        if not 0.1 <= scale <= 1.0:
+            raise ValueError(f"bot {text!r}: racing-line scale {scale} outside 0.1-1.0")
+        return Bot(kind="racingline", speed=scale, speed_text=match["speed"] or "")
     speed = float(match["speed"])
     if not 0.1 <= speed <= 4.0:
         raise ValueError(f"bot {text!r}: speed {speed} outside 0.1-4.0 m/s")

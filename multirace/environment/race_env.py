@@ -60,7 +60,9 @@ class RaceEnv(ParallelEnv):
     race, laps, obstacles, bots, action_space, reward_function, camera,
     grayscale, lidar, renderer, randomize, render_mode ("human" or "rgb_array"),
     max_steps (or PettingZoo's `max_cycles`); plus
-    `physics_hz` (default 60) and `car_names` (names used in results).
+    `physics_hz` (default 60), `car_names` (names used in results) and
+    `dynamics` ("dynamic": tyres with a grip limit and a drive train, the
+    default; "kinematic": the grip-less bicycle of earlier versions).
 
     `sensor` is DeepRacer's model_metadata sensor list (default
     ``["FRONT_FACING_CAMERA"]``; see `sensors.suite`): ``STEREO_CAMERAS`` gives
@@ -76,7 +78,7 @@ class RaceEnv(ParallelEnv):
     def __init__(self, track="reinvent_base", reverse=False, num_cars=4, race="time_trial", laps=3,
                  obstacles=None, bots=(), action_space=None, reward_function=None, camera=(120, 160),
                  grayscale=True, lidar=False, renderer="fast", randomize=None, render_mode=None, max_steps=None,
-                 physics_hz=60, car_names=None, max_cycles=None, sensor=None):
+                 physics_hz=60, car_names=None, max_cycles=None, sensor=None, dynamics="dynamic"):
         self.track: Track = track if isinstance(track, Track) else load_track(track, reverse=reverse)
         self.rules = make_rules(race, laps, obstacles)
         self.bots = [parse_bot(b) for b in bots]
@@ -110,7 +112,7 @@ class RaceEnv(ParallelEnv):
         self.car_spec = CarSpec()
         self._wheels = np.array(self.car_spec.wheel_offsets())
         self.dt = 1.0 / ACTION_HZ
-        self.world = World(self.car_spec, self.total_cars, self.rules.obstacles, physics_hz, ACTION_HZ)
+        self.world = World(self.car_spec, self.total_cars, self.rules.obstacles, physics_hz, ACTION_HZ, dynamics)
         self.max_steps = int(max_steps) if max_steps is not None else self._default_max_steps()
 
         self.possible_agents = [f"car_{i}" for i in range(self.num_cars)]

@@ -1,16 +1,20 @@
 """The physics world: DeepRacer cars and box obstacles in one PyBullet scene.
 
-Each car is one box body (about 5 us per car per physics step, against about
-57 us for the wheeled `racecar.urdf`), driven by a kinematic bicycle model
-about the body centre: velocity at the slip angle beta = atan(tan(steer) / 2)
-from the heading, yaw rate = speed * cos(beta) * tan(steer) / wheelbase. Every
-action step the body's velocity is set to what the model asks for plus
-whatever a collision added; the sideways part of a push decays with the
-tyres' grip, the lengthwise part changes the drive train's speed. (Each
-PyBullet command costs about 10 us, so the car is commanded once per action
-step, not once per physics step.) Contacts are real PyBullet contacts, so cars push each
-other and stop at boxes; `World.step` reports who touched whom and who ran
-into whom.
+Each car is one box body (far cheaper per physics step than the wheeled
+`racecar.urdf`). Its motion comes from one of two models:
+
+- ``dynamics="dynamic"`` (default): the single-track model with tyres and a
+  drive train of `dynamics.advance`, run for all cars at once in a compiled
+  kernel at its own substep; a car that enters a corner too fast slides.
+- ``dynamics="kinematic"``: the kinematic bicycle of earlier versions (the
+  car goes where its wheels point at any speed), for comparison and old results.
+
+Every action step the body's velocity is set to carry it where the model
+says (PyBullet commands are costly, so the car is commanded once per action
+step, not once per physics step), and whatever a collision added to the
+body's velocity since is fed back into the model: a hard hit can spin a car.
+Contacts are real PyBullet contacts, so cars push each other and stop at
+boxes; `World.step` reports who touched whom and who ran into whom.
 
 The PyBullet client is created lazily (first `reset`), so a `World` pickles
 and can be sent to worker processes before use.
@@ -24,6 +28,7 @@ import os
 import numpy as np
 
 from .car import CarSpec
+from .dynamics import DynamicsParams, advance
 
 
 def _import_pybullet():
@@ -50,7 +55,8 @@ OBSTACLE_SIZE = (0.30, 0.30, 0.25)  # metres, a DeepRacer-like box (length, widt
 PARKED_Z = -50.0  # where parked cars wait, far below the scene
 SOLVER_ITERATIONS = 10
 CONTACT_DISTANCE = 0.002  # metres; closer than this counts as touching
-CONTACT_EVERY = 2  # physics steps between contact queries (each query costs about 10 us)
+CONTACT_EVERY = 2  # physics steps between contact queries
+DYNAMICS = ("dynamic", "kinematic")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -80,9 +86,12 @@ class World:
     """PyBullet scene of `num_cars` cars and `num_obstacles` boxes."""
 
     def __init__(self, spec: CarSpec, num_cars: int, num_obstacles: int = 0,
-                 physics_hz: int = 60, action_hz: int = 15):
+                 physics_hz: int = 60, action_hz: int = 15, dynamics: str = "dynamic"):
         if physics_hz % action_hz:
             raise ValueError(f"physics_hz ({physics_hz}) must be a multiple of action_hz ({action_hz})")
+        if dynamics not in DYNAMICS:
+            raise ValueError(f"dynamics: unknown model {dynamics!r}; choose 'dynamic' or 'kinematic'")
+        self.dynamics = dynamics
         self.spec = spec
         self.num_cars = num_cars
         self.num_obstacles = num_obstacles
@@ -100,6 +109,14 @@ class World:
         step_time = self.physics_dt * self.substeps  # the car's command changes once per action step
         self._speed_blend = 1.0 - math.exp(-step_time / spec.speed_time_constant)
         self._grip_keep = math.exp(-step_time / spec.grip_time_constant)
+        self.motion = np.zeros((num_cars, 3))  # dynamic model: (forward, left, yaw rate) in each car's frame
+        self.grip = np.ones(num_cars)  # per-car scale of the tyres' friction (randomisation)
+        self.motor = np.ones(num_cars)  # per-car scale of the motor's force (randomisation)
+        self._params = DynamicsParams(
+            mass=spec.mass, yaw_inertia=spec.yaw_inertia, front_axle=spec.wheelbase / 2,
+            rear_axle=spec.wheelbase / 2, mu=spec.mu, rear_grip=spec.rear_grip, tyre_b=spec.tyre_b, tyre_c=spec.tyre_c, accel=spec.accel,
+            brake=spec.brake, top_speed=spec.top_speed, drive_time_constant=spec.drive_time_constant,
+            kinematic_speed=spec.kinematic_speed, dt=spec.dynamics_dt).as_array()
 
     # --------------------------------------------------------------- set-up
     def __getstate__(self):
@@ -159,6 +176,7 @@ class World:
         pybullet.resetBaseVelocity(self.car_ids[i], [vel[0], vel[1], 0], [0, 0, 0], physicsClientId=cid)
         self._set_velocity[i] = vel
         self.drive_speed[i] = speed
+        self.motion[i] = (speed, 0.0, 0.0)
         self.poses[i] = (x, y, yaw)
         self.parked[i] = False
 
@@ -170,6 +188,7 @@ class World:
         pybullet.resetBaseVelocity(self.car_ids[i], [0, 0, 0], [0, 0, 0], physicsClientId=cid)
         self._set_velocity[i] = (0.0, 0.0, 0.0)
         self.drive_speed[i] = 0.0
+        self.motion[i] = 0.0
         self.parked[i] = True
 
     def place_obstacle(self, k: int, x: float, y: float, yaw: float) -> None:
@@ -191,15 +210,58 @@ class World:
     def step(self, commands: np.ndarray) -> list[Contact]:
         """Advance one action step (several physics steps) under (steer rad, speed m/s) commands.
 
-        The commanded velocity is set once per action step, pointing along the
-        heading the car will have half-way through the step (the midpoint rule,
-        so arcs are followed closely), with the yaw rate held; PyBullet then
-        integrates the physics steps and resolves contacts within them.
-        Returns the contacts that happened during the step, one per touching pair.
+        Each car's velocity is set once per action step to carry it where its
+        motion model says; PyBullet then integrates the physics steps and
+        resolves contacts within them. Returns the contacts that happened
+        during the step, one per touching pair.
         """
+        active = [i for i in range(self.num_cars) if not self.parked[i]]
+        if self.dynamics == "dynamic":
+            self._command_dynamic(active, commands)
+        else:
+            self._command_kinematic(active, commands)
+        contacts: dict[tuple, Contact] = {}
+        for substep in range(self.substeps):
+            pybullet.stepSimulation(self.client)
+            if substep % CONTACT_EVERY == CONTACT_EVERY - 1 or substep == self.substeps - 1:
+                self._collect_contacts(contacts)
+        self._read_poses(active)
+        return list(contacts.values())
+
+    def _command_dynamic(self, active: list[int], commands) -> None:
+        """Run the tyre model for the active cars (a push since the last step joins their motion)."""
         cid = self.client
         step_time = self.physics_dt * self.substeps
-        active = [i for i in range(self.num_cars) if not self.parked[i]]
+        if not active:
+            return
+        for i in active:
+            (lvx, lvy, _), (_, _, wz) = pybullet.getBaseVelocity(self.car_ids[i], cid)
+            sx, sy, sr = self._set_velocity[i]
+            yaw = self.poses[i, 2]
+            cos_y, sin_y = math.cos(yaw), math.sin(yaw)
+            push_x, push_y = lvx - sx, lvy - sy
+            self.motion[i, 0] += push_x * cos_y + push_y * sin_y
+            self.motion[i, 1] += -push_x * sin_y + push_y * cos_y
+            self.motion[i, 2] += wz - sr
+        rows = np.asarray(active)
+        state = self.motion[rows]
+        moved = advance(state, np.asarray(commands, np.float64)[rows], self.grip[rows], self.motor[rows],
+                        self._params, step_time)
+        self.motion[rows] = state
+        self.drive_speed[rows] = state[:, 0]
+        for k, i in enumerate(active):
+            yaw = self.poses[i, 2]
+            cos_y, sin_y = math.cos(yaw), math.sin(yaw)
+            forward, left, turn = moved[k] / step_time
+            vx, vy = forward * cos_y - left * sin_y, forward * sin_y + left * cos_y
+            pybullet.resetBaseVelocity(self.car_ids[i], (vx, vy, 0.0), (0.0, 0.0, turn), cid)
+            self._set_velocity[i] = (vx, vy, turn)
+
+    def _command_kinematic(self, active: list[int], commands) -> None:
+        """The kinematic bicycle: the velocity points along the heading the car will have half-way
+        through the step (the midpoint rule, so arcs are followed closely), with the yaw rate held."""
+        cid = self.client
+        step_time = self.physics_dt * self.substeps
         commands = [(float(steer), float(speed)) for steer, speed in commands]  # plain floats: fast maths
         yaws, drive_speed = self.poses[:, 2].tolist(), self.drive_speed.tolist()
         for i in active:
@@ -224,13 +286,6 @@ class World:
             vy = speed * math.sin(direction) + side * cos_y
             pybullet.resetBaseVelocity(body, (vx, vy, 0.0), (0.0, 0.0, yaw_rate), cid)
             self._set_velocity[i] = (vx, vy, yaw_rate)
-        contacts: dict[tuple, Contact] = {}
-        for substep in range(self.substeps):
-            pybullet.stepSimulation(cid)
-            if substep % CONTACT_EVERY == CONTACT_EVERY - 1 or substep == self.substeps - 1:
-                self._collect_contacts(contacts)
-        self._read_poses(active)
-        return list(contacts.values())
 
     def _collect_contacts(self, contacts: dict) -> None:
         for point in pybullet.getContactPoints(physicsClientId=self.client):

@@ -1,0 +1,130 @@
+"""The car's motion: a single-track (bicycle) model with tyre forces and a drive train with limits.
+
+One compiled kernel advances every car over one action step, in substeps of
+`DynamicsParams.dt` seconds. State per car, in its own frame: forward speed
+`u`, sideways speed `v` (+ left) and yaw rate `r`. The model:
+
+- Drive train: the commanded speed is a target; the longitudinal force that
+  chases it is limited to the motor's acceleration (`accel`, lower at speed:
+  the force falls linearly to zero at `top_speed`) and the brakes'
+  deceleration (`brake`), and is shared by all four wheels (4WD).
+- Tyres: each axle's lateral force is a saturating curve of its slip angle,
+  ``mu Fz sin(C atan(B alpha))`` (Pacejka's shape), reduced by the
+  longitudinal force the axle carries (friction circle): past the grip limit
+  the car slides, its path radius grows and it can spin. The rear tyres grip
+  a little more than the front ones (`rear_grip`), so past the limit the car
+  slides wide (understeer) rather than spinning, as a set-up RC car does.
+- Yaw: ``Iz r' = lf Fyf cos(delta) - lr Fyr``.
+- Below `kinematic_speed` the tyre model is ill-conditioned (slip angles of a
+  barely moving car), so the motion blends to the kinematic bicycle
+  (no slip) between `kinematic_speed` and twice that speed.
+
+The kernel returns each car's new state and its displacement over the step
+(forward, left, yaw in the car's frame at the start), which the world turns
+into the body velocity PyBullet integrates; PyBullet owns the contacts, and
+whatever a contact adds to a body's velocity is fed back into the state.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numba
+import numpy as np
+
+GRAVITY = 9.81
+
+
+@dataclasses.dataclass(frozen=True)
+class DynamicsParams:
+    """The numbers the kernel needs, from a `CarSpec` (see there for where each comes from)."""
+
+    mass: float
+    yaw_inertia: float
+    front_axle: float  # lf: centre of mass to the front axle, m
+    rear_axle: float  # lr
+    mu: float
+    rear_grip: float  # the rear tyres' friction over the front's
+    tyre_b: float
+    tyre_c: float
+    accel: float
+    brake: float
+    top_speed: float
+    drive_time_constant: float
+    kinematic_speed: float
+    dt: float
+
+    def as_array(self) -> np.ndarray:
+        return np.array([self.mass, self.yaw_inertia, self.front_axle, self.rear_axle, self.mu, self.tyre_b,
+                         self.tyre_c, self.accel, self.brake, self.top_speed, self.drive_time_constant,
+                         self.kinematic_speed, self.dt, self.rear_grip])
+
+
+@numba.njit(cache=True)
+def advance(state, commands, grip, motor, params, step_time):
+    """Advance cars over `step_time` seconds.
+
+    state (n, 3) of (u, v, r) is updated in place; commands (n, 2) of (steer rad, target speed m/s);
+    grip and motor (n,) scale each car's friction and motor force (randomisation; 1.0 nominal).
+    Returns (n, 3) displacements (forward m, left m, yaw rad) in each car's starting frame.
+    """
+    mass, iz, lf, lr, mu0, b_tyre, c_tyre = params[0], params[1], params[2], params[3], params[4], params[5], params[6]
+    accel0, brake, top, tau, v_kin, dt_max = params[7], params[8], params[9], params[10], params[11], params[12]
+    rear_grip = params[13]
+    wheelbase = lf + lr
+    substeps = max(1, int(math.ceil(step_time / dt_max - 1e-9)))
+    dt = step_time / substeps
+    n = state.shape[0]
+    out = np.zeros((n, 3))
+    for k in range(n):
+        u, v, r = state[k, 0], state[k, 1], state[k, 2]
+        delta, target = commands[k, 0], commands[k, 1]
+        mu, accel = mu0 * grip[k], accel0 * motor[k]
+        mu_rear = mu * rear_grip
+        fz_front = mass * GRAVITY * lr / wheelbase
+        fz_rear = mass * GRAVITY * lf / wheelbase
+        x, y, yaw = 0.0, 0.0, 0.0
+        for _ in range(substeps):
+            # drive train: chase the target speed within the motor's and the brakes' limits
+            want = mass * (target - u) / tau
+            if want > 0.0:
+                limit = mass * accel * max(0.0, 1.0 - u / top)
+                fx = min(want, limit)
+            else:
+                fx = max(want, -mass * brake)
+            fx_front, fx_rear = 0.5 * fx, 0.5 * fx
+            # tyres: saturating lateral force, reduced by the longitudinal force (friction circle)
+            speed = math.hypot(u, v)
+            cap_f = math.sqrt(max((mu * fz_front) ** 2 - fx_front ** 2, 0.0))
+            cap_r = math.sqrt(max((mu_rear * fz_rear) ** 2 - fx_rear ** 2, 0.0))
+            fx_front = max(min(fx_front, mu * fz_front), -mu * fz_front)
+            fx_rear = max(min(fx_rear, mu_rear * fz_rear), -mu_rear * fz_rear)
+            u_safe = max(abs(u), 0.05)
+            alpha_f = delta - math.atan2(v + lf * r, u_safe)
+            alpha_r = -math.atan2(v - lr * r, u_safe)
+            fy_front = cap_f * math.sin(c_tyre * math.atan(b_tyre * alpha_f))
+            fy_rear = cap_r * math.sin(c_tyre * math.atan(b_tyre * alpha_r))
+            cos_d, sin_d = math.cos(delta), math.sin(delta)
+            du = (fx_front * cos_d - fy_front * sin_d + fx_rear) / mass + v * r
+            dv = (fx_front * sin_d + fy_front * cos_d + fy_rear) / mass - u * r
+            dr = (lf * (fx_front * sin_d + fy_front * cos_d) - lr * fy_rear) / iz
+            u_dyn, v_dyn, r_dyn = u + du * dt, v + dv * dt, r + dr * dt
+            # kinematic bicycle at walking pace: no slip, yaw rate from the steering geometry
+            u_kin = u + (fx_front + fx_rear) / mass * dt
+            beta = math.atan(lr / wheelbase * math.tan(delta))
+            r_kin = u_kin * math.cos(beta) * math.tan(delta) / wheelbase
+            v_kin_state = u_kin * math.tan(beta)
+            w = min(max((speed - v_kin) / v_kin, 0.0), 1.0)  # 0: kinematic .. 1: dynamic
+            u = w * u_dyn + (1.0 - w) * u_kin
+            v = w * v_dyn + (1.0 - w) * v_kin_state
+            r = w * r_dyn + (1.0 - w) * r_kin
+            if u < 0.0 and target >= 0.0 and speed < 0.05:  # brakes hold a stopped car; no reversing
+                u = 0.0
+            # integrate the pose in the starting frame
+            cy, sy = math.cos(yaw), math.sin(yaw)
+            x += (u * cy - v * sy) * dt
+            y += (u * sy + v * cy) * dt
+            yaw += r * dt
+        state[k, 0], state[k, 1], state[k, 2] = u, v, r
+        out[k, 0], out[k, 1], out[k, 2] = x, y, yaw
+    return out
