@@ -105,3 +105,27 @@ def test_kinematic_model_stays_available():
     assert env.world.dynamics == "kinematic"
     with pytest.raises(ValueError, match="dynamics"):
         multirace.parallel_env(num_cars=1, dynamics="magic")
+
+
+def test_grip_and_motor_randomisation_reach_the_car_and_follow_the_seed():
+    env = multirace.parallel_env(num_cars=2, bots=("follow@1.0",), randomize="mild")
+    env.reset(seed=4)
+    grip, motor = env.world.grip.copy(), env.world.motor.copy()
+    assert np.all((0.9 <= grip) & (grip <= 1.05)) and np.all((0.9 <= motor) & (motor <= 1.05))
+    assert len(set(grip.tolist())) == 3  # drawn per car
+    env.reset(seed=4)
+    np.testing.assert_array_equal(env.world.grip, grip)
+    env = multirace.parallel_env(num_cars=1, randomize={"grip": (0.6, 0.6)})
+    env.reset(seed=0)
+    assert env.world.grip.tolist() == [0.6]
+    # a car on 60 % grip holds the same steady turn at a lower speed
+    world = World(SPEC, 1, 0, 60, 15)
+    world.connect()
+    world.grip[:] = 0.6
+    world.place_car(0, 0.0, 0.0, 0.0, speed=3.0)
+    poses = []
+    for _ in range(60):
+        world.step(np.array([[math.radians(20.0), 3.0]]))
+        poses.append(world.poses[0].copy())
+    radius, speed = path_radius_and_speed(np.array(poses[-16:]))
+    assert speed ** 2 / radius <= 1.05 * 0.6 * SPEC.mu * GRAVITY

@@ -182,9 +182,11 @@ class RaceEnv(ParallelEnv):
         self.world.connect()
         self._draw = None
         palette = DEFAULT_PALETTE
+        self.world.grip[:], self.world.motor[:] = 1.0, 1.0
         if self.randomization.enabled:
             self._draw = self.randomization.draw_episode(self._randomizer_rng, self.total_cars)
             palette = self._draw.palette
+            self.world.grip[:], self.world.motor[:] = self._draw.grip, self._draw.motor
         if self.renderer_name == "fast" and palette != self.texture.palette:  # (un)tinted track colours
             self._texture = TrackTexture(self.track, palette)
             self._renderer = None

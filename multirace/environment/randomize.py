@@ -114,6 +114,10 @@ class Randomization:
                                "multiplies the commanded speed (friction / battery stand-in); e.g. (0.9, 1.1)")
     steer_offset: Range = _range((0.0, 0.0), -10, 10, "degrees",
                                  "added to the commanded steering (a miscalibrated servo); e.g. (-2, 2)")
+    grip: Range = _range((1.0, 1.0), 0.3, 1.5, "multiplier",
+                         "multiplies the tyres' friction (CarSpec.mu; a dusty or a fresh track); e.g. (0.85, 1.05)")
+    motor: Range = _range((1.0, 1.0), 0.3, 1.5, "multiplier",
+                          "multiplies the motor's force (CarSpec.accel; a tired battery); e.g. (0.85, 1.05)")
 
     # ------------------------------------------------------------ construction
     def __post_init__(self):
@@ -212,7 +216,8 @@ class Randomization:
     @property
     def dynamics_enabled(self) -> bool:
         return (self.steer_noise_scale != (1.0, 1.0) or self.speed_noise_scale != (1.0, 1.0)
-                or self.speed_gain != (1.0, 1.0) or self.steer_offset != (0.0, 0.0))
+                or self.speed_gain != (1.0, 1.0) or self.steer_offset != (0.0, 0.0) or self.grip != (1.0, 1.0)
+                or self.motor != (1.0, 1.0))
 
     @property
     def enabled(self) -> bool:
@@ -253,6 +258,8 @@ class Randomization:
             steer_noise_scale=tuple(float(v) for v in u(self.steer_noise_scale, num_cars)),
             speed_noise_scale=tuple(float(v) for v in u(self.speed_noise_scale, num_cars)),
             seed=int(rng.integers(2**63 - 1)),
+            grip=tuple(float(v) for v in u(self.grip, num_cars)),  # drawn last: the older draws stay put
+            motor=tuple(float(v) for v in u(self.motor, num_cars)),
         )
 
 
@@ -262,12 +269,14 @@ PRESETS: dict[str, dict[str, Any]] = {
                  noise_sigma=(0, 4), blur_kernels=(3,), blur_prob=0.1, shadow_prob=0.2,
                  shadow_strength=(0.2, 0.4), camera_yaw=(-0.02, 0.02), camera_pitch=(-0.02, 0.02),
                  camera_height=(-0.01, 0.01), texture_tint=0.1, steer_noise_scale=(1.0, 1.5),
-                 speed_noise_scale=(1.0, 1.5), speed_gain=(0.95, 1.05), steer_offset=(-1, 1)),
+                 speed_noise_scale=(1.0, 1.5), speed_gain=(0.95, 1.05), steer_offset=(-1, 1),
+                 grip=(0.9, 1.05), motor=(0.9, 1.05)),
     "strong": dict(brightness=(-40, 40), contrast=(0.7, 1.3), hue_shift=(-15, 15), saturation=(0.6, 1.4),
                    noise_sigma=(0, 8), blur_kernels=(3, 5), blur_prob=0.3, shadow_prob=0.5,
                    shadow_strength=(0.3, 0.6), camera_yaw=(-0.05, 0.05), camera_pitch=(-0.05, 0.05),
                    camera_height=(-0.02, 0.02), texture_tint=0.25, steer_noise_scale=(1.0, 3.0),
-                   speed_noise_scale=(1.0, 3.0), speed_gain=(0.9, 1.1), steer_offset=(-3, 3)),
+                   speed_noise_scale=(1.0, 3.0), speed_gain=(0.9, 1.1), steer_offset=(-3, 3),
+                   grip=(0.75, 1.1), motor=(0.75, 1.1)),
 }
 
 NOISE_BANK_SCALE = 2  # the noise field is this many times the image in each direction
@@ -299,6 +308,8 @@ class EpisodeDraw:
     steer_noise_scale: tuple  # per car
     speed_noise_scale: tuple  # per car
     seed: int
+    grip: tuple = ()  # per car, the tyres' friction multiplier
+    motor: tuple = ()  # per car, the motor's force multiplier
     _cache: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)
 
     # --------------------------------------------------------------- caches

@@ -25,8 +25,8 @@ from ..environment.randomize import Randomization
 UNCERTAINTY_SET = [
     ("nominal", None),
     ("action_noise", {"steer_noise_scale": (3.0, 5.0), "speed_noise_scale": (2.0, 3.0)}),
-    ("low_grip", {"speed_gain": (1.15, 1.3)}),
-    ("weak_motor", {"speed_gain": (0.75, 0.85)}),
+    ("low_grip", {"grip": (0.65, 0.8)}),  # a dusty track: the tyres give up earlier
+    ("weak_motor", {"motor": (0.6, 0.75), "speed_gain": (0.9, 0.95)}),  # a tired battery
     ("steer_bias_left", {"steer_offset": (2.0, 4.0)}),
     ("steer_bias_right", {"steer_offset": (-4.0, -2.0)}),
     ("camera_pose", {"camera_yaw": (-0.05, 0.05), "camera_pitch": (-0.04, 0.04), "camera_height": (-0.015, 0.015)}),
