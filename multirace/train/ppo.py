@@ -145,7 +145,7 @@ def check_reward_file(config: TrainConfig, runs) -> None:
                      camera=config.camera, episode_steps=3)
     try:
         probe.reset(seed=0)
-        for _ in range(5):
+        while probe.env.agents:  # the whole (3-step) episode: every step calls the reward function
             probe.step({"car_0": probe.env.actions.space.sample()})
     except RewardFunctionError as exc:
         raise ValueError(f"--reward: {exc}") from None
