@@ -68,7 +68,7 @@ def test_tiny_rllib_run_writes_checkpoint_and_racing_agent_file(tmp_path, capsys
     assert np.array_equal(logits.argmax(1), ours.argmax(1))
 
     # and it races under `multirace race` rules (a generous step budget: CI machines are busy)
-    from multirace.train.ppo import evaluate_time_trial
+    from multirace.train.run import evaluate_time_trial
 
     row = evaluate_time_trial(out, "Oval_track", laps=1, seed=0)
     assert not str(row["status"]).startswith("forfeit") and row["laps"] == 1

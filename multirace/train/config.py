@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from pathlib import Path
 
 from ..racing.nets import SHALLOW, TINY
 from ..resources import agents_dir

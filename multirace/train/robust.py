@@ -1,5 +1,8 @@
-"""`--robust`: what it switches on (each can still be set on its own with --set KEY=VALUE)."""
+"""Robust training: what `--robust` switches on (each can still be set on its own with --set KEY=VALUE),
+and `RobustKnobs`, the hooks of those options in the PPO loop."""
 from __future__ import annotations
+
+import numpy as np
 
 ROBUST = {
     "curriculum": True,  # domain randomisation ramped from none to `randomize` over the first half
@@ -20,3 +23,72 @@ def apply_robust(config, explicit=()) -> None:
         if key == "reverse" and config.reverse != "no":
             continue
         setattr(config, key, value)
+
+
+class RobustKnobs:
+    """The robust options' hooks in the PPO loop: the randomisation curriculum and nature's choice of
+    perturbations (knobs shared with the env workers), and the opponent pool (which drives some cars)."""
+
+    def __init__(self, config, seed: int):
+        from .nature import Nature
+
+        self.config = config
+        self.nature = Nature(temperature=config.nature_temperature, seed=seed) if config.nature else None
+        self.shared = None
+        self.pool = None
+        if config.curriculum or self.nature is not None:
+            import multiprocessing as mp
+
+            ctx = mp.get_context("spawn")
+            self.shared = {"scale": ctx.Value("d", 0.0 if config.curriculum else 1.0)}
+            if self.nature is not None:
+                self.shared["nature"] = ctx.Array("d", self.nature.weights().tolist())
+
+    def start_pool(self, space, obs_shape, rng, lidar_samples: int) -> None:
+        """The opponent pool, once the observation shape is known."""
+        if self.config.opponent_pool:
+            from .selfplay import OpponentPool
+
+            self.pool = OpponentPool(self.config, space, obs_shape, rng, lidar_samples=lidar_samples)
+
+    def before_iteration(self, fraction: float, envs: int, cars: int):
+        """Set this iteration's knobs; returns which cars the learner drives (the pool drives the rest)."""
+        from .nature import curriculum_scale
+
+        if self.shared is not None and self.config.curriculum:
+            self.shared["scale"].value = curriculum_scale(fraction)
+        if self.nature is not None:
+            self.shared["nature"][:] = self.nature.weights().tolist()
+        return self.pool.assign(envs, cars) if self.pool is not None else np.ones((envs, cars), bool)
+
+    def override(self, actions, obs, learner_mask):
+        """The actions, with the pool's opponents driving their cars."""
+        return self.pool.override(actions, obs, learner_mask) if self.pool is not None else actions
+
+    def after_step(self, infos, rewards, env_done) -> None:
+        """Let the pool score its opponents."""
+        if self.pool is None:
+            return
+        for e, env_infos in enumerate(infos):
+            for a, info in enumerate(env_infos):
+                self.pool.observe(e, a, info, float(rewards[e, a]))
+        if env_done.any():
+            self.pool.episode_end(env_done)
+
+    def after_iteration(self, episodes) -> dict:
+        """Tell nature how the learner fared under each perturbation; the knobs' summaries for the history."""
+        extra = {}
+        if self.nature is not None:
+            for ep in episodes:
+                if ep["learner"] and ep["perturbation"] >= 0:
+                    self.nature.update(ep["perturbation"], ep["laps"])
+        if self.pool is not None:
+            extra["pool"] = self.pool.summary()
+        if self.nature is not None:
+            extra["nature"] = self.nature.summary()
+        return extra
+
+    def snapshot(self, net, elapsed: float, iteration: int) -> None:
+        """Add the learner to the pool when a snapshot is due."""
+        if self.pool is not None and self.pool.due(elapsed):
+            self.pool.add_snapshot(net, f"snapshot_{iteration}")

@@ -1,0 +1,79 @@
+"""Rollout storage of the PPO loop: T steps of N cars, their advantages, and the learner's batch."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+
+class Rollout:
+    """(T, N) buffers: uint8 images, LIDAR ranges, actions, log-probs, rewards, dones, values, expert labels,
+    and which cars' samples train the learner (opponent-pool cars do not)."""
+
+    def __init__(self, steps: int, cars: int, obs_shape, lidar_samples: int, space):
+        T, N = steps, cars
+        self.steps, self.cars, self.obs_shape, self.lidar_samples = T, N, tuple(obs_shape), lidar_samples
+        self.act_shape = () if space.discrete else (2,)
+        act_dtype = torch.long if space.discrete else torch.float32
+        self.obs = np.zeros((T, N, *obs_shape), np.uint8)
+        self.lidar = np.zeros((T, N, lidar_samples), np.float32)
+        self.act = torch.zeros((T, N, *self.act_shape), dtype=act_dtype)
+        self.logp = torch.zeros((T, N))
+        self.rew = torch.zeros((T, N))
+        self.done = torch.zeros((T, N))
+        self.val = torch.zeros((T, N))
+        self.expert = torch.zeros((T, N, *self.act_shape), dtype=act_dtype)  # the pass driver's actions
+        self.learn = np.zeros((T, N), bool)
+
+    def net_input(self, obs):
+        """(E, A, ...) observations as the net's input for N cars: images, or images and LIDAR ranges."""
+        if not self.lidar_samples:
+            return torch.from_numpy(obs.reshape(self.cars, *self.obs_shape))
+        return {"camera": torch.from_numpy(obs["camera"].reshape(self.cars, *self.obs_shape)),
+                "lidar": torch.from_numpy(obs["lidar"].reshape(self.cars, self.lidar_samples))}
+
+    def store_input(self, t: int, x) -> None:
+        """Keep step t's net input."""
+        self.obs[t] = x["camera"] if self.lidar_samples else x
+        if self.lidar_samples:
+            self.lidar[t] = x["lidar"]
+
+    def advantages(self, next_value, next_done, gamma: float, gae_lambda: float):
+        """GAE advantages and returns; a done at step t+1 means the episode ended with step t."""
+        T = self.steps
+        advantages = torch.zeros((T, self.cars))
+        last = torch.zeros(self.cars)
+        for t in reversed(range(T)):
+            nonterminal = 1.0 - (next_done if t == T - 1 else self.done[t + 1])
+            value_next = next_value if t == T - 1 else self.val[t + 1]
+            delta = self.rew[t] + gamma * value_next * nonterminal - self.val[t]
+            last = delta + gamma * gae_lambda * nonterminal * last
+            advantages[t] = last
+        return advantages, advantages + self.val
+
+    def learner_batch(self, advantages, returns) -> dict:
+        """The learner's samples, flattened: obs, lidar, act, logp, adv, ret, val, expert."""
+        T, N = self.steps, self.cars
+        keep = torch.from_numpy(self.learn.reshape(-1))
+        return {"obs": torch.from_numpy(self.obs.reshape(T * N, *self.obs_shape))[keep],
+                "lidar": torch.from_numpy(self.lidar.reshape(T * N, self.lidar_samples))[keep],
+                "act": self.act.reshape(T * N, *self.act_shape)[keep],
+                "logp": self.logp.reshape(-1)[keep], "adv": advantages.reshape(-1)[keep],
+                "ret": returns.reshape(-1)[keep], "val": self.val.reshape(-1)[keep],
+                "expert": self.expert.reshape(T * N, *self.act_shape)[keep]}
+
+
+def expert_actions(infos, discrete: bool) -> torch.Tensor:
+    """The scripted pass driver's action for every car's next observation (-1 / NaN: none)."""
+    rows = [info.get("expert_action", -1 if discrete else [math.nan, math.nan])
+            for env_infos in infos for info in env_infos]
+    return torch.tensor(rows, dtype=torch.long if discrete else torch.float32)
+
+
+def finished_episodes(infos, learner_mask) -> list[dict]:
+    """The per-car training episodes that ended this step (return, laps, length, collisions caused...)."""
+    return [{"return": info["ep_return"], "laps": info["ep_laps"], "length": info["ep_length"],
+             "learner": bool(learner_mask[e, a]), "caused": info.get("ep_caused", 0),
+             "perturbation": info["perturbation"]}
+            for e, env_infos in enumerate(infos) for a, info in enumerate(env_infos) if info["train_done"]]
