@@ -4,16 +4,31 @@ A reward function is ``reward_function(params) -> float`` where `params` is
 the dict of the 27 keys the DeepRacer simulator passes (see `PARAM_KEYS`), in
 DeepRacer's units. A file written for the DeepRacer console runs unchanged:
 it is executed as a module and its `reward_function` is used.
+
+Reward functions come from anyone's notebook, so every call runs under a
+watchdog: a time limit per call (`CALL_TIME_LIMIT`) and for loading the file
+(`LOAD_TIME_LIMIT`), each of its own copy of the params (nothing it changes
+reaches the env, another car or a later step), and every way it can fail
+(an exception, `sys.exit`, a hang, a value that is not a finite number in
+range: DeepRacer requires a float) is a `RewardFunctionError` naming the
+file, the step and the car. The time limits use SIGALRM, so they hold where
+the env runs in a process's main thread (the env, its worker processes).
 """
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import math
+import numbers
+import signal
 import sys
+import threading
 from pathlib import Path
 from typing import Callable
 
 REWARD_LIMIT = 1e5
+CALL_TIME_LIMIT = 1.0  # seconds per call of a reward function
+LOAD_TIME_LIMIT = 10.0  # seconds to load (execute) a reward file
 
 PARAM_KEYS = (
     "all_wheels_on_track", "x", "y", "heading", "distance_from_center", "projection_distance",
@@ -25,7 +40,36 @@ PARAM_KEYS = (
 
 
 class RewardFunctionError(RuntimeError):
-    """A reward function could not be loaded, raised, or returned a bad value."""
+    """A reward function could not be loaded, raised, hung, or returned a bad value."""
+
+
+class _TimeUp(BaseException):
+    """Raised into a reward function that overran its time limit (not an Exception: it must not be caught
+    by the function's own `except Exception`)."""
+
+
+@contextlib.contextmanager
+def time_limit(seconds: float):
+    """Raise `_TimeUp` in the block after `seconds` (main thread only; elsewhere the block runs unlimited)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def time_up(signum, frame):
+        raise _TimeUp()
+
+    previous = signal.signal(signal.SIGALRM, time_up)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+
+
+def private_params(params: dict) -> dict:
+    """A copy of the params for one call: its lists are copies too (their items are numbers and tuples)."""
+    return {key: list(value) if isinstance(value, list) else value for key, value in params.items()}
 
 
 def follow_centre_line(params: dict) -> float:
@@ -54,19 +98,25 @@ class RewardFunction:
         self.label = label
 
     def __call__(self, params: dict, step: int, car: str) -> float:
-        """Call the function; raise RewardFunctionError naming the file, step and car on failure."""
+        """Call the function on its own copy of `params`, under the time limit; raise RewardFunctionError
+        naming the file, step and car on any failure."""
+        name, when = f"reward function {self.label}", f"at step {step} for {car}"
         try:
-            value = self.function(params)
+            with time_limit(CALL_TIME_LIMIT):
+                value = self.function(private_params(params))
+        except _TimeUp:
+            raise RewardFunctionError(f"{name} did not return within {CALL_TIME_LIMIT:g} s {when}") from None
+        except SystemExit as exc:
+            raise RewardFunctionError(f"{name} called sys.exit({exc.code!r}) {when}") from None
         except Exception as exc:
-            raise RewardFunctionError(
-                f"reward function {self.label} raised at step {step} for {car}: "
-                f"{type(exc).__name__}: {exc}") from exc
+            raise RewardFunctionError(f"{name} raised {when}: {type(exc).__name__}: {exc}") from exc
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            raise RewardFunctionError(f"{name} returned {repr(value)[:80]} {when}; expected a number "
+                                      f"(DeepRacer requires a float), not a {type(value).__name__}")
         try:
             value = float(value)
-        except (TypeError, ValueError):
-            raise RewardFunctionError(
-                f"reward function {self.label} returned {value!r} at step {step} for {car}; "
-                "expected a number") from None
+        except OverflowError:
+            raise RewardFunctionError(f"{name} returned a number too large for a float {when}") from None
         if not math.isfinite(value) or abs(value) > REWARD_LIMIT:
             raise RewardFunctionError(
                 f"reward function {self.label} returned {value} at step {step} for {car}; "
@@ -101,7 +151,13 @@ def load_reward_function(spec=None) -> RewardFunction:
         module_spec = importlib.util.spec_from_file_location(module_name, path)
         module = importlib.util.module_from_spec(module_spec)
         sys.modules[module_name] = module
-        module_spec.loader.exec_module(module)
+        with time_limit(LOAD_TIME_LIMIT):
+            module_spec.loader.exec_module(module)
+    except _TimeUp:
+        raise RewardFunctionError(f"reward function file {path}: loading it did not finish within "
+                                  f"{LOAD_TIME_LIMIT:g} s") from None
+    except SystemExit as exc:
+        raise RewardFunctionError(f"reward function file {path}: calls sys.exit({exc.code!r}) when loaded") from None
     except Exception as exc:
         raise RewardFunctionError(f"reward function file {path}: cannot be loaded: "
                                   f"{type(exc).__name__}: {exc}") from exc
