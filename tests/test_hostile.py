@@ -2,6 +2,7 @@
 behaviour; none hangs, none crashes with a raw traceback, nothing reaches what it must not."""
 import time
 
+import numpy as np
 import pytest
 
 import multirace
@@ -62,3 +63,42 @@ def test_what_a_reward_function_does_to_its_params_reaches_nothing(tmp_path):
     info = infos["car_0"]
     assert "is_offtrack" in info and info["x"] != 12345 and len(info["closest_waypoints"]) == 2
     assert env.track.waypoints == waypoints and info["waypoints"][0] == waypoints[0]
+
+
+# ------------------------------------------------------------------ env arguments and actions
+CONTINUOUS = {"action_space": {"steering_angle": {"low": -30, "high": 30}, "speed": {"low": 0.1, "high": 4}},
+              "action_space_type": "continuous"}
+
+
+@pytest.mark.parametrize("action, words", [(-1, "out of range"), (10, "out of range"), (3.7, "integer index"),
+                                           ("2", "integer index"), (True, "integer index"), (None, "integer index")])
+def test_a_bad_discrete_action_names_the_car_and_step(action, words):
+    env = multirace.parallel_env(num_cars=2)
+    env.reset(seed=0)
+    env.step({"car_0": 1, "car_1": 1})
+    with pytest.raises(ValueError, match=f"step 2, car_1: .*{words}"):
+        env.step({"car_0": 1, "car_1": action})
+
+
+@pytest.mark.parametrize("action", [[float("nan"), 1.0], [0.0, float("inf")], [1.0], "fast"])
+def test_a_bad_continuous_action_names_the_car_and_step(action):
+    env = multirace.parallel_env(num_cars=1, action_space=CONTINUOUS)
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="step 1, car_0"):
+        env.step({"car_0": action})
+    assert np.all(np.isfinite(env.world.poses))  # no NaN reached the world
+
+
+@pytest.mark.parametrize("kwargs, words", [({"max_steps": -1}, "max_steps"), ({"max_steps": 0}, "max_steps"),
+                                           ({"max_steps": 2.5}, "max_steps"), ({"laps": 1.7}, "laps"),
+                                           ({"laps": 0}, "laps")])
+def test_bad_env_arguments_are_refused_up_front(kwargs, words):
+    with pytest.raises(ValueError, match=words):
+        multirace.parallel_env(num_cars=1, **kwargs)
+
+
+def test_cli_refuses_a_zero_step_limit_before_racing(capsys):
+    from multirace.cli import main
+
+    assert main(["race", "bot:follow@1.0", "--max-steps", "0"]) == 2
+    assert "max_steps" in capsys.readouterr().err

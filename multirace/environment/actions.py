@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import operator
 from pathlib import Path
 
 import numpy as np
@@ -90,8 +91,21 @@ class ActionSpace:
     def command(self, action) -> tuple[float, float]:
         """(steering degrees, speed m/s) for a policy action (index or [steer, speed])."""
         if self.discrete:
-            return self.actions[int(action)]
-        steer, speed = np.asarray(action, dtype=np.float64).reshape(2)
+            if isinstance(action, (bool, np.bool_)):
+                raise ValueError(f"action {action!r}: expected an integer index 0-{len(self.actions) - 1}")
+            try:
+                index = operator.index(action)
+            except TypeError:
+                raise ValueError(f"action {action!r}: expected an integer index 0-{len(self.actions) - 1}") from None
+            if not 0 <= index < len(self.actions):
+                raise ValueError(f"action {index}: out of range; this space has actions 0-{len(self.actions) - 1}")
+            return self.actions[index]
+        try:
+            steer, speed = np.asarray(action, dtype=np.float64).reshape(2)
+        except (TypeError, ValueError):
+            raise ValueError(f"action {action!r}: expected [steering degrees, speed m/s]") from None
+        if not (math.isfinite(steer) and math.isfinite(speed)):
+            raise ValueError(f"action {action!r}: steering and speed must be finite numbers")
         return (min(max(float(steer), self.low[0]), self.high[0]),
                 min(max(float(speed), self.low[1]), self.high[1]))
 

@@ -53,6 +53,13 @@ def env(**config):
     return OrderEnforcingWrapper(parallel_to_aec(RaceEnv(**config)))
 
 
+def positive_int(value, name: str) -> int:
+    """`value` as an int of at least 1; ValueError naming `name` for anything else (1.7, -1, "3", True)."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ValueError(f"{name}: expected a whole number of at least 1, got {value!r}")
+    return int(value)
+
+
 class RaceEnv(ParallelEnv):
     """Several DeepRacer cars with front cameras racing in one PyBullet world.
 
@@ -113,7 +120,7 @@ class RaceEnv(ParallelEnv):
         self._wheels = np.array(self.car_spec.wheel_offsets())
         self.dt = 1.0 / ACTION_HZ
         self.world = World(self.car_spec, self.total_cars, self.rules.obstacles, physics_hz, ACTION_HZ, dynamics)
-        self.max_steps = int(max_steps) if max_steps is not None else self._default_max_steps()
+        self.max_steps = positive_int(max_steps, "max_steps") if max_steps is not None else self._default_max_steps()
 
         self.possible_agents = [f"car_{i}" for i in range(self.num_cars)]
         self.agents: list[str] = []
@@ -247,7 +254,10 @@ class RaceEnv(ParallelEnv):
         noise = self._rng.standard_normal((self.num_cars, 2)).tolist()  # DeepRacer's action noise
         for i, agent in enumerate(self.possible_agents):
             if self.races[i].racing and agent in actions:
-                steer, speed = self.actions.command(actions[agent])
+                try:
+                    steer, speed = self.actions.command(actions[agent])
+                except ValueError as exc:
+                    raise ValueError(f"step {self.steps + 1}, {agent}: {exc}") from None
                 if self._draw is not None and self.randomization.dynamics_enabled:
                     steer, speed = apply_command(steer, speed, self._draw, self._randomizer_rng, i, spec)
                     steer = math.radians(steer)

@@ -216,8 +216,8 @@ def make_rules(race: str = "time_trial", laps: int = 3, obstacles: int | None = 
     """The rules of a named format with DeepRacer's defaults, overridable per field."""
     if race not in FORMATS:
         raise ValueError(f"race: unknown format {race!r}; choose one of {', '.join(FORMATS)}")
-    if int(laps) < 1:
-        raise ValueError(f"laps: must be at least 1, got {laps}")
+    if isinstance(laps, bool) or not float(laps).is_integer() or int(laps) < 1:
+        raise ValueError(f"laps: expected a whole number of at least 1, got {laps!r}")
     defaults: dict = {"name": race, "laps": int(laps), "obstacles": 0}
     if race == "reset_rule":
         defaults.update(max_resets=3, time_limit=240.0, off_track_penalty=0.0)
