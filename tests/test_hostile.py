@@ -102,3 +102,149 @@ def test_cli_refuses_a_zero_step_limit_before_racing(capsys):
 
     assert main(["race", "bot:follow@1.0", "--max-steps", "0"]) == 2
     assert "max_steps" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ agent files
+import io  # noqa: E402
+import json  # noqa: E402
+import os  # noqa: E402
+import pickle  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import zipfile  # noqa: E402
+
+from multirace.environment.actions import ActionSpaceError, load_action_space  # noqa: E402
+from multirace.racing.agentfile import AgentFileError, load_agent, make_metadata, save_agent  # noqa: E402
+from multirace.racing.nets import SHALLOW, TINY, build_net  # noqa: E402
+
+SPACE = load_action_space(None)
+
+
+def _valid_agent(path):
+    return save_agent(path, build_net(TINY, (120, 160, 1), SPACE), make_metadata(SPACE, TINY, "ok"))
+
+
+def _rewrite(path, edit):
+    """Rewrite the torch archive at `path`, passing each (name, bytes, compress_type) through `edit`."""
+    with zipfile.ZipFile(path) as archive:
+        entries = [(i.filename, archive.read(i), i.compress_type) for i in archive.infolist()]
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        for name, data, compress in entries:
+            name, data, compress = edit(name, data, compress)
+            archive.writestr(name, data, compress_type=compress)
+    path.write_bytes(buffer.getvalue())
+    return path
+
+
+class _Bytearray:
+    def __reduce__(self):
+        return (bytearray, (3 * 10**9,))
+
+
+def _bytearray_bomb(path):
+    payload = pickle.dumps({"format": "multirace-agent", "format_version": 1, "metadata": "{}",
+                            "state_dict": {"x": _Bytearray()}}, protocol=2)
+    return _rewrite(_valid_agent(path), lambda n, d, c: (n, payload if n.endswith("data.pkl") else d, c))
+
+
+def _patched_count(path):
+    def edit(name, data, compress):  # the first storage claims 10**9 floats: a 4 GB allocation
+        if name.endswith("data.pkl"):
+            at = data.index(b"X\x03\x00\x00\x00cpu") + 8
+            at = data.index(b"t", at)  # the storage tuple ends with its element count, then TUPLE
+            start = max(data.rindex(op, at - 6, at) for op in (b"K", b"M", b"J") if data.rfind(op, at - 6, at) >= 0)
+            data = data[:start] + b"J" + (10**9).to_bytes(4, "little") + data[at:]
+        return name, data, compress
+    return _rewrite(_valid_agent(path), edit)
+
+
+def _deflated(path):
+    return _rewrite(_valid_agent(path), lambda n, d, c: (n, d, zipfile.ZIP_DEFLATED if "/data/" in n else c))
+
+
+def _huge_image(path):  # a small file whose metadata claims the shallow network on 1080x1920 colour images
+    metadata = make_metadata(SPACE, SHALLOW, "huge", image_shape=(1080, 1920, 3))
+    torch_save({"format": "multirace-agent", "format_version": 1, "metadata": json.dumps(metadata),
+                "state_dict": build_net(TINY, (120, 160, 1), SPACE).state_dict()}, path)
+    return path
+
+
+def _deep_metadata(path):
+    torch_save({"format": "multirace-agent", "format_version": 1, "metadata": "[" * 200_000, "state_dict": {}}, path)
+    return path
+
+
+def torch_save(obj, path):
+    import torch
+
+    torch.save(obj, path)
+
+
+def _fifo(path):
+    os.mkfifo(path)
+    return path
+
+
+HOSTILE_AGENTS = {
+    "bytearray_bomb": (_bytearray_bomb, "refused: the file's pickle names '.*bytearray'"),
+    "patched_element_count": (_patched_count, "declares 1000000000 elements"),
+    "deflated_storage": (_deflated, "stored, uncompressed"),
+    "metadata_claims_huge_images": (_huge_image, "out of range|over the limit"),
+    "deeply_nested_metadata": (_deep_metadata, "nested too deeply|unreadable"),
+    "fifo": (_fifo, "not a regular file"),
+    "dev_zero": (lambda path: "/dev/zero", "not a regular file"),
+    "folder": (lambda path: path.parent, "is a directory"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(HOSTILE_AGENTS))
+def test_hostile_agent_files_are_refused_in_bounded_memory_and_time(tmp_path, case):
+    make, words = HOSTILE_AGENTS[case]
+    path = make(tmp_path / f"{case}.pt")
+    code = ("import json, resource, sys\n"
+            "from multirace.racing.agentfile import AgentFileError, load_agent\n"
+            "try:\n"
+            "    load_agent(sys.argv[1])\n"
+            "    outcome = 'loaded'\n"
+            "except AgentFileError as exc:\n"
+            "    outcome = str(exc)\n"
+            "print(json.dumps([outcome, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss]))\n")
+    done = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    outcome, peak_kb = json.loads(done.stdout.strip().splitlines()[-1])
+    assert outcome != "loaded"
+    import re
+
+    assert re.search(words, outcome), outcome
+    assert peak_kb < 1.5 * 2**20  # under 1.5 GB at its peak (the interpreter with torch is about 0.4 GB)
+
+
+@pytest.mark.parametrize("case", ["bytearray_bomb", "fifo"])
+def test_a_hostile_agent_forfeits_and_the_race_goes_on(tmp_path, case):
+    from multirace.racing.runner import RaceConfig, make_controller, run_race
+
+    path = HOSTILE_AGENTS[case][0](tmp_path / f"{case}.pt")
+    result = run_race([make_controller(str(path)), make_controller("bot:follow@1.0")],
+                      RaceConfig(race="head_to_head", laps=1, max_steps=60))
+    cars = {c["car"]: c for c in result["cars"]}
+    assert cars["car_0"]["status"] == "forfeit" and cars["car_1"]["status"] != "forfeit"
+
+
+# ------------------------------------------------------------------ action spaces
+@pytest.mark.parametrize("content, words", [
+    ("{\"action_space\": [{\"steering_angle\": 0, \"speed\": \"1.0\"}]}".encode(), "must be numbers"),
+    ("{\"action_space\": [{\"steering_angle\": true, \"speed\": 1.0}]}".encode(), "must be numbers"),
+    ("\ufeff{}".encode("utf-16"), "not UTF-8"),
+    (b"\x00\xff\x13garbage", "not UTF-8|not valid JSON"),
+    (b"[" * 100_000, "nested too deeply|not valid JSON"),
+    (json.dumps({"action_space": [{"steering_angle": 0, "speed": 1.0}] * 5_000}).encode(), "more than the 1000"),
+    (json.dumps({"action_space": [{"steering_angle": 0, "speed": 1.0}] * 200_000}).encode(), "larger than 1 MB"),
+], ids=["speed_as_text", "boolean", "utf16", "binary", "deep", "too_many_actions", "huge_file"])
+def test_bad_action_space_files_are_clear_errors(tmp_path, content, words):
+    path = tmp_path / "model_metadata.json"
+    path.write_bytes(content)
+    with pytest.raises(ActionSpaceError, match=words):
+        load_action_space(path)
+    with pytest.raises(ActionSpaceError, match="is a folder"):
+        load_action_space(tmp_path)

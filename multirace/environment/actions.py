@@ -17,6 +17,8 @@ from gymnasium import spaces
 
 MAX_STEER_DEG = 30.0
 SPEED_RANGE = (0.1, 4.0)
+MAX_ACTIONS = 1000  # discrete actions in one space (DeepRacer's consoles offer far fewer)
+MAX_METADATA_BYTES = 2**20
 DEFAULT_STEERING = (-30.0, -15.0, 0.0, 15.0, 30.0)
 DEFAULT_SPEEDS = (0.5, 1.0)
 
@@ -47,10 +49,10 @@ class ActionSpace:
 
     @staticmethod
     def _check_command(steer, speed, where: str) -> tuple[float, float]:
-        try:
-            steer, speed = float(steer), float(speed)
-        except (TypeError, ValueError):
-            raise ActionSpaceError(f"{where}: steering_angle and speed must be numbers") from None
+        if any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in (steer, speed)):
+            raise ActionSpaceError(f"{where}: steering_angle and speed must be numbers, got {steer!r:.40} and "
+                                   f"{speed!r:.40}")
+        steer, speed = float(steer), float(speed)
         if not (math.isfinite(steer) and math.isfinite(speed)):
             raise ActionSpaceError(f"{where}: steering_angle and speed must be finite")
         if abs(steer) > MAX_STEER_DEG:
@@ -62,6 +64,8 @@ class ActionSpace:
     def _parse_discrete(self, raw, source) -> list[tuple[float, float]]:
         if not isinstance(raw, list) or not raw:
             raise ActionSpaceError(f"{source}: field 'action_space' must be a non-empty list for a discrete space")
+        if len(raw) > MAX_ACTIONS:
+            raise ActionSpaceError(f"{source}: {len(raw)} discrete actions, more than the {MAX_ACTIONS} allowed")
         actions = []
         for k, entry in enumerate(raw):
             where = f"{source}: action_space[{k}]"
@@ -149,12 +153,20 @@ def load_action_space(spec) -> ActionSpace:
     if isinstance(spec, dict):
         return ActionSpace(spec, "<action_space dict>")
     path = Path(spec)
+    if path.is_dir():
+        raise ActionSpaceError(f"{path}: is a folder, not a model_metadata.json file")
     try:
-        metadata = json.loads(path.read_text())
+        if path.stat().st_size > MAX_METADATA_BYTES:
+            raise ActionSpaceError(f"{path}: larger than {MAX_METADATA_BYTES // 2**20} MB; not a model_metadata.json")
+        metadata = json.loads(path.read_bytes().decode("utf-8"))
     except FileNotFoundError:
         raise ActionSpaceError(f"{path}: no such file") from None
+    except UnicodeDecodeError:
+        raise ActionSpaceError(f"{path}: not UTF-8 text (model_metadata.json is UTF-8 JSON)") from None
     except json.JSONDecodeError as exc:
         raise ActionSpaceError(f"{path}: not valid JSON ({exc})") from None
+    except RecursionError:
+        raise ActionSpaceError(f"{path}: JSON nested too deeply") from None
     if not isinstance(metadata, dict):
         raise ActionSpaceError(f"{path}: expected a JSON object")
     return ActionSpace(metadata, str(path))

@@ -15,19 +15,30 @@ The metadata is DeepRacer's ``model_metadata.json`` (``sensor``,
 64-beam LIDAR (see `lidar`). The network is rebuilt from its name (`nets.NETWORKS`),
 so a custom network travels without Python source.
 
-Loading never unpickles arbitrary objects: files are read with
-``torch.load(..., weights_only=True)``, which only accepts tensors and plain
-containers; a pickle that would import or call anything else is refused.
+Loading never unpickles arbitrary objects, and never allocates more than the
+file declares: only a regular file under `MAX_FILE_BYTES` is read (once: the
+bytes that are checked are the bytes that are loaded); its pickle is scanned
+first (`check_archive`): it may name only the globals an agent file needs
+(`ALLOWED_GLOBALS`: no `bytearray` or other constructor that allocates at
+will), and every tensor storage it declares must match its stored,
+uncompressed record byte for byte, within `MAX_WEIGHT_BYTES` in all; then
+``torch.load(..., weights_only=True)`` reads it. The network that the
+metadata names is sized on torch's meta device before any weights are
+allocated (`MAX_PARAMETERS`).
 Validation on load checks the metadata, the weights against the architecture,
 the output shape against the action space, and a smoke inference (finite
 output, within the time budget). Every error names the file and the field.
 """
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import math
+import os
 import pickle
+import pickletools
+import stat
 import time
 import warnings
 import zipfile
@@ -40,7 +51,7 @@ from ..environment.actions import ActionSpace, ActionSpaceError
 from ..sensors.lidar import SENSOR_NAME as LIDAR, LidarSpec
 from ..sensors.suite import SensorSuite
 from .nets import NETWORKS, CameraNet, num_outputs_for, parameter_count
-from .entrant import Controller, Forfeit, file_sha256
+from .entrant import Controller, Forfeit
 
 FORMAT = "multirace-agent"
 FORMAT_VERSION = 1
@@ -108,17 +119,142 @@ def save_agent(path, net: CameraNet, metadata: dict) -> Path:
 
 
 # ------------------------------------------------------------------ loading
-def read_payload(path) -> dict:
-    """The raw dict of an agent file, loaded safely (weights_only); AgentFileError if unreadable or unsafe."""
+MAX_FILE_BYTES = 256 * 2**20  # an agent file larger than this is refused unread
+MAX_WEIGHT_BYTES = 256 * 2**20  # all tensor storages of one file together
+MAX_PICKLE_BYTES = 4 * 2**20  # the pickled structure (names, shapes, metadata text) without the weights
+MAX_PARAMETERS = 50_000_000  # a network the metadata names may have at most this many parameters
+ALLOWED_GLOBALS = {"collections OrderedDict", "torch._utils _rebuild_tensor_v2", "torch._utils _rebuild_parameter"}
+STORAGE_BYTES = {"FloatStorage": 4, "DoubleStorage": 8, "HalfStorage": 2, "BFloat16Storage": 2, "LongStorage": 8,
+                 "IntStorage": 4, "ShortStorage": 2, "CharStorage": 1, "ByteStorage": 1, "BoolStorage": 1}
+ALLOWED_GLOBALS |= {f"torch {name}" for name in STORAGE_BYTES}
+_VALUE_OPS = {"SHORT_BINUNICODE", "BINUNICODE", "BINUNICODE8", "UNICODE", "SHORT_BINSTRING", "BINSTRING",
+              "BININT", "BININT1", "BININT2", "LONG1", "LONG4", "INT", "LONG", "GLOBAL"}
+_CODE_OPS = {"STACK_GLOBAL", "INST", "OBJ", "NEWOBJ", "NEWOBJ_EX", "EXT1", "EXT2", "EXT4", "PERSID"}
+
+
+def read_agent_bytes(path) -> bytes:
+    """The bytes of an agent file: a regular file under `MAX_FILE_BYTES`, read once (no FIFOs, devices
+    or folders: they could block or never end)."""
     path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: no such agent file")
-    if path.is_dir():
+    try:
+        info = os.stat(path)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{path}: no such agent file") from None
+    except OSError as exc:
+        raise AgentFileError(f"{path}: cannot be read ({exc.strerror})") from None
+    if stat.S_ISDIR(info.st_mode):
         raise AgentFileError(f"{path}: is a directory, not an agent file")
+    if not stat.S_ISREG(info.st_mode):
+        raise AgentFileError(f"{path}: not a regular file (a device, FIFO or socket); agent files are files")
+    if info.st_size > MAX_FILE_BYTES:
+        raise AgentFileError(f"{path}: {info.st_size / 2**20:.0f} MB, over the {MAX_FILE_BYTES // 2**20} MB "
+                             "limit of an agent file")
+    try:
+        with open(path, "rb") as handle:
+            data = handle.read(MAX_FILE_BYTES + 1)
+    except OSError as exc:
+        raise AgentFileError(f"{path}: cannot be read ({exc.strerror})") from None
+    if len(data) > MAX_FILE_BYTES:
+        raise AgentFileError(f"{path}: over the {MAX_FILE_BYTES // 2**20} MB limit of an agent file")
+    return data
+
+
+def check_archive(data: bytes, source: str) -> None:
+    """Refuse a torch archive whose pickle names anything but the allowed globals, or whose declared
+    tensor storages do not match their stored records (a patched element count would allocate at will)."""
+    try:
+        archive = zipfile.ZipFile(io.BytesIO(data))
+        pickles = [i for i in archive.infolist() if i.filename.endswith("/data.pkl")]
+        if len(pickles) != 1 or pickles[0].file_size > MAX_PICKLE_BYTES:
+            raise AgentFileError(f"{source}: not an agent file (no single data.pkl within "
+                                 f"{MAX_PICKLE_BYTES // 2**20} MB in the torch archive)")
+        prefix = pickles[0].filename[: -len("data.pkl")]
+        records = {i.filename: i for i in archive.infolist()}
+        code = archive.read(pickles[0])
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, ValueError, KeyError) as exc:
+        _refuse_code(data, source)  # a bare pickle (torch's legacy format) that names code is refused as such
+        raise AgentFileError(f"{source}: unreadable or truncated agent file ({type(exc).__name__}: not the torch "
+                             "zip archive agent files are)") from None
+    memo, marks, last, total = {}, [], None, 0
+    try:
+        for op, arg, _ in pickletools.genops(code):
+            name = op.name
+            if name in _CODE_OPS or (name == "GLOBAL" and arg not in ALLOWED_GLOBALS):
+                _refuse_code(code, source)
+            if name in _VALUE_OPS:
+                last = arg
+            elif name in ("BINGET", "LONG_BINGET", "GET"):
+                last = memo.get(arg)
+            elif name in ("BINPUT", "LONG_BINPUT", "PUT"):
+                memo[arg] = last
+                continue
+            elif name == "MEMOIZE":
+                memo[len(memo)] = last
+                continue
+            elif name == "MARK":
+                marks.append([])
+                continue
+            elif name == "TUPLE":
+                last = tuple(marks.pop()) if marks else None
+            elif name == "BINPERSID":
+                total += _storage_bytes(last, records, prefix, source)
+                if total > MAX_WEIGHT_BYTES:
+                    raise AgentFileError(f"{source}: its tensors declare over {MAX_WEIGHT_BYTES // 2**20} MB")
+                last = None
+            else:
+                last = None
+                if name in ("SETITEMS", "APPENDS", "DICT", "LIST", "FROZENSET", "ADDITEMS", "POP_MARK") and marks:
+                    marks.pop()
+                continue
+            if marks:
+                marks[-1].append(last)
+    except AgentFileError:
+        raise
+    except Exception as exc:  # a malformed pickle stream
+        raise AgentFileError(f"{source}: unreadable agent file (its pickle: {type(exc).__name__})") from None
+
+
+def _refuse_code(data: bytes, source: str) -> None:
+    """AgentFileError if `data`, read as a pickle stream, names a global or opcode that would run code."""
+    try:
+        for op, arg, _ in pickletools.genops(data):
+            if op.name in _CODE_OPS or (op.name == "GLOBAL" and arg not in ALLOWED_GLOBALS):
+                what = arg if op.name == "GLOBAL" else f"the {op.name} opcode"
+                raise AgentFileError(f"{source}: refused: the file's pickle names {what!r}; agent files may hold "
+                                     "only tensors and metadata (nothing in it was run)")
+    except AgentFileError:
+        raise
+    except Exception:  # not a pickle stream at all
+        return
+
+
+def _storage_bytes(pid, records: dict, prefix: str, source: str) -> int:
+    """Bytes of one declared tensor storage, checked against its stored record."""
+    if not (isinstance(pid, tuple) and len(pid) == 5 and pid[0] == "storage" and isinstance(pid[2], str)
+            and isinstance(pid[4], int) and pid[4] >= 0):
+        raise AgentFileError(f"{source}: refused: a tensor storage of the wrong form in its pickle")
+    kind = str(pid[1]).rpartition(" ")[2]
+    record = records.get(f"{prefix}data/{pid[2]}")
+    size = pid[4] * STORAGE_BYTES.get(kind, 0)
+    if record is None or record.compress_type != zipfile.ZIP_STORED or record.file_size != size:
+        raise AgentFileError(f"{source}: refused: tensor storage {pid[2]!r} declares {pid[4]} elements but its "
+                             "record does not hold exactly that many (stored, uncompressed)")
+    return size
+
+
+def read_payload(path) -> dict:
+    """The raw dict of an agent file, loaded safely (see the module docstring); AgentFileError if unreadable
+    or unsafe."""
+    return payload_from_bytes(read_agent_bytes(path), Path(path))
+
+
+def payload_from_bytes(data: bytes, path: Path) -> dict:
+    """The raw dict of an agent file's bytes, checked (`check_archive`) and then loaded weights-only."""
+    check_archive(data, str(path))
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            payload = torch.load(path, map_location="cpu", weights_only=True)
+            payload = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
         first = str(exc).strip().splitlines()
         detail = next((line.strip() for line in first if "Unsupported" in line or "global" in line.lower()),
@@ -157,6 +293,8 @@ def parse_metadata(payload: dict, source: str) -> dict:
         metadata = json.loads(raw)
     except json.JSONDecodeError as exc:
         raise AgentFileError(f"{source}: field 'metadata' is not valid JSON ({exc})") from None
+    except RecursionError:
+        raise AgentFileError(f"{source}: field 'metadata' is nested too deeply") from None
     if not isinstance(metadata, dict):
         raise AgentFileError(f"{source}: field 'metadata' must be a JSON object")
     return metadata
@@ -246,7 +384,8 @@ def load_agent(path, step_budget: float | None = DEFAULT_STEP_BUDGET, smoke_runs
     fastest must finish within `step_budget` seconds (None: no time check).
     """
     path = Path(path)
-    payload = read_payload(path)
+    data = read_agent_bytes(path)
+    payload = payload_from_bytes(data, path)
     source = str(path)
     metadata, space, network, shape = check_metadata(parse_metadata(payload, source), source)
     state = payload.get("state_dict")
@@ -260,6 +399,12 @@ def load_agent(path, step_budget: float | None = DEFAULT_STEP_BUDGET, smoke_runs
         raise AgentFileError(f"{source}: output shape: the net outputs {head.shape[0]} values but the "
                              f"{space.kind} action space needs {expected}")
     try:
+        with torch.device("meta"):  # sized before anything is allocated
+            planned = parameter_count(CameraNet(network, shape, expected, value_head=value_head,
+                                                lidar_samples=lidar_samples(metadata)))
+        if planned > MAX_PARAMETERS:
+            raise AgentFileError(f"{source}: the {network} network on {shape[0]}x{shape[1]}x{shape[2]} images "
+                                 f"has {planned:,} parameters, over the limit of {MAX_PARAMETERS:,}")
         net = CameraNet(network, shape, expected, value_head=value_head, lidar_samples=lidar_samples(metadata))
     except ValueError as exc:
         raise AgentFileError(f"{source}: metadata field 'image': {exc}") from None
@@ -271,7 +416,7 @@ def load_agent(path, step_budget: float | None = DEFAULT_STEP_BUDGET, smoke_runs
         raise AgentFileError(f"{source}: weights do not match the {network} architecture for "
                              f"{shape[0]}x{shape[1]}x{shape[2]} images{with_lidar}: {' '.join(lines)}") from None
     net.eval()
-    agent = Agent(path, net, metadata, space, file_sha256(path))
+    agent = Agent(path, net, metadata, space, hashlib.sha256(data).hexdigest())
     smoke_test(agent, step_budget, smoke_runs)
     return agent
 
@@ -316,8 +461,10 @@ def smoke_test(agent: Agent, step_budget: float | None, runs: int = 5) -> None:
 def inspect_agent(path) -> dict:
     """What `multirace agent inspect` prints: metadata, parameter count, sha256, validity."""
     path = Path(path)
-    info = {"file": str(path), "sha256": file_sha256(path), "size_bytes": path.stat().st_size}
+    info = {"file": str(path), "sha256": None, "size_bytes": None}
     try:
+        data = read_agent_bytes(path)
+        info.update(sha256=hashlib.sha256(data).hexdigest(), size_bytes=len(data))
         agent = load_agent(path, step_budget=None)
     except AgentFileError as exc:
         info.update(valid=False, error=str(exc))
@@ -361,17 +508,18 @@ class AgentController(Controller):
         self.step_budget = float(step_budget)
         self.warmup_steps = int(warmup_steps)
         self.name = self.path.stem
-        try:
-            self.file_sha256 = file_sha256(self.path)
-        except OSError:
-            self.file_sha256 = None
+        self.file_sha256 = None
         self.agent: Agent | None = None
         self.error: str | None = None
         try:
             self.agent = load_agent(self.path, step_budget=self.step_budget)
-            self.name = self.agent.name
-        except AgentFileError as exc:
-            self.error = str(exc)
+            self.name, self.file_sha256 = self.agent.name, self.agent.sha256
+        except (AgentFileError, RecursionError, MemoryError) as exc:
+            self.error = str(exc) if isinstance(exc, AgentFileError) else f"cannot be loaded ({type(exc).__name__})"
+            try:
+                self.file_sha256 = hashlib.sha256(read_agent_bytes(self.path)).hexdigest()
+            except AgentFileError:
+                pass
             try:  # name the car after its metadata even when the file is bad, if that is readable
                 meta = parse_metadata(read_payload(self.path), str(self.path))
                 if isinstance(meta.get("name"), str) and meta["name"].strip():
