@@ -7,7 +7,8 @@ from __future__ import annotations
 
 import importlib
 
-_PUBLIC = {
+_PUBLIC = {  # public name: module (and the module's own name for it, where they differ)
+    "load_agent": ("multirace.racing.policy", "load_policy"),
     "RaceEnv": "multirace.environment.race_env",
     "env": "multirace.environment.race_env",
     "parallel_env": "multirace.environment.race_env",
@@ -23,7 +24,8 @@ __version__ = "0.1.0"
 
 def __getattr__(name: str):
     if name in _PUBLIC:
-        value = getattr(importlib.import_module(_PUBLIC[name]), name)
+        module, attribute = _PUBLIC[name] if isinstance(_PUBLIC[name], tuple) else (_PUBLIC[name], name)
+        value = getattr(importlib.import_module(module), attribute)
         globals()[name] = value
         return value
     raise AttributeError(f"module 'multirace' has no attribute {name!r}")

@@ -8,6 +8,8 @@ import pickle
 from pathlib import Path
 
 import numpy as np
+
+import multirace
 import pytest
 import torch
 
@@ -288,3 +290,18 @@ def test_shipped_agent_laps_reinvent_base(path):
     car = result["cars"][0]
     assert car["status"] == "finished", car
     assert car["laps"] == 1 and car["resets"] <= 3, car
+
+
+def test_load_agent_gives_a_policy_that_drives_from_one_observation():
+    policy = multirace.load_agent("dagger_fast")  # a shipped agent, by name
+    env = multirace.parallel_env(num_cars=1, sensor=policy.sensor)
+    observations, _ = env.reset(seed=0)
+    steer, speed = policy.command(observations["car_0"])
+    assert -30.0 <= steer <= 30.0 and 0.1 <= speed <= 4.0
+    assert (steer, speed) in [tuple(a) for a in AgentController(policy.agent.path).agent.action_space.actions]
+    with pytest.raises(ValueError, match="reads"):
+        policy.command(np.zeros((60, 80, 1), np.uint8))
+    lidar = multirace.load_agent("selfplay_lidar")
+    env = multirace.parallel_env(num_cars=1, sensor=lidar.sensor)
+    observations, _ = env.reset(seed=0)
+    assert -30.0 <= lidar.command(observations["car_0"])[0] <= 30.0

@@ -1,0 +1,46 @@
+"""`multirace.load_agent(path)`: any agent file as a policy to call from Python.
+
+    policy = multirace.load_agent("agents/dagger_fast.pt")      # or a shipped agent's name: "dagger_fast"
+    env = multirace.parallel_env(num_cars=1, sensor=policy.sensor)
+    observations, _ = env.reset(seed=0)
+    steering_degrees, speed = policy.command(observations["car_0"])
+
+`command` gives the greedy action (the most likely discrete action, or the
+mean of a continuous one) as DeepRacer's (steering degrees, speed m/s).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .agentfile import load_agent as load_agent_file
+from .runner import resolve_agent_path
+
+
+class Policy:
+    """A loaded agent file's greedy driver."""
+
+    def __init__(self, agent):
+        self.agent = agent
+        self.name = agent.name
+        self.metadata = agent.metadata
+        self.image_shape = tuple(agent.image_shape)  # (height, width, channels) of the camera it reads
+
+    @property
+    def sensor(self) -> list[str]:
+        """DeepRacer's `sensor` list of the agent (pass it to the env as `sensor=`)."""
+        return ["FRONT_FACING_CAMERA", "LIDAR"] if self.agent.lidar_samples else ["FRONT_FACING_CAMERA"]
+
+    def command(self, observation) -> tuple[float, float]:
+        """(steering degrees, speed m/s) for one observation: a uint8 (H, W, C) image, or the env's
+        {"camera", "lidar"} dict for an agent that reads the LIDAR."""
+        image = observation["camera"] if isinstance(observation, dict) else observation
+        if np.shape(image) != self.image_shape:
+            raise ValueError(f"observation of shape {np.shape(image)}; {self.name} reads {self.image_shape} images")
+        output = self.agent.outputs(observation if self.agent.lidar_samples else np.asarray(image, np.uint8))
+        steer, speed = self.agent.action_space.command(self.agent.decide(output[0]))
+        return float(steer), float(speed)
+
+
+def load_policy(path) -> Policy:
+    """The agent file at `path` (or a shipped agent's name) as a `Policy`; AgentFileError if it is bad."""
+    return Policy(load_agent_file(resolve_agent_path(str(path)), step_budget=None))
