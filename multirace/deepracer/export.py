@@ -1,0 +1,164 @@
+"""`multirace agent export FILE.pt --out model.tar.gz`: an agent as the archive a DeepRacer car loads.
+
+The archive holds exactly one frozen TensorFlow graph, `agent/model.pb`, and
+`model_metadata.json` at its root (the car's loader walks the tree for the one
+`.pb` and reads the metadata from the root). The graph is the agent's policy
+network with the car's node names:
+
+- inputs ``main_level/agent/main/online/network_0/{SENSOR}/{SENSOR}``, float32,
+  raw 0-255 grey pixels ``[1, 120, 160, 1]`` for ``FRONT_FACING_CAMERA``
+  (``[1, 120, 160, 2]`` for ``STEREO_CAMERAS``) and the ranges ``[1, N]`` for ``LIDAR``;
+- the image normalisation (``/255``, ``-0``) inside the graph, as DeepRacer's
+  embedder does (the car feeds raw pixels);
+- the only output (the graph's only sink) ``main_level/agent/main/online/network_1/ppo_head_0/policy``:
+  a softmax over the metadata's action list (discrete), or the two means in
+  ``[-1, 1]`` that the car maps linearly onto the metadata's ``low..high`` (continuous).
+
+Layers are named as DeepRacer's networks name them (``Conv2d_0``,
+``BatchnormActivationDropout_1_activation``, ``Flatten/flatten/Reshape``,
+``middleware_fc_embedder/Dense_0``, ``ppo_head_0/policy_fc``), convolutions are
+VALID NHWC with HWIO kernels, and the flatten is NHWC's, so the graph computes
+exactly what the torch policy computes.
+"""
+from __future__ import annotations
+
+import io
+import json
+import tarfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..racing.agentfile import load_agent
+from ..racing.nets import AveragePool, CameraNet
+from .tfgraph import DT_FLOAT, DT_INT32, GraphBuilder
+
+CAMERA_SIZE = (120, 160)  # (height, width) the car's inference feeds
+ROOT = "main_level/agent/main/online"
+OUTPUT = f"{ROOT}/network_1/ppo_head_0/policy"
+CAR_ALGORITHM = "clipped_ppo"  # the car's output name for PPO; every multirace policy head exports as one
+
+
+class ExportError(ValueError):
+    """An agent that a DeepRacer car cannot run as it is; the message names the file and the reason."""
+
+
+def input_name(sensor: str) -> str:
+    """The car's placeholder name for one sensor."""
+    return f"{ROOT}/network_0/{sensor}/{sensor}"
+
+
+def camera_sensor(channels: int) -> str:
+    return "STEREO_CAMERAS" if channels == 2 else "FRONT_FACING_CAMERA"
+
+
+def _dense(g: GraphBuilder, scope: str, x: str, weight: torch.Tensor, bias: torch.Tensor) -> str:
+    kernel = g.const(f"{scope}/kernel", weight.detach().numpy().T)
+    b = g.const(f"{scope}/bias", bias.detach().numpy())
+    y = g.op(f"{scope}/MatMul", "MatMul", [x, kernel], transpose_a=False, transpose_b=False)
+    return g.op(f"{scope}/BiasAdd", "BiasAdd", [y, b], data_format="NHWC")
+
+
+def _camera_embedder(g: GraphBuilder, net: CameraNet, sensor: str, scope: str) -> tuple[str, tuple]:
+    """Normalisation, the conv trunk and the NHWC flatten; returns (node, (H, W, C) of the last conv)."""
+    height, width, channels = net.image_shape
+    x = g.op(f"{scope}/truediv", "RealDiv", [input_name(sensor), g.const(f"{scope}/truediv/y", np.float32(255.0))])
+    x = g.op(f"{scope}/sub", "Sub", [x, g.const(f"{scope}/sub/y", np.float32(0.0))])
+    index = 0
+    shape = (height, width, channels)
+    for layer in net.conv:
+        if isinstance(layer, AveragePool):
+            k = int(layer.kernel_size)
+            x = g.op(f"{scope}/AvgPool", "AvgPool", [x], ksize=("ints", [1, k, k, 1]),
+                     strides=("ints", [1, k, k, 1]), padding="VALID", data_format="NHWC")
+        elif isinstance(layer, torch.nn.Conv2d):
+            s = layer.stride[0]
+            kernel = g.const(f"{scope}/Conv2d_{index}/kernel", layer.weight.detach().permute(2, 3, 1, 0).numpy())
+            bias = g.const(f"{scope}/Conv2d_{index}/bias", layer.bias.detach().numpy())
+            x = g.op(f"{scope}/Conv2d_{index}/Conv2D", "Conv2D", [x, kernel], strides=("ints", [1, s, s, 1]),
+                     padding="VALID", data_format="NHWC", dilations=("ints", [1, 1, 1, 1]))
+            x = g.op(f"{scope}/Conv2d_{index}/BiasAdd", "BiasAdd", [x, bias], data_format="NHWC")
+        elif isinstance(layer, torch.nn.ReLU):
+            x = g.op(f"{scope}/BatchnormActivationDropout_{index + 1}_activation", "Relu", [x])
+            index += 2
+    with torch.no_grad():
+        out = net.conv[:-1](torch.zeros(1, channels, height, width))  # everything but the Flatten
+    shape = (out.shape[2], out.shape[3], out.shape[1])
+    flat = g.const(f"{scope}/Flatten/flatten/Reshape/shape", np.array([-1, int(np.prod(shape))], np.int32))
+    x = g.node(f"{scope}/Flatten/flatten/Reshape", "Reshape", [x, flat], T=("type", DT_FLOAT),
+               Tshape=("type", DT_INT32))
+    return x, shape
+
+
+def policy_graph(net: CameraNet, space) -> bytes:
+    """The frozen GraphDef bytes of `net`'s policy with the car's node names (see the module docstring)."""
+    height, width, channels = net.image_shape
+    g = GraphBuilder()
+    sensor = camera_sensor(channels)
+    g.node(input_name(sensor), "Placeholder", dtype=("type", DT_FLOAT), shape=("shape", [-1, height, width, channels]))
+    if net.lidar_samples:
+        g.node(input_name("LIDAR"), "Placeholder", dtype=("type", DT_FLOAT), shape=("shape", [-1, net.lidar_samples]))
+    net1 = f"{ROOT}/network_1"
+    x, (h, w, c) = _camera_embedder(g, net, sensor, f"{net1}/{sensor}")
+    fc = net.fc[0]
+    weight = fc.weight.detach()
+    conv_flat = h * w * c
+    # torch flattens (C, H, W); the graph flattens NHWC (H, W, C): reorder the first dense layer's columns
+    camera_cols = weight[:, :conv_flat].reshape(-1, c, h, w).permute(0, 2, 3, 1).reshape(-1, conv_flat)
+    weight = torch.cat([camera_cols, weight[:, conv_flat:]], dim=1)
+    if net.lidar_samples:
+        lidar = g.op(f"{net1}/LIDAR/sub", "Sub", [input_name("LIDAR"), g.const(f"{net1}/LIDAR/sub/y", np.float32(0.0))])
+        for k, layer in ((0, net.lidar[0]), (2, net.lidar[2])):
+            lidar = _dense(g, f"{net1}/LIDAR/Dense_{k}", lidar, layer.weight, layer.bias)
+            lidar = g.op(f"{net1}/LIDAR/BatchnormActivationDropout_{k + 1}_activation", "Relu", [lidar])
+        axis = g.const(f"{net1}/concat/axis", np.int32(1))
+        x = g.node(f"{net1}/concat", "ConcatV2", [x, lidar, axis], N=2, T=("type", DT_FLOAT), Tidx=("type", DT_INT32))
+    x = _dense(g, f"{net1}/middleware_fc_embedder/Dense_0", x, weight, fc.bias)
+    x = g.op(f"{net1}/middleware_fc_embedder/BatchnormActivationDropout_1_activation", "Relu", [x])
+    head_w, head_b = net.head.weight.detach(), net.head.bias.detach()
+    if space.discrete:
+        logits = _dense(g, f"{net1}/ppo_head_0/policy_fc", x, head_w, head_b)
+        g.op(OUTPUT, "Softmax", [logits])
+    else:
+        # the car maps v in [-1, 1] linearly onto low..high: fold mean -> v into the head's means
+        low, high = np.array(space.low, np.float64), np.array(space.high, np.float64)
+        half = np.where(high > low, (high - low) / 2, np.inf)
+        scale = torch.tensor(1.0 / half, dtype=torch.float32)[:, None]
+        mean_w = head_w[:2] * scale
+        mean_b = (head_b[:2] - torch.tensor((low + high) / 2, dtype=torch.float32)) * scale[:, 0]
+        mean = _dense(g, f"{net1}/ppo_head_0/policy_mean", x, mean_w, mean_b)
+        g.op(OUTPUT, "Identity", [mean])
+    return g.to_bytes()
+
+
+def car_metadata(metadata: dict, space, channels: int, lidar: bool) -> dict:
+    """model_metadata.json as the car reads it (sensor, algorithm, action space), plus the agent's notes."""
+    sensor = [camera_sensor(channels)] + (["LIDAR"] if lidar else [])
+    out = {k: v for k, v in metadata.items() if k not in ("action_space", "action_space_type")}
+    out.update(sensor=sensor, training_algorithm=CAR_ALGORITHM, **space.to_metadata())
+    out.setdefault("version", "5")
+    return out
+
+
+def export_agent(path, out) -> Path:
+    """Write the car archive of the agent file at `path` to `out` (a `.tar.gz`); returns `out`."""
+    path, out = Path(path), Path(out)
+    if not out.name.endswith(".tar.gz"):
+        raise ExportError(f"{out}: the car accepts only archives named *.tar.gz")
+    agent = load_agent(path, step_budget=None)
+    height, width, channels = agent.image_shape
+    if (height, width) != CAMERA_SIZE or channels not in (1, 2):
+        raise ExportError(f"{path}: the agent reads {height}x{width}x{channels} images; the car feeds "
+                          f"{CAMERA_SIZE[0]}x{CAMERA_SIZE[1]} grey images (1 channel, 2 for stereo)")
+    graph = policy_graph(agent.net, agent.action_space)
+    metadata = car_metadata(agent.metadata, agent.action_space, channels, bool(agent.lidar_samples))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with tarfile.open(out, "w:gz") as tar:
+        for name, data in (("agent/model.pb", graph),
+                           ("model_metadata.json", json.dumps(metadata, indent=4).encode())):
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            info.mode = 0o644
+            tar.addfile(info, io.BytesIO(data))
+    return out
