@@ -7,9 +7,11 @@ import sys
 from pathlib import Path
 
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from .environment.rules import FORMATS
+from .text import display_name
 from .resources import list_agents, list_tracks
 
 
@@ -25,9 +27,10 @@ def print_result(result: dict, console: Console) -> None:
     for column in ("pos", "agent", "laps", "best lap", "total time", "resets", "penalties", "collisions",
                    "status"):
         table.add_column(column)
-    for car in result["cars"]:
-        status = car["status"] + (f" ({car['reason']})" if car["reason"] else "")
-        table.add_row(str(car["position"]), car["name"], str(car["laps"]), _format_time(car["best_lap"]),
+    for car in result["cars"]:  # names and reasons are data (agent files are anyone's): never markup
+        status = escape(car["status"] + (f" ({display_name(car['reason'])})" if car["reason"] else ""))
+        table.add_row(str(car["position"]), escape(display_name(car["name"])), str(car["laps"]),
+                      _format_time(car["best_lap"]),
                       _format_time(car["total_time"]), str(car["resets"]), str(car["penalties"]),
                       str(car["collisions"]), status)
     console.print(table)

@@ -248,3 +248,46 @@ def test_bad_action_space_files_are_clear_errors(tmp_path, content, words):
         load_action_space(path)
     with pytest.raises(ActionSpaceError, match="is a folder"):
         load_action_space(tmp_path)
+
+
+# ------------------------------------------------------------------ names are data, never markup
+EVIL_NAME = "\x1b[31m\x1b]8;;http://x\x07[link=http://x]evil[/link][/bold] | =1\n"
+
+
+def test_a_hostile_agent_name_is_shown_as_text_in_the_results_table(tmp_path, capsys, monkeypatch):
+    from multirace.cli import main
+
+    monkeypatch.setenv("COLUMNS", "250")  # a wide terminal: the name is not wrapped
+
+    path = save_agent(tmp_path / "evil.pt", build_net(TINY, (120, 160, 1), SPACE), make_metadata(SPACE, TINY, EVIL_NAME))
+    assert main(["race", str(path), "bot:follow@1.0", "--laps", "1", "--max-steps", "30"]) == 0
+    out = capsys.readouterr().out
+    assert "\x1b" not in out and "\x07" not in out
+    assert "[link=http://x]evil" in out  # printed as written (markup not rendered, no hyperlink made)
+
+
+def test_league_names_are_escaped_in_every_table_format(tmp_path):
+    from multirace.league.config import LeagueError
+    from multirace.league.runner import run_league
+    from multirace.league.submissions import init_league, submit
+    from multirace.league.table import write_table
+
+    folder = tmp_path / "lg"
+    init_league(folder)
+    toml = (folder / "league.toml").read_text()
+    toml = toml.replace('name = "multirace default league"', 'name = "$\\\\frac{$ | =HYPERLINK(1) <b>"')
+    toml = toml.replace("seeds = [1, 2]", "seeds = [1]").replace("laps = 3", "laps = 1")
+    toml = toml.replace('directions = ["forward", "reverse"]', 'directions = ["forward"]')
+    toml = toml.replace('[[tracks]]\nname = "2022_summit_speedway"\ndirections = ["forward"]\n', "")
+    (folder / "league.toml").write_text(toml)
+    for bad in ("=HYPERLINK(\"http://x\")", "a|b", "line\nbreak", "[bold]x", "x" * 65, "$\\frac{$"):
+        with pytest.raises(LeagueError, match="not a valid entrant name"):
+            submit(folder, _valid_agent(tmp_path / "a.pt"), bad)
+    submit(folder, _valid_agent(tmp_path / "a.pt"), "plain-name_1.0")
+    run_league(folder, workers=1, progress=False)
+    md = write_table(folder, "md")
+    assert "$\\\\frac{$ \\| =HYPERLINK(1) &lt;b&gt;" in md  # Markdown's own escapes: shown as written
+    html = write_table(folder, "html")
+    assert "<b>" not in html.split("<body>", 1)[-1] and "&lt;b&gt;" in html  # rating plot drew the title too
+    assert all(not cell.startswith(("=", "+", "@")) for line in write_table(folder, "csv").splitlines()
+               for cell in line.split(","))

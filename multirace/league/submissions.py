@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import hashlib
+import re
 import json
 import os
 import subprocess
@@ -12,6 +13,9 @@ from .config import (DEFAULT_TOML, REPLAYS, SUBMISSIONS, SUBMIT_TIMEOUT, TOML, L
                      parse_config)
 from .store import _Tx, connect
 from .worker import _worker_command, _worker_env
+
+
+ENTRANT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9 _.+@:-]{0,63}")
 
 
 def init_league(folder, template=None) -> Path:
@@ -63,8 +67,9 @@ def submit(folder, path, name: str, step_budget: float | None = None, validate: 
     path = Path(path)
     if not path.is_file():
         raise LeagueError(f"{path}: no such agent file")
-    if not name or not name.strip() or name.startswith("bot:") or len(name) > 64:
-        raise LeagueError(f"--name: {name!r} is not a valid entrant name (1-64 characters, not 'bot:...')")
+    if not isinstance(name, str) or not ENTRANT_NAME.fullmatch(name) or name.startswith("bot:"):
+        raise LeagueError(f"--name: {name!r} is not a valid entrant name: 1-64 letters, digits, spaces and "
+                          "_ . - + @ : (starting with a letter or digit), not 'bot:...'")
     if name in config.bots:
         raise LeagueError(f"--name: {name!r} is a bot of this league")
     data = path.read_bytes()

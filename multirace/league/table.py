@@ -18,6 +18,7 @@ import math
 import os
 from pathlib import Path
 
+from ..text import display_name
 from .config import load_config
 from .schedule import entrants, sync_schedule
 from .store import connect
@@ -142,16 +143,45 @@ def compute_table(folder) -> dict:
 
 
 # ------------------------------------------------------------------ text formats
-def _cell(value) -> str:
+TEXT_LENGTH = 400  # names are at most 64 characters; forfeit and failure reasons get more room
+
+
+def _text(value) -> str:
+    """A table value as plain text."""
     if value is None:
         return "-"
     if isinstance(value, float):
         return f"{value:.3f}"
-    return str(value)
+    return display_name(value, TEXT_LENGTH) if isinstance(value, str) else str(value)
+
+
+def _cell(value) -> str:
+    """A table value for a Markdown cell."""
+    return _md(value) if isinstance(value, str) else _text(value)
+
+
+def _md(text) -> str:
+    """Text for a Markdown table cell or line: one line, no cell breaks, no inline HTML."""
+    return (display_name(text, TEXT_LENGTH).replace("\\", "\\\\").replace("|", "\\|").replace("<", "&lt;")
+            .replace(">", "&gt;"))
+
+
+def _csv(value):
+    """A CSV cell that no spreadsheet reads as a formula."""
+    if isinstance(value, str):
+        value = display_name(value)
+        if value[:1] in ("=", "+", "-", "@", "\t", "\r"):
+            return "'" + value
+    return value
+
+
+def _plain(text) -> str:
+    """Text for a matplotlib label: shown as written (a `$` would start mathtext)."""
+    return display_name(text).replace("$", r"\$")
 
 
 def to_markdown(table: dict) -> str:
-    lines = [f"# {table['league']}", "",
+    lines = [f"# {_md(table['league'])}", "",
              f"{table['recorded']} of {table['scheduled']} matches recorded"
              + (f", {len(table['failed'])} failed" if table["failed"] else "")
              + (f", {table['pending']} pending" if table["pending"] else ""), "",
@@ -162,14 +192,15 @@ def to_markdown(table: dict) -> str:
         lines += ["", "## Time trials (reset rule)", "", "| rank | entrant | best lap | completion | avg lap |",
                   "|---|---|---|---|---|"]
         for s in table["time_trials"]:
-            lines.append(f"| {s['rank']} | {s['entrant']} | {_cell(s['tt_best_lap'])} | "
+            lines.append(f"| {s['rank']} | {_md(s['entrant'])} | {_cell(s['tt_best_lap'])} | "
                          f"{_cell(s['tt_completion'])} | {_cell(s['tt_avg_lap'])} |")
     reasons = [(s["entrant"], r) for s in table["standings"] for r in s["forfeit_reasons"]]
     if reasons:
-        lines += ["", "## Forfeits", ""] + [f"- {name}: {reason}" for name, reason in reasons]
+        lines += ["", "## Forfeits", ""] + [f"- {_md(name)}: {_md(reason)}" for name, reason in reasons]
     if table["failed"]:
-        lines += ["", "## Failed matches", ""] + [f"- {f['match_id']} ({f['kind']}, {', '.join(f['entrants'])}): "
-                                                    f"{f['reason']}" for f in table["failed"]]
+        lines += ["", "## Failed matches", ""] + [
+            f"- {f['match_id']} ({f['kind']}, {', '.join(_md(e) for e in f['entrants'])}): {_md(f['reason'])}"
+            for f in table["failed"]]
     return "\n".join(lines) + "\n"
 
 
@@ -178,7 +209,7 @@ def to_csv(table: dict) -> str:
     writer = csv.writer(out, lineterminator="\n")
     writer.writerow(COLUMNS)
     for s in table["standings"]:
-        writer.writerow(["" if s[c] is None else s[c] for c in COLUMNS])
+        writer.writerow(["" if s[c] is None else _csv(s[c]) for c in COLUMNS])
     return out.getvalue()
 
 
@@ -205,10 +236,10 @@ def rating_plot_png(table: dict) -> bytes:
     rounds = [0] + [h["round"] + 1 for h in history]
     for s in table["standings"]:
         values = [0.0] + [h["ordinal"][s["entrant"]] for h in history]  # ordinal of a new rating is 0
-        ax.plot(rounds, values, marker="o", markersize=3, label=s["entrant"])
+        ax.plot(rounds, values, marker="o", markersize=3, label=_plain(s["entrant"]))
     ax.set_xlabel("head-to-head round")
     ax.set_ylabel("rating (mu - 3 sigma)")
-    ax.set_title(f"{table['league']}: ratings over rounds")
+    ax.set_title(f"{_plain(table['league'])}: ratings over rounds")
     ax.grid(alpha=0.3)
     if table["standings"]:
         ax.legend(fontsize=8, loc="best")
@@ -249,9 +280,11 @@ def to_html(table: dict, replay_base: str = "") -> str:
     """A self-contained leaderboard page: standings, rating plot, track maps, matches with replay links.
 
     Replay links are `replay_base` + the path relative to the league folder."""
-    e = html.escape
+    def e(value) -> str:
+        return html.escape(_text(value))
+
     head = "".join(f"<th>{e(c)}</th>" for c in COLUMNS)
-    body = "".join("<tr>" + "".join(f"<td>{e(_cell(s[c]))}</td>" for c in COLUMNS) + "</tr>"
+    body = "".join("<tr>" + "".join(f"<td>{e(s[c])}</td>" for c in COLUMNS) + "</tr>"
                    for s in table["standings"])
     tt = "".join(f"<tr><td>{s['rank']}</td><td>{e(s['entrant'])}</td><td>{_cell(s['tt_best_lap'])}</td>"
                  f"<td>{_cell(s['tt_completion'])}</td><td>{_cell(s['tt_avg_lap'])}</td></tr>"
@@ -260,8 +293,8 @@ def to_html(table: dict, replay_base: str = "") -> str:
                    f"({e(', '.join(t['directions']))})</figcaption></figure>" for t in table["tracks"])
     match_rows = []
     for m in table["matches"]:
-        replay = f'<a href="{e(replay_base + m["replay"])}">replay</a>' if m.get("replay") else "-"
-        outcome = e(" > ".join(m["order"])) if "order" in m else e(f"failed: {m.get('reason', '')}")
+        replay = f'<a href="{html.escape(replay_base + m["replay"])}">replay</a>' if m.get("replay") else "-"
+        outcome = " &gt; ".join(e(name) for name in m["order"]) if "order" in m else e(f"failed: {m.get('reason', '')}")
         direction = "reverse" if m["reverse"] else "forward"
         match_rows.append(f"<tr><td>{m['seq']}</td><td>{e(m['kind'])}</td><td>{e(m['track'])} {direction}</td>"
                           f"<td>{m['seed']}</td><td>{outcome}</td><td>{replay}</td></tr>")
