@@ -1,0 +1,382 @@
+"""`multirace agent import PATH --out FILE.pt`: a DeepRacer model as a multirace agent file.
+
+PATH is a car archive (`.tar.gz` with one `.pb` and `model_metadata.json`), a
+folder holding them, or a frozen `.pb` with `model_metadata.json` beside it.
+
+The weights are found by walking the graph back from its output (the
+``.../ppo_head_0/policy`` or ``.../sac_policy_head_0/policy`` node, else the
+graph's only sink), not by names, which changed across DeepRacer versions:
+``Const`` (through ``Identity``) into ``Conv2D`` / ``MatMul``, then
+``BiasAdd`` (or ``Add``) with a constant, ``Relu``, the NHWC ``Reshape``
+(flatten), ``ConcatV2`` of several sensors' embedders, the input scaling
+(``RealDiv``/``Sub``/``Mul`` by constants) and the graph-only gradient
+rescaler between middleware and head (``(1-r)*stop_gradient(x) + r*x``, which
+is ``x``), which is skipped. The walk gives `GraphSpec`: per-sensor layer
+lists, the layers after them, and the output op.
+
+A graph whose layers are one of multirace's networks (`nets.NETWORKS`: DeepRacer's
+shallow network, multirace's small and tiny CNNs; camera, or camera plus a
+64-64 LIDAR branch) with a PPO head becomes a `CameraNet` agent file that every
+multirace command loads. Other DeepRacer networks (5-layer, deep, SAC heads,
+DeepRacer's 256-256 LIDAR embedder) are refused with a message naming what
+does not fit (see `GraphNet` in `drnet` for running them).
+"""
+from __future__ import annotations
+
+import json
+import tarfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..environment.actions import ActionSpace, ActionSpaceError
+from ..racing.agentfile import make_metadata, save_agent
+from ..racing.nets import NETWORKS, AveragePool, CameraNet, num_outputs_for
+from .tfgraph import GraphError, parse_graph
+
+MAX_ARCHIVE_BYTES = 512 * 2**20  # unpacked members of a car archive read at most
+PASS_THROUGH = ("Identity", "StopGradient", "Snapshot")
+CONTINUOUS_LOG_STD = -1.0  # imported continuous policies: the log-std outputs (the .pb has no log-std)
+
+
+class ModelImportError(ValueError):
+    """A DeepRacer model that cannot be imported; the message names the file, node or field."""
+
+
+@dataclass
+class Chain:
+    """Layers from the inputs to one node: a sensor's placeholder or the concatenated chains, then `layers`."""
+
+    sensor: str | None = None
+    shape: list | None = None
+    branches: list = field(default_factory=list)
+    layers: list = field(default_factory=list)  # (kind, params) tuples
+
+
+@dataclass
+class GraphSpec:
+    """The walked graph: `inputs` {sensor: (shape, layers)}, then `layers` after their merge, then `output`."""
+
+    inputs: dict
+    layers: list
+    output: str  # "softmax", "identity" or "tanh"
+    output_node: str
+
+
+class _Walker:
+    def __init__(self, nodes, source):
+        self.nodes, self.source = nodes, source
+
+    def value(self, name):
+        """The constant a node evaluates to (Const through Identity), else None."""
+        node = self.nodes.get(name)
+        while node is not None and node.op in PASS_THROUGH:
+            node = self.nodes.get(node.inputs[0]) if node.inputs else None
+        return None if node is None or node.op != "Const" else node.attrs.get("value")
+
+    def _strip(self, name):
+        while self.nodes[name].op in PASS_THROUGH:
+            name = self.nodes[name].inputs[0]
+        return name
+
+    def _variable_input(self, node):
+        inputs = [i for i in node.inputs if self.value(i) is None]
+        constants = [self.value(i) for i in node.inputs if self.value(i) is not None]
+        return inputs, constants
+
+    def _rescaler_source(self, node):
+        """The x of `(1-r)*stop_gradient(x) + r*x` (an Add of two Muls reaching the same node), else None."""
+        sources = set()
+        for name in node.inputs:
+            mul = self.nodes.get(self._strip(name))
+            if mul is None or mul.op != "Mul":
+                return None
+            for i in mul.inputs:
+                if self.value(i) is None and self.nodes[self._strip(i)].op not in ("StridedSlice", "Sub", "Pack"):
+                    sources.add(self._strip(i))
+        return sources.pop() if len(sources) == 1 else None
+
+    def walk(self, name, depth=0) -> Chain:
+        if depth > 200:
+            raise ModelImportError(f"{self.source}: the graph is deeper than 200 layers at node {name!r}")
+        node = self.nodes.get(name)
+        if node is None:
+            raise ModelImportError(f"{self.source}: node {name!r} is referenced but not in the graph")
+        op, where = node.op, f"{self.source}: node {name!r} ({node.op})"
+        if op == "Placeholder":
+            sensor = name.rstrip("/").split("/")[-1]
+            return Chain(sensor=sensor, shape=node.attrs.get("shape"))
+        if op in PASS_THROUGH:
+            return self.walk(node.inputs[0], depth + 1)
+        if op in ("ConcatV2", "Concat"):
+            inputs, _ = self._variable_input(node)
+            return Chain(branches=[self.walk(i, depth + 1) for i in inputs])
+        if op in ("Add", "AddV2") and all(self.value(i) is None for i in node.inputs):
+            source = self._rescaler_source(node)
+            if source is None:
+                raise ModelImportError(f"{where}: an addition of two computed tensors is not a layer DeepRacer's "
+                                   "networks have")
+            return self.walk(source, depth + 1)
+        inputs, constants = self._variable_input(node)
+        if len(inputs) != 1:
+            raise ModelImportError(f"{where}: expected one computed input, found {len(inputs)}")
+        chain = self.walk(inputs[0], depth + 1)
+        layers = chain.layers
+        if op in ("BiasAdd", "Add", "AddV2"):
+            if not layers or layers[-1][0] not in ("conv", "dense") or "bias" in layers[-1][1]:
+                if not layers or layers[-1][0] != "scale":
+                    raise ModelImportError(f"{where}: a bias without a convolution or dense layer before it")
+                layers[-1][1]["shift"] = layers[-1][1].get("shift", 0.0) + float(np.asarray(constants[0]).ravel()[0])
+            else:
+                layers[-1][1]["bias"] = np.asarray(constants[0], np.float32).reshape(-1)
+        elif op == "Conv2D":
+            if node.attrs.get("padding") != "VALID" or node.attrs.get("data_format", "NHWC") != "NHWC":
+                raise ModelImportError(f"{where}: only VALID NHWC convolutions are supported")
+            strides = node.attrs.get("strides") or [1, 1, 1, 1]
+            if strides[1] != strides[2]:
+                raise ModelImportError(f"{where}: unequal strides {strides}")
+            layers.append(("conv", {"kernel": np.asarray(constants[0], np.float32), "stride": int(strides[1])}))
+        elif op == "MatMul":
+            kernel = np.asarray(constants[0], np.float32)
+            if node.attrs.get("transpose_b"):
+                kernel = kernel.T
+            layers.append(("dense", {"kernel": kernel}))
+        elif op == "AvgPool":
+            k, s = node.attrs.get("ksize"), node.attrs.get("strides")
+            if k != s or node.attrs.get("padding") != "VALID":
+                raise ModelImportError(f"{where}: only VALID pooling with stride equal to the window is supported")
+            layers.append(("pool", {"k": int(k[1])}))
+        elif op in ("Relu", "Tanh", "Softmax"):
+            layers.append((op.lower(), {}))
+        elif op in ("Reshape", "Flatten"):
+            layers.append(("flatten", {}))
+        elif op in ("RealDiv", "Mul", "Sub") and len(constants) == 1 and np.asarray(constants[0]).size == 1:
+            c = float(np.asarray(constants[0]).ravel()[0])
+            if op == "RealDiv" and c == 0:
+                raise ModelImportError(f"{where}: division by zero")
+            scale = 1.0 / c if op == "RealDiv" else c if op == "Mul" else 1.0
+            shift = -c if op == "Sub" else 0.0
+            if layers and layers[-1][0] == "scale":
+                prev = layers[-1][1]
+                prev["scale"], prev["shift"] = prev["scale"] * scale, prev["shift"] * scale + shift
+            else:
+                layers.append(("scale", {"scale": scale, "shift": shift}))
+        else:
+            raise ModelImportError(f"{where}: op {op} is not one of DeepRacer's network layers")
+        return chain
+
+
+def output_node(nodes, source: str) -> str:
+    """The policy output: DeepRacer's PPO or SAC `policy` node, else the graph's only sink."""
+    for name in nodes:
+        if name.endswith("ppo_head_0/policy") or name.endswith("sac_policy_head_0/policy"):
+            return name
+    consumed = {i for n in nodes.values() for i in n.inputs}
+    sinks = [n for n in nodes if n not in consumed and nodes[n].op not in ("Const", "NoOp", "Placeholder")]
+    if len(sinks) != 1:
+        raise ModelImportError(f"{source}: no ppo_head_0/policy or sac_policy_head_0/policy node, and the graph has "
+                           f"{len(sinks)} outputs ({', '.join(sinks[:4])})")
+    return sinks[0]
+
+
+def graph_spec(data: bytes, source: str) -> GraphSpec:
+    """Walk a frozen graph's bytes from the policy output (see the module docstring)."""
+    try:
+        nodes = parse_graph(data, source)
+    except GraphError as exc:
+        raise ModelImportError(str(exc)) from None
+    out = output_node(nodes, source)
+    top = _Walker(nodes, source).walk(out)
+    final = "identity"
+    if top.layers and top.layers[-1][0] in ("softmax", "tanh"):
+        final = top.layers.pop()[0]
+    chains = top.branches if top.branches else []
+    if not chains:  # one sensor: split its chain after the flatten (or keep all for a vector input)
+        cut = next((k + 1 for k, (kind, _) in enumerate(top.layers) if kind == "flatten"), 0)
+        chains = [Chain(sensor=top.sensor, shape=top.shape, layers=top.layers[:cut])]
+        top = Chain(layers=top.layers[cut:])
+    inputs = {}
+    for chain in chains:
+        if chain.sensor is None:
+            raise ModelImportError(f"{source}: nested concatenations are not one of DeepRacer's networks")
+        inputs[chain.sensor] = (chain.shape, chain.layers)
+    return GraphSpec(inputs=dict(sorted(inputs.items())), layers=top.layers, output=final, output_node=out)
+
+
+def _trunk_signature(net: CameraNet) -> list:
+    sig = []
+    for layer in net.conv:
+        if isinstance(layer, AveragePool):
+            sig.append(("pool", int(layer.kernel_size)))
+        elif isinstance(layer, torch.nn.Conv2d):
+            sig.append(("conv", tuple(layer.weight.shape), layer.stride[0]))
+    return sig
+
+
+def _graph_signature(layers) -> list:
+    sig = []
+    for kind, p in layers:
+        if kind == "pool":
+            sig.append(("pool", p["k"]))
+        elif kind == "conv":
+            sig.append(("conv", tuple(np.transpose(p["kernel"], (3, 2, 0, 1)).shape), p["stride"]))
+    return sig
+
+
+def _dense_stack(layers, source, what):
+    """[(kernel, bias, relu)] of a list of dense and relu layers."""
+    stack = []
+    for kind, p in layers:
+        if kind == "dense":
+            stack.append([p["kernel"], p.get("bias", np.zeros(p["kernel"].shape[1], np.float32)), False])
+        elif kind == "relu" and stack:
+            stack[-1][2] = True
+        else:
+            raise ModelImportError(f"{source}: {what}: a {kind} layer where only dense layers were expected")
+    return stack
+
+
+def to_camera_net(spec: GraphSpec, space: ActionSpace, source: str) -> CameraNet:
+    """The `CameraNet` computing what the graph computes (multirace's output conventions)."""
+    cameras = [s for s in spec.inputs if s not in ("LIDAR", "SECTOR_LIDAR")]
+    lidars = [s for s in spec.inputs if s in ("LIDAR", "SECTOR_LIDAR")]
+    if len(cameras) != 1 or len(lidars) > 1:
+        raise ModelImportError(f"{source}: inputs {list(spec.inputs)}: multirace agents read one camera (and a LIDAR)")
+    shape, cam_layers = spec.inputs[cameras[0]]
+    height, width, channels = [int(v) for v in (shape or [-1, 120, 160, 1])[1:]]
+    scale = next((p for kind, p in cam_layers if kind == "scale"), {"scale": 1.0, "shift": 0.0})
+    if abs(scale["scale"] * 255.0 - 1.0) > 1e-6 or abs(scale["shift"]) > 1e-9:
+        raise ModelImportError(f"{source}: the camera input is scaled by {scale['scale']} and shifted by "
+                           f"{scale['shift']}; DeepRacer's networks (and multirace's) read pixels/255")
+    flat_at = next((k for k, (kind, _) in enumerate(cam_layers) if kind == "flatten"), None)
+    if flat_at is None or flat_at != len(cam_layers) - 1:
+        raise ModelImportError(f"{source}: the camera embedder has dense layers after its flatten "
+                           "(DeepRacer's 5-layer or deep network), which no multirace network has")
+    lidar_stack = []
+    if lidars:
+        lidar_shape, lidar_layers = spec.inputs[lidars[0]]
+        lidar_stack = _dense_stack([layer for layer in lidar_layers if layer[0] != "scale"], source, "LIDAR embedder")
+    post = _dense_stack(spec.layers, source, "middleware and head")
+    if len(post) != 2 or not post[0][2] or post[1][2]:
+        raise ModelImportError(f"{source}: {len(post)} dense layers after the embedders (a SAC head or a deep "
+                           "middleware); multirace networks have one hidden layer and the output layer")
+    if spec.output == "tanh" or "sac_policy_head" in spec.output_node:
+        raise ModelImportError(f"{source}: a SAC policy (tanh-squashed mean) is not one of multirace's networks")
+    outputs = num_outputs_for(space)
+    lidar_samples = int(lidar_stack[0][0].shape[0]) if lidar_stack else 0
+    for network in NETWORKS:
+        try:
+            net = CameraNet(network, (height, width, channels), outputs, lidar_samples=lidar_samples)
+        except ValueError:
+            continue
+        if _trunk_signature(net) != _graph_signature(cam_layers):
+            continue
+        if lidar_stack and [tuple(k.shape) for k, _, _ in lidar_stack] != [
+                tuple(net.lidar[0].weight.T.shape), tuple(net.lidar[2].weight.T.shape)]:
+            continue
+        if post[0][0].shape != tuple(net.fc[0].weight.T.shape):
+            continue
+        _fill(net, cam_layers, lidar_stack, post, space, source)
+        return net.eval()
+    raise ModelImportError(f"{source}: the camera layers {_graph_signature(cam_layers)} are not one of multirace's "
+                       f"networks ({', '.join(NETWORKS)})")
+
+
+def _fill(net: CameraNet, cam_layers, lidar_stack, post, space, source) -> None:
+    convs = [p for kind, p in cam_layers if kind == "conv"]
+    torch_convs = [m for m in net.conv if isinstance(m, torch.nn.Conv2d)]
+    with torch.no_grad():
+        for module, p in zip(torch_convs, convs):
+            module.weight.copy_(torch.from_numpy(np.transpose(p["kernel"], (3, 2, 0, 1))))
+            module.bias.copy_(torch.from_numpy(p.get("bias", np.zeros(module.out_channels, np.float32))))
+        for module, (kernel, bias, _) in zip((net.lidar[0], net.lidar[2]) if lidar_stack else (), lidar_stack):
+            module.weight.copy_(torch.from_numpy(kernel.T))
+            module.bias.copy_(torch.from_numpy(bias))
+        feature_map = net.conv[:-1](torch.zeros(1, net.image_shape[2], *net.image_shape[:2])).shape[1:]
+        c, h, w = feature_map
+        kernel, bias, _ = post[0]
+        conv_flat = c * h * w
+        cam = torch.from_numpy(kernel[:conv_flat]).reshape(h, w, c, -1).permute(2, 0, 1, 3).reshape(conv_flat, -1)
+        net.fc[0].weight.copy_(torch.cat([cam, torch.from_numpy(kernel[conv_flat:])], 0).T)
+        net.fc[0].bias.copy_(torch.from_numpy(bias))
+        kernel, bias, _ = post[1]
+        weight, bias = torch.from_numpy(kernel.T), torch.from_numpy(bias)
+        if space.discrete:
+            if weight.shape[0] != len(space.actions):
+                raise ModelImportError(f"{source}: the policy has {weight.shape[0]} outputs but model_metadata.json "
+                                   f"lists {len(space.actions)} actions")
+            net.head.weight.copy_(weight)
+            net.head.bias.copy_(bias)
+        else:
+            if weight.shape[0] != 2:
+                raise ModelImportError(f"{source}: a continuous policy has 2 outputs, this one {weight.shape[0]}")
+            low, high = np.array(space.low), np.array(space.high)
+            half = torch.tensor((high - low) / 2, dtype=torch.float32)
+            centre = torch.tensor((high + low) / 2, dtype=torch.float32)
+            net.head.weight.zero_()
+            net.head.weight[:2] = weight * half[:, None]
+            net.head.bias.copy_(torch.cat([bias * half + centre, torch.full((2,), CONTINUOUS_LOG_STD)]))
+
+
+def read_model(path) -> tuple[bytes, dict, str]:
+    """(graph bytes, model_metadata dict, source name) of a car archive, a folder or a `.pb` file."""
+    path = Path(path)
+    if path.is_file() and path.name.endswith((".tar.gz", ".tgz", ".tar")):
+        try:
+            with tarfile.open(path) as tar:
+                members = [m for m in tar.getmembers() if m.isfile()]
+                pbs = [m for m in members if m.name.endswith(".pb")]
+                meta = [m for m in members if m.name.lstrip("./") == "model_metadata.json"]
+                if len(pbs) != 1:
+                    raise ModelImportError(f"{path}: holds {len(pbs)} .pb files; a car archive holds exactly one")
+                if not meta:
+                    raise ModelImportError(f"{path}: no model_metadata.json at the archive's root")
+                if pbs[0].size + meta[0].size > MAX_ARCHIVE_BYTES:
+                    raise ModelImportError(f"{path}: members larger than {MAX_ARCHIVE_BYTES // 2**20} MB")
+                graph = tar.extractfile(pbs[0]).read()
+                metadata_bytes = tar.extractfile(meta[0]).read()
+        except tarfile.TarError as exc:
+            raise ModelImportError(f"{path}: not a readable .tar.gz archive ({exc})") from None
+        source = f"{path}:{pbs[0].name}"
+    else:
+        pb = path
+        if path.is_dir():
+            found = sorted(path.rglob("*.pb"))
+            if len(found) != 1:
+                raise ModelImportError(f"{path}: holds {len(found)} .pb files; expected exactly one")
+            pb = found[0]
+        if not pb.is_file():
+            raise ModelImportError(f"{path}: no such file")
+        meta_path = next((p / "model_metadata.json" for p in (pb.parent, pb.parent.parent, path)
+                          if (p / "model_metadata.json").is_file()), None)
+        if meta_path is None:
+            raise ModelImportError(f"{pb}: no model_metadata.json beside it")
+        graph, metadata_bytes, source = pb.read_bytes(), meta_path.read_bytes(), str(pb)
+    try:
+        metadata = json.loads(metadata_bytes.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ModelImportError(f"{source}: model_metadata.json is not UTF-8 JSON ({exc})") from None
+    if not isinstance(metadata, dict):
+        raise ModelImportError(f"{source}: model_metadata.json is not a JSON object")
+    return graph, metadata, source
+
+
+def import_model(path, out, name: str | None = None) -> Path:
+    """Import the DeepRacer model at `path` (see the module docstring) as the agent file `out`."""
+    graph, metadata, source = read_model(path)
+    try:
+        space = ActionSpace(metadata, f"{source}: model_metadata.json")
+    except ActionSpaceError as exc:
+        raise ModelImportError(str(exc)) from None
+    spec = graph_spec(graph, source)
+    net = to_camera_net(spec, space, source)
+    lidar = bool(net.lidar_samples)
+    name = name or Path(out).stem
+    notes = {"imported_from": Path(str(path)).name, "training_algorithm": metadata.get("training_algorithm",
+                                                                                       "clipped_ppo")}
+    agent_meta = make_metadata(space, net.network, name, net.image_shape,
+                               version=str(metadata.get("version", "5")), training_algorithm="deepracer_import",
+                               lidar=lidar, training=notes)
+    return save_agent(out, net, agent_meta)
