@@ -128,6 +128,20 @@ def cmd_agent_inspect(args) -> int:
     return 0 if info["valid"] else 1
 
 
+def cmd_agent_export(args) -> int:
+    from .deepracer.export import export_agent
+
+    print(f"wrote {export_agent(args.file, args.out)} (agent/model.pb + model_metadata.json for a DeepRacer car)")
+    return 0
+
+
+def cmd_agent_import(args) -> int:
+    from .deepracer.importer import import_model
+
+    print(f"wrote {import_model(args.path, args.out, name=args.name)}")
+    return 0
+
+
 def cmd_imitate(args) -> int:
     import shlex
 
@@ -213,6 +227,19 @@ def build_parser() -> argparse.ArgumentParser:
     inspect.add_argument("file", help="agent file (.pt)")
     inspect.add_argument("--json", action="store_true", help="print the information as JSON")
     inspect.set_defaults(func=cmd_agent_inspect)
+    export = agent_sub.add_parser("export", help="write an agent as the .tar.gz a DeepRacer car loads",
+                                  description="Write the car's archive: one frozen TensorFlow graph (agent/model.pb, "
+                                              "the car's node names) and model_metadata.json.")
+    export.add_argument("file", help="agent file (.pt) or a shipped agent's name")
+    export.add_argument("--out", required=True, metavar="MODEL.tar.gz", help="archive to write")
+    export.set_defaults(func=cmd_agent_export)
+    imported = agent_sub.add_parser("import", help="turn a DeepRacer model into an agent file",
+                                    description="Read a car archive (.tar.gz), a folder, or a frozen .pb with its "
+                                                "model_metadata.json, and write an equivalent agent file.")
+    imported.add_argument("path", help="DeepRacer model: .tar.gz, folder or model.pb")
+    imported.add_argument("--out", required=True, metavar="FILE.pt", help="agent file to write")
+    imported.add_argument("--name", default=None, help="agent name in the metadata (default: file stem)")
+    imported.set_defaults(func=cmd_agent_import)
 
     imitate = sub.add_parser("imitate", help="train a camera agent by DAgger imitation of the scripted driver",
                              description="Train a camera CNN by DAgger: the learner drives, the scripted "

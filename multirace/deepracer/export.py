@@ -32,6 +32,7 @@ import torch
 
 from ..racing.agentfile import load_agent
 from ..racing.nets import AveragePool, CameraNet
+from ..racing.runner import resolve_agent_path
 from .tfgraph import DT_FLOAT, DT_INT32, GraphBuilder
 
 CAMERA_SIZE = (120, 160)  # (height, width) the car's inference feeds
@@ -142,8 +143,8 @@ def car_metadata(metadata: dict, space, channels: int, lidar: bool) -> dict:
 
 
 def export_agent(path, out) -> Path:
-    """Write the car archive of the agent file at `path` to `out` (a `.tar.gz`); returns `out`."""
-    path, out = Path(path), Path(out)
+    """Write the car archive of the agent file at `path` (or a shipped agent's name) to `out` (a `.tar.gz`)."""
+    path, out = resolve_agent_path(str(path)), Path(out)
     if not out.name.endswith(".tar.gz"):
         raise ExportError(f"{out}: the car accepts only archives named *.tar.gz")
     agent = load_agent(path, step_budget=None)
