@@ -10,7 +10,7 @@ import multirace
 
 PACKAGE = Path(multirace.__file__).parent
 # lowest first; a module may import its own layer and the layers below it
-LAYERS = ["resources", "text", "sim", "sensors", "environment", "recording", "racing", "league", "train", "tools", "cli"]
+LAYERS = ["resources", "text", "sim", "sensors", "environment", "recording", "racing", "deepracer", "league", "train", "tools", "cli"]
 
 
 def module_name(path: Path) -> str:
