@@ -51,7 +51,7 @@ def cmd_race(args) -> int:
     if getattr(args, "simtrace", None):
         from .recording.simtrace import SimTraceRecorder
 
-        recorders.append(SimTraceRecorder(args.simtrace))
+        recorders.append(SimTraceRecorder(args.simtrace, controllers))  # notes the commands given
     if getattr(args, "video", None):
         from .recording.video import VideoRecorder
 

@@ -5,7 +5,8 @@ DeepRacer's units and meanings (see ../shared/formats/README.md):
 
 ``X, Y``             the reward params `x, y` (DeepRacer's reported point), metres
 ``yaw``              the params `heading`, degrees
-``steer, throttle``  the commanded action, params `steering_angle` (deg) and `speed` (m/s)
+``steer, throttle``  the commanded action (deg, m/s): exactly the action space's entry for a
+                     discrete action, never the noisy values the car executed
 ``action``           the action index for a discrete space, else ``[steer throttle]``
 ``progress``         params `progress`, 0-100 % of the current lap (100 on a lap_complete row)
 ``closest_waypoint`` the nearer of params `closest_waypoints`
@@ -22,10 +23,13 @@ columns. Instead, in a race log every car's run is one *episode*: the
 deepracer-utils' per-episode analysis gives per-car analysis. One row per car
 per step while the car races (and on the step its run ends, with done=True).
 
-`SimTraceRecorder(path)` is a race recorder for `run_race(recorders=[...])`;
-`SimTraceWriter` writes rows from a training loop, one `write_step(info, ...)`
-per car and step, with `info` the env's info dict of that car (the 27 reward
-params plus race keys). Only cars with infos (learning cars) are logged.
+`SimTraceRecorder(path, controllers)` is a race recorder for
+`run_race(controllers, ..., recorders=[...])`: it notes each controller's
+command as it is given (and, for an agent with a discrete action space, its
+index). `SimTraceWriter` writes rows from a training loop, one
+`write_step(info, ..., action=, command=)` per car and step, with `info` the
+env's info dict of that car (the 27 reward params plus race keys). Only cars
+with infos (learning cars) are logged.
 """
 from __future__ import annotations
 
@@ -74,16 +78,18 @@ def closest_waypoint(info: dict) -> int:
 
 
 def simtrace_row(info: dict, *, episode: int, reward: float, action=None, done: bool = False,
-                 pause_duration: float = 0.0) -> list:
+                 pause_duration: float = 0.0, command=None) -> list:
     """One sim-trace row (values in `SIMTRACE_COLUMNS` order) from a car's info dict of one step.
 
     `action`: the discrete action index, or None for a continuous command (written `[steer speed]`).
+    `command`: the commanded (steering degrees, speed m/s); without it, the info's executed values.
     """
-    steer, speed = float(info["steering_angle"]), float(info["speed"])
+    steer, speed = (float(v) for v in command) if command is not None else (float(info["steering_angle"]),
+                                                                           float(info["speed"]))
     if isinstance(action, (int, np.integer)) and not isinstance(action, bool):
         action_text = str(int(action))
     else:
-        action_text = f"[{steer:.4f} {speed:.4f}]"
+        action_text = f"[{steer} {speed}]"
     status = episode_status(info)
     # DeepRacer logs progress 100 on the step that completes the lap
     progress = 100.0 if status == "lap_complete" else float(info["progress"])
@@ -108,15 +114,17 @@ class SimTraceWriter:
         self._penalty: dict = {}  # episode -> penalty_time seen so far
         self.rows = 0
 
-    def write_step(self, info: dict, *, reward: float, episode: int, action=None, done: bool | None = None) -> None:
-        """Log one step of one car. `done` defaults to "the car's run is over" (info status)."""
+    def write_step(self, info: dict, *, reward: float, episode: int, action=None, done: bool | None = None,
+                   command=None) -> None:
+        """Log one step of one car. `done` defaults to "the car's run is over" (info status); `action` is the
+        discrete index (None: continuous) and `command` the commanded (steer deg, speed m/s)."""
         penalty = float(info.get("penalty_time", 0.0))
         pause = max(penalty - self._penalty.get(episode, 0.0), 0.0)
         self._penalty[episode] = penalty
         if done is None:
             done = info.get("status", "racing") != "racing"
         self._csv.writerow(simtrace_row(info, episode=episode, reward=reward, action=action, done=done,
-                                        pause_duration=round(pause, 6)))
+                                        pause_duration=round(pause, 6), command=command))
         self.rows += 1
 
     def new_episode(self, episode: int) -> None:
@@ -137,12 +145,45 @@ class SimTraceWriter:
         self.close()
 
 
-class SimTraceRecorder:
-    """Race recorder writing a DeepRacer sim-trace CSV: one row per car per step, episode = car slot."""
+class CommandTap:
+    """Stands in for a race controller and notes each command it gives (and its discrete action index)."""
 
-    def __init__(self, path):
+    def __init__(self, controller):
+        self.controller = controller
+        self.command = None  # the last (steer deg, speed m/s) given
+        self.index = None  # its action index, for an agent with a discrete action space
+
+    def __getattr__(self, name):
+        return getattr(self.controller, name)
+
+    def reset(self, env, car: int) -> None:
+        self.command = self.index = None
+        self.controller.reset(env, car)
+
+    def act(self, observation, info):
+        self.command = self.index = None
+        command = self.controller.act(observation, info)
+        self.command = tuple(float(v) for v in command)
+        space = getattr(getattr(self.controller, "agent", None), "action_space", None)
+        if space is not None and space.discrete and self.command in space.actions:
+            self.index = space.actions.index(self.command)
+        return command
+
+
+class SimTraceRecorder:
+    """Race recorder writing a DeepRacer sim-trace CSV: one row per car per step, episode = car slot.
+
+    Given the race's `controllers` list, it puts a `CommandTap` in place of each (in that list), so the
+    rows hold the commanded steer and throttle and, for agents with discrete action spaces, the action
+    index, as DeepRacer's do. Without it, the rows hold the commands as the env reports them.
+    """
+
+    def __init__(self, path, controllers: list | None = None):
         self.path = Path(path)
         self.writer: SimTraceWriter | None = None
+        self.taps = []
+        if controllers is not None:
+            controllers[:] = self.taps = [CommandTap(c) for c in controllers]
 
     def start(self, env) -> None:
         self.writer = SimTraceWriter(self.path)
@@ -153,8 +194,10 @@ class SimTraceRecorder:
             if self._ended[i] or agent not in infos:
                 continue
             racing = env.races[i].racing
+            tap = self.taps[i] if i < len(self.taps) else None
             self.writer.write_step(infos[agent], reward=float(rewards.get(agent, 0.0)), episode=i,
-                                   done=not racing)
+                                   done=not racing, action=tap.index if tap else None,
+                                   command=tap.command if tap else None)
             if not racing:
                 self._ended[i] = True
 
