@@ -52,6 +52,10 @@ def cmd_race(args) -> int:
         from .recording.simtrace import SimTraceRecorder
 
         recorders.append(SimTraceRecorder(args.simtrace, controllers))  # notes the commands given
+    if getattr(args, "eval_metrics", None):
+        from .deepracer.logs import EvaluationMetricsRecorder
+
+        recorders.append(EvaluationMetricsRecorder(args.eval_metrics))
     if getattr(args, "video", None):
         from .recording.video import VideoRecorder
 
@@ -215,6 +219,8 @@ def build_parser() -> argparse.ArgumentParser:
     race.add_argument("--replay", metavar="FILE.rrd", help="record the race to a rerun replay file")
     race.add_argument("--simtrace", metavar="FILE.csv",
                       help="write a DeepRacer sim-trace CSV (one row per car per step, episode = car slot)")
+    race.add_argument("--eval-metrics", metavar="FILE.json",
+                      help="write DeepRacer's evaluation metrics JSON of the first car (one trial per lap)")
     race.add_argument("--video", metavar="FILE.mp4", help="write the top-down race view as an MP4 (15 fps)")
     race.set_defaults(func=cmd_race)
 
