@@ -291,3 +291,112 @@ def test_league_names_are_escaped_in_every_table_format(tmp_path):
     assert "<b>" not in html.split("<body>", 1)[-1] and "&lt;b&gt;" in html  # rating plot drew the title too
     assert all(not cell.startswith(("=", "+", "@")) for line in write_table(folder, "csv").splitlines()
                for cell in line.split(","))
+
+
+# ------------------------------------------------------------------ leagues
+SMALL_LEAGUE = """
+[league]
+name = "small"
+seeds = [1]
+bots = ["bot:follow@1.5"]
+replays = false
+
+[[tracks]]
+name = "reinvent_base"
+directions = ["forward"]
+
+[time_trial]
+format = "reset_rule"
+laps = 1
+trials = 1
+
+[head_to_head]
+cars = 2
+laps = 1
+trials = 1
+"""
+
+
+@pytest.fixture
+def league(tmp_path):
+    from multirace.league.runner import run_league
+    from multirace.league.submissions import init_league, submit
+
+    toml = tmp_path / "small.toml"
+    toml.write_text(SMALL_LEAGUE)
+    folder = init_league(tmp_path / "lg", toml)
+    submit(folder, _valid_agent(tmp_path / "a.pt"), "a", validate=False)
+    run_league(folder, workers=1, progress=False)
+    return folder
+
+
+def _truncate(path, size):
+    with open(path, "r+b") as handle:
+        handle.truncate(size)
+
+
+DAMAGE = {
+    "truncated_to_zero": (lambda db: _truncate(db, 0), "empty"),
+    "deleted": (lambda db: db.unlink(), "missing"),
+    "half_truncated": (lambda db: _truncate(db, db.stat().st_size // 2), "damaged|not a multirace league store"),
+    "garbage_header": (lambda db: db.write_bytes(b"garbage!" * 512 + db.read_bytes()[4096:]), "damaged"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(DAMAGE))
+def test_a_damaged_league_store_is_refused_with_the_way_to_recover(league, case):
+    from multirace.cli import main
+    from multirace.league.config import LeagueError
+    from multirace.league.runner import run_league
+    from multirace.league.table import write_table
+
+    db = league / "results.sqlite"
+    for side in ("-wal", "-shm"):
+        (league / f"results.sqlite{side}").unlink(missing_ok=True)
+    damage, words = DAMAGE[case]
+    damage(db)
+    for action in (lambda: run_league(league, workers=1, progress=False), lambda: write_table(league, "md")):
+        with pytest.raises(LeagueError, match=words) as err:
+            action()
+        assert "league init" in str(err.value)  # the way to recover
+    assert main(["league", "table", str(league)]) == 2
+
+
+def test_a_second_league_run_is_refused_while_one_holds_the_lock(league):
+    import fcntl
+
+    from multirace.league.config import LeagueError
+    from multirace.league.runner import RUN_LOCK, run_league
+
+    with open(league / RUN_LOCK, "a+") as held:
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        with pytest.raises(LeagueError, match="another `multirace league run`"):
+            run_league(league, workers=1, progress=False)
+    assert run_league(league, workers=1, progress=False)["ran"] == 0  # released: runs (nothing left to do)
+
+
+@pytest.mark.parametrize("edit, words", [
+    (lambda t: t.replace("seeds = [1]", "seeds = [-1]"), "seeds"),
+    (lambda t: t.replace('name = "reinvent_base"', 'name = "no_such_track"'), "unusable track"),
+    (lambda t: t.replace('bots = ["bot:follow@1.5"]', 'bots = ["bot:fly@9"]'), "bot"),
+])
+def test_a_bad_league_definition_is_refused_at_init(tmp_path, edit, words):
+    from multirace.league.config import LeagueError
+    from multirace.league.submissions import init_league
+
+    toml = tmp_path / "bad.toml"
+    toml.write_text(edit(SMALL_LEAGUE))
+    with pytest.raises(LeagueError, match=words):
+        init_league(tmp_path / "lg", toml)
+    assert not (tmp_path / "lg").exists()
+
+
+def test_init_refuses_a_missing_template_and_a_path_that_is_a_file(tmp_path):
+    from multirace.league.config import LeagueError
+    from multirace.league.submissions import init_league
+
+    with pytest.raises(LeagueError, match="no such league definition"):
+        init_league(tmp_path / "lg", tmp_path / "typo.toml")
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(LeagueError, match="not a folder"):
+        init_league(tmp_path / "file")

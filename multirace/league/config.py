@@ -79,7 +79,7 @@ def _positive_int(table, key, source, where, default=dataclasses.MISSING, minimu
 def parse_config(text: str, source: str = TOML) -> LeagueConfig:
     """Parse and validate league.toml text; LeagueError names the file and field on any problem."""
     from ..environment.bots import parse_bot
-    from ..sim.tracks import TrackError, resolve_track_path
+    from ..sim.tracks import TrackError, load_track
 
     try:
         data = tomllib.loads(text)
@@ -94,8 +94,9 @@ def parse_config(text: str, source: str = TOML) -> LeagueConfig:
     if not name.strip():
         raise LeagueError(f"{source}: 'league.name' must not be empty")
     seeds = _field(league, "seeds", list, source, "league.")
-    if not seeds or not all(isinstance(s, int) and not isinstance(s, bool) for s in seeds):
-        raise LeagueError(f"{source}: 'league.seeds' must be a non-empty list of integers, got {seeds!r}")
+    if not seeds or not all(isinstance(s, int) and not isinstance(s, bool) and 0 <= s < 2**32 for s in seeds):
+        raise LeagueError(f"{source}: 'league.seeds' must be a non-empty list of integers 0 to 2^32-1, "
+                          f"got {seeds!r}")
     if len(set(seeds)) != len(seeds):
         raise LeagueError(f"{source}: 'league.seeds' has duplicates: {seeds!r}")
     bots = _field(league, "bots", list, source, "league.", [])
@@ -133,9 +134,9 @@ def parse_config(text: str, source: str = TOML) -> LeagueConfig:
             raise LeagueError(f"{source}: 'tracks[{i}]' must be a table with 'name' and 'directions'")
         track = _field(entry, "name", str, source, where)
         try:
-            resolve_track_path(track)
+            load_track(track)  # loads and validates it: a track every match can race
         except (TrackError, FileNotFoundError, ValueError) as exc:
-            raise LeagueError(f"{source}: '{where}name': unknown track {track!r} ({exc})") from None
+            raise LeagueError(f"{source}: '{where}name': unusable track {track!r} ({exc})") from None
         directions = _field(entry, "directions", list, source, where, ["forward"])
         if not directions or any(d not in ("forward", "reverse") for d in directions) \
                 or len(set(directions)) != len(directions):

@@ -1,6 +1,7 @@
 """Running a league's pending matches: a local pool of worker processes, or Ray tasks on a cluster."""
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import queue
@@ -11,6 +12,8 @@ import time
 from pathlib import Path
 
 from .config import REPLAYS, SUBMISSIONS, WORKER_STARTUP_TIMEOUT, LeagueConfig, LeagueError, load_config
+
+RUN_LOCK = "run.lock"
 from .schedule import sync_schedule
 from .store import connect, pending_matches, record_attempt_failure, record_result
 from .worker import _worker_command, _worker_env, run_match
@@ -89,6 +92,7 @@ def run_league(folder, workers: int | None = None, ray_address: str | None = Non
             import ray  # noqa: F401
         except ImportError:
             raise LeagueError("--ray: Ray is not installed; install it with: pip install 'multirace[ray]'") from None
+    lock = _exclusive_run(folder)
     conn = connect(folder)
     try:
         schedule = sync_schedule(folder, config, conn)
@@ -110,6 +114,24 @@ def run_league(folder, workers: int | None = None, ray_address: str | None = Non
         return stats
     finally:
         conn.close()
+        lock.close()  # releases the lock (so does the kernel, if this process is killed)
+
+
+def _exclusive_run(folder: Path):
+    """Hold the league's run lock (an flock on `run.lock`): a second `league run` would duplicate work."""
+    lock = open(folder / RUN_LOCK, "a+")
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        lock.seek(0)
+        holder = lock.read().strip() or "another process"
+        lock.close()
+        raise LeagueError(f"{folder}: another `multirace league run` is running on this league ({holder}); "
+                          "wait for it to finish (running it again afterwards resumes where it stopped)") from None
+    lock.truncate(0)
+    lock.write(f"pid {os.getpid()}")
+    lock.flush()
+    return lock
 
 
 def _progress_bar(total: int, enabled: bool):

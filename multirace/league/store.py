@@ -6,7 +6,7 @@ import sqlite3
 import time
 from pathlib import Path
 
-from .config import DB
+from .config import DB, SUBMISSIONS, LeagueError
 
 
 SCHEMA = """
@@ -40,14 +40,62 @@ CREATE TABLE IF NOT EXISTS results (
 """
 
 
-def connect(folder) -> sqlite3.Connection:
-    """The league's SQLite store (created if missing), in WAL mode with a generous busy timeout."""
-    path = Path(folder) / DB
+COLUMNS = {"submissions": {"name", "sha256", "file", "metadata", "step_budget", "submitted_at"},
+           "schedule": {"match_id", "seq", "kind", "round", "spec", "status", "attempts", "last_error"},
+           "results": {"match_id", "status", "result", "reason", "replay", "wall_seconds", "recorded_at"}}
+RECOVER = ("restore results.sqlite from a backup, or start a new league with `multirace league init NEW_DIR` and "
+           "submit the agents again (their files are in submissions/)")
+
+
+def _open(path: Path) -> sqlite3.Connection:
     conn = sqlite3.connect(path, timeout=60.0, isolation_level=None)
     conn.execute("PRAGMA journal_mode=WAL")
     conn.execute("PRAGMA synchronous=FULL")
     conn.execute("PRAGMA foreign_keys=ON")
+    return conn
+
+
+def create_store(folder) -> None:
+    """Create a new league's empty store."""
+    conn = _open(Path(folder) / DB)
     conn.executescript(SCHEMA)
+    conn.close()
+
+
+def connect(folder) -> sqlite3.Connection:
+    """The league's SQLite store, in WAL mode with a generous busy timeout, checked first: it exists, is
+    intact (SQLite's quick_check), has the expected tables, and agrees with the submissions folder.
+    A damaged or missing store is a LeagueError that says how to recover; nothing is recreated silently."""
+    folder = Path(folder)
+    path = folder / DB
+    if not path.is_file() or path.stat().st_size == 0:
+        state = "missing" if not path.exists() else "empty (truncated)"
+        raise LeagueError(f"{path}: {state}: the league's history is gone; {RECOVER}")
+    try:
+        conn = _open(path)
+        check = conn.execute("PRAGMA quick_check").fetchone()[0]
+        if check != "ok":
+            conn.close()
+            raise LeagueError(f"{path}: damaged (SQLite integrity check: {check}); {RECOVER}")
+        for table, wanted in COLUMNS.items():
+            found = {row[1] for row in conn.execute(f"PRAGMA table_info({table})")}
+            if not wanted <= found:
+                conn.close()
+                raise LeagueError(f"{path}: not a multirace league store (table {table!r} "
+                                  f"{'is missing' if not found else 'lacks ' + ', '.join(sorted(wanted - found))}); "
+                                  f"{RECOVER}")
+        stored = {row[0] for row in conn.execute("SELECT file FROM submissions")}
+    except sqlite3.DatabaseError as exc:
+        raise LeagueError(f"{path}: damaged ({exc}); {RECOVER}") from None
+    on_disk = {p.name for p in (folder / SUBMISSIONS).glob("*.pt")}
+    missing = sorted(Path(f).name for f in stored if Path(f).name not in on_disk)
+    unknown = sorted(on_disk - {Path(f).name for f in stored})
+    if missing or unknown:
+        conn.close()
+        what = (f"{len(missing)} submitted file(s) missing from submissions/ ({', '.join(missing[:3])})" if missing
+                else f"{len(unknown)} file(s) in submissions/ that the store does not know ({', '.join(unknown[:3])}"
+                     "; remove a file left by an interrupted submit)")
+        raise LeagueError(f"{folder}: the store and the submissions folder disagree: {what}; {RECOVER}")
     return conn
 
 

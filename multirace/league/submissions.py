@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import hashlib
 import re
+import stat
 import json
 import os
 import subprocess
@@ -11,10 +12,11 @@ from pathlib import Path
 
 from .config import (DEFAULT_TOML, REPLAYS, SUBMISSIONS, SUBMIT_TIMEOUT, TOML, LeagueError, load_config,
                      parse_config)
-from .store import _Tx, connect
+from .store import _Tx, connect, create_store
 from .worker import _worker_command, _worker_env
 
 
+MAX_SUBMISSION_BYTES = 256 * 2**20  # as an agent file's limit
 ENTRANT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9 _.+@:-]{0,63}")
 
 
@@ -34,8 +36,20 @@ def init_league(folder, template=None) -> Path:
     (folder / SUBMISSIONS).mkdir(exist_ok=True)
     (folder / REPLAYS).mkdir(exist_ok=True)
     (folder / TOML).write_text(text)
-    connect(folder).close()
+    create_store(folder)
     return folder
+
+
+def _read_submission(path: Path) -> bytes:
+    """The bytes of a submitted file: a regular file (no FIFO or device) under the agent-file size limit."""
+    try:
+        info = os.stat(path)
+    except OSError as exc:
+        raise LeagueError(f"{path}: cannot be read ({exc.strerror})") from None
+    if not stat.S_ISREG(info.st_mode) or info.st_size > MAX_SUBMISSION_BYTES:
+        raise LeagueError(f"{path}: refused: not a regular file under {MAX_SUBMISSION_BYTES // 2**20} MB")
+    with open(path, "rb") as handle:
+        return handle.read(MAX_SUBMISSION_BYTES)
 
 
 def validate_in_subprocess(path, step_budget: float, timeout: float = SUBMIT_TIMEOUT) -> dict:
@@ -65,14 +79,14 @@ def submit(folder, path, name: str, step_budget: float | None = None, validate: 
     folder = Path(folder)
     config = load_config(folder)
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise LeagueError(f"{path}: no such agent file")
     if not isinstance(name, str) or not ENTRANT_NAME.fullmatch(name) or name.startswith("bot:"):
         raise LeagueError(f"--name: {name!r} is not a valid entrant name: 1-64 letters, digits, spaces and "
                           "_ . - + @ : (starting with a letter or digit), not 'bot:...'")
     if name in config.bots:
         raise LeagueError(f"--name: {name!r} is a bot of this league")
-    data = path.read_bytes()
+    data = _read_submission(path)
     sha = hashlib.sha256(data).hexdigest()
     conn = connect(folder)
     try:
@@ -83,17 +97,19 @@ def submit(folder, path, name: str, step_budget: float | None = None, validate: 
         if row:
             raise LeagueError(f"--name: refused: an entrant named {name!r} is already submitted")
         metadata = {}
-        if validate:
-            check = validate_in_subprocess(path, step_budget or config.step_budget)
-            if not check.get("ok"):
-                raise LeagueError(f"refused: {check.get('error')}")
-            metadata = check.get("metadata") or {}
         stored = folder / SUBMISSIONS / f"{sha}.pt"
         stored.parent.mkdir(exist_ok=True)
-        if not stored.exists():
-            tmp = stored.with_name(f".{sha}.{os.getpid()}.tmp")
-            tmp.write_bytes(data)
-            os.replace(tmp, stored)
+        copy = stored.with_name(f".{sha}.{os.getpid()}.tmp")  # the copy is what is validated and stored
+        copy.write_bytes(data)
+        try:
+            if validate:
+                check = validate_in_subprocess(copy, step_budget or config.step_budget)
+                if not check.get("ok"):
+                    raise LeagueError(f"refused: {str(check.get('error')).replace(str(copy), str(path))}")
+                metadata = check.get("metadata") or {}
+            os.replace(copy, stored)
+        finally:
+            copy.unlink(missing_ok=True)
         with _Tx(conn):
             conn.execute("INSERT INTO submissions (name, sha256, file, metadata, step_budget, submitted_at) "
                          "VALUES (?, ?, ?, ?, ?, ?)",
