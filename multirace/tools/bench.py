@@ -1,10 +1,11 @@
-"""`multirace bench`: throughput figures and ratios, all from one run on this machine.
+"""`multirace bench`: throughput figures and ratios, all from one run.
 
 Measures agent-steps per second (one car's observation, reward and info per
 15 Hz step) of the full env (cameras, physics with collisions, obstacles,
 random actions, full reward params and infos) for 1, 2, 4 and 8 cars with the
-fast renderer and with the PyBullet renderer, and for 4 cars with the LIDAR
-scanned too; the floor (the same run's
+fast renderer and with the PyBullet renderer, for 4 cars with the LIDAR
+scanned too and for 4 cars on the kinematic car model (`kinematic`, beside
+the default tyre model); the floor (the same run's
 physics steps alone, replayed, plus one bare texture warp per camera); the
 speed-up of two worker processes over one; memory; and the cost of recording
 a replay.
@@ -57,9 +58,11 @@ def _interleaved_rates(workloads: dict, seconds: float, windows: int = WINDOWS) 
     return best
 
 
-def _random_driving(num_cars: int, renderer: str = "fast", seed: int = 0, lidar: bool = False):
+def _random_driving(num_cars: int, renderer: str = "fast", seed: int = 0, lidar: bool = False,
+                    dynamics: str = "dynamic"):
     """The benchmark's env, reset, and a step function driving it with random actions (resetting when done)."""
-    env = RaceEnv(num_cars=num_cars, obstacles=OBSTACLES, renderer=renderer, max_steps=2000, lidar=lidar)
+    env = RaceEnv(num_cars=num_cars, obstacles=OBSTACLES, renderer=renderer, max_steps=2000, lidar=lidar,
+                  dynamics=dynamics)
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)
     n_actions = env.actions.space.n
@@ -72,9 +75,9 @@ def _random_driving(num_cars: int, renderer: str = "fast", seed: int = 0, lidar:
     return env, step
 
 
-def _env_stepper(num_cars: int, renderer: str, seed: int = 0, lidar: bool = False):
+def _env_stepper(num_cars: int, renderer: str, seed: int = 0, lidar: bool = False, dynamics: str = "dynamic"):
     """(step, close) of the env with random actions."""
-    env, step = _random_driving(num_cars, renderer, seed, lidar)
+    env, step = _random_driving(num_cars, renderer, seed, lidar, dynamics)
     step()  # warm-up
     return step, env.close
 
@@ -173,6 +176,7 @@ def run_bench(seconds: float = 3.0, replay_seconds: float = 240.0, progress=prin
     steppers.update({("fast", n): _env_stepper(n, "fast") for n in CAR_COUNTS if n not in (1, 4)})
     steppers.update({("pybullet", n): _env_stepper(n, "pybullet") for n in (1, 4)})
     steppers[("lidar", 4)] = _env_stepper(4, "fast", lidar=True)
+    steppers[("kinematic", 4)] = _env_stepper(4, "fast", dynamics="kinematic")
     steppers.update({("floor", n): _floor_stepper(n) for n in (1, 4)})
     steppers.update({("workers", n): _workers_stepper(n, CARS_PER_WORKER) for n in (1, 2)})
     try:
@@ -183,7 +187,7 @@ def run_bench(seconds: float = 3.0, replay_seconds: float = 240.0, progress=prin
     finally:
         for _, close in steppers.values():
             close()
-    kinds = ("fast", "pybullet", "lidar", "floor")
+    kinds = ("fast", "pybullet", "lidar", "kinematic", "floor")
     figures: dict = {"agent_steps_per_s": {kind: {} for kind in kinds},
                      "agent_steps_per_cpu_s": {kind: {} for kind in kinds}}
     per_s, per_cpu_s = figures["agent_steps_per_s"], figures["agent_steps_per_cpu_s"]
@@ -196,6 +200,7 @@ def run_bench(seconds: float = 3.0, replay_seconds: float = 240.0, progress=prin
         figures["fast_over_pybullet_4" + suffix] = round(rates_of["fast"]["4"] / rates_of["pybullet"]["4"], 1)
         figures["fast_over_floor_4" + suffix] = round(rates_of["fast"]["4"] / rates_of["floor"]["4"], 3)
         figures["lidar_over_fast_4" + suffix] = round(rates_of["lidar"]["4"] / rates_of["fast"]["4"], 3)
+        figures["dynamic_over_kinematic_4" + suffix] = round(rates_of["fast"]["4"] / rates_of["kinematic"]["4"], 3)
     per_agent_us = {n: 1e6 / per_cpu_s["fast"][str(n)] for n in CAR_COUNTS}
     figures["per_agent_cost_growth_1_to_8"] = round(per_agent_us[8] / per_agent_us[1], 3)
     one, two = rates[("workers", 1)][0], rates[("workers", 2)][0]
@@ -250,6 +255,8 @@ def format_table(figures: dict) -> list[tuple[str, str]]:
         ("fast / floor, 4 cars (wall; CPU)", f"{figures['fast_over_floor_4']}; {figures['fast_over_floor_4_cpu']}"),
         ("with LIDAR / without, 4 cars (wall; CPU)", f"{figures['lidar_over_fast_4']}; "
                                                      f"{figures['lidar_over_fast_4_cpu']}"),
+        ("tyre model / kinematic model, 4 cars (wall; CPU)", f"{figures['dynamic_over_kinematic_4']}; "
+                                                             f"{figures['dynamic_over_kinematic_4_cpu']}"),
         ("per-agent CPU cost, 8 cars / 1 car", f"{figures['per_agent_cost_growth_1_to_8']}x"),
         ("2 workers / 1 worker", f"{figures['workers_speedup_2']}x"),
         ("memory of one 4-car env (MB)", f"{figures['env_memory_mb_4_cars']}"),
