@@ -21,6 +21,7 @@ from multirace.racing.nets import SHALLOW, TINY, build_net
 
 ov = pytest.importorskip("openvino")
 FIXTURES = Path("/work/shared/deepracer-model")
+needs_fixtures = pytest.mark.skipif(not FIXTURES.exists(), reason="the DeepRacer model fixtures are not here")
 CONTINUOUS = {"action_space": {"steering_angle": {"low": -30, "high": 30}, "speed": {"low": 1.0, "high": 3.0}},
               "action_space_type": "continuous"}
 
@@ -112,6 +113,7 @@ def test_continuous_shallow_head_gives_the_cars_minus_one_to_one(tmp_path, frame
         np.testing.assert_allclose([30 * v[0], 2 + v[1]], mean, atol=1e-4)
 
 
+@needs_fixtures
 def test_shallow_export_converts_like_the_cars_real_model(tmp_path):
     """Our shallow graph, converted by OpenVINO, has the layer chain of the IR the car made from a real model."""
     space = load_action_space(FIXTURES / "Sample_single_cam" / "model_metadata.json")
@@ -191,6 +193,7 @@ def deepracer_shallow_graph(weights, actions: int) -> bytes:
     return g.to_bytes()
 
 
+@needs_fixtures
 def test_import_a_deepracer_shallow_model(tmp_path, frames):
     """A model laid out as DeepRacer writes it (names, input `observation`, rescaler) imports; the torch net
     chooses as OpenVINO running the .pb chooses."""

@@ -2,12 +2,17 @@
 from __future__ import annotations
 
 import csv
+import json
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
+import multirace
 from multirace.cli import main
+from multirace.deepracer.logs import EvaluationMetricsRecorder, TrainingLog
+from multirace.environment.actions import default_metadata, load_action_space
 from multirace.racing.entrant import BotController
 from multirace.racing.runner import RaceConfig, run_race
 from multirace.recording.simtrace import SimTraceRecorder, SimTraceWriter, read_simtrace
@@ -110,3 +115,94 @@ def test_plot_writes_a_png_of_the_track_and_path(trace, tmp_path, capsys):
     assert non_white > 0.02  # lines and points drawn, not a blank canvas
     hsv = cv2.cvtColor(image, cv2.COLOR_BGR2HSV)
     assert (hsv[..., 1] > 100).sum() > 500  # coloured path points (speed / reward colour maps)
+
+
+def _drfc_evaluation_folder(folder, metadata: dict, trace_csv) -> None:
+    """A DeepRacer-for-Cloud model folder holding one evaluation sim-trace, as DRFC lays it out."""
+    (folder / "model").mkdir(parents=True)
+    (folder / "model" / "model_metadata.json").write_text(json.dumps(metadata))
+    stream = folder / "evaluation-20260101000000" / "evaluation-simtrace"
+    stream.mkdir(parents=True)
+    (stream / "0-iteration.csv").write_bytes(trace_csv.read_bytes())
+
+
+def test_race_simtrace_has_the_commanded_actions_deepracer_utils_breaks_down(tmp_path):
+    """`multirace race --simtrace` writes the action index and its exact steer and throttle; deepracer-utils
+    reads the trace as a DeepRacer-for-Cloud evaluation and lists only the actions the agent chose."""
+    logs = pytest.importorskip("deepracer.logs")
+    trace_csv = tmp_path / "race.csv"
+    assert main(["race", "dagger_small", "bot:follow@1.0", "--laps", "1", "--max-steps", "120",
+                 "--simtrace", str(trace_csv)]) == 0
+    agent = multirace.load_agent("dagger_small")
+    actions = agent.agent.action_space.actions
+    _drfc_evaluation_folder(tmp_path / "model", agent.metadata, trace_csv)
+    log = logs.DeepRacerLog(str(tmp_path / "model"))
+    log.load_evaluation_trace()
+    df = log.dataframe()
+    mine = df[df["episode"] == 0]
+    assert len(mine) == 120
+    chosen = sorted(set(zip(mine["action"], mine["steering_angle"], mine["speed"])))
+    assert all(actions[a] == (steer, speed) for a, steer, speed in chosen)  # the table's values, no noise
+    assert (df[df["episode"] == 1]["action"] == -1).all()  # the bot has no action index
+    names = logs.ActionBreakdownUtils.determine_action_names(mine)
+    assert len(names) == len(chosen) <= len(actions)
+    assert names == [f"A:{a} S:{speed}, T:{abs(steer)}{' LEFT' if steer > 0 else ' RIGHT' if steer < 0 else ''}"
+                     for a, steer, speed in chosen]
+
+
+def test_training_folder_is_read_as_deepracer_for_cloud_output(tmp_path):
+    """TrainingLog from a real env's steps: deepracer-utils finds a DRFC model folder, its action space,
+    hyperparameters and iterations, the exact action breakdown, and the training metrics."""
+    logs = pytest.importorskip("deepracer.logs")
+    metadata = json.loads(Path("/work/shared/formats/model_metadata-discrete.json").read_text()) \
+        if Path("/work/shared/formats/model_metadata-discrete.json").exists() else default_metadata()
+    space = load_action_space(metadata)
+    env = multirace.parallel_env(num_cars=2, action_space=metadata, max_steps=30)
+    rng = np.random.default_rng(0)
+    used, episode = set(), 0
+    with TrainingLog(tmp_path / "run", metadata, {"lr": 0.001}) as log:
+        for iteration in range(2):
+            log.start_iteration(iteration)
+            for k in range(2):
+                env.reset(seed=10 * iteration + k)
+                ids = {agent: episode + i for i, agent in enumerate(env.possible_agents)}
+                episode += len(ids)
+                while env.agents:
+                    actions = {agent: int(rng.integers(0, 4)) for agent in env.agents}
+                    _, rewards, terminations, truncations, infos = env.step(actions)
+                    for agent, action in actions.items():
+                        log.write_step(infos[agent], reward=rewards[agent], episode=ids[agent], action=action,
+                                       done=terminations[agent] or truncations[agent])
+                        used.add(action)
+    env.close()
+    log_reader = logs.DeepRacerLog(str(tmp_path / "run"))
+    assert log_reader.fh.type.name == "DRFC_MODEL_SINGLE_WORKERS"  # not UNKNOWN_FOLDER
+    log_reader.load_training_trace()
+    df = log_reader.dataframe()
+    assert sorted(df["iteration"].unique()) == [0, 1] and df["unique_episode"].nunique() == 8
+    assert log_reader.hyperparameters()["lr"] == 0.001 and log_reader.hyperparameters()["batch_size"] == 64
+    assert log_reader.action_space() == metadata["action_space"]
+    chosen = sorted(set(zip(df["action"], df["steering_angle"], df["speed"])))
+    assert [a for a, _, _ in chosen] == sorted(used)
+    assert all(space.actions[a] == (steer, speed) for a, steer, speed in chosen)
+    assert len(logs.ActionBreakdownUtils.determine_action_names(df)) == len(used)
+    metrics = logs.TrainingMetrics(None, fname=str(tmp_path / "run" / "metrics" / "TrainingMetrics.json"))
+    training = metrics.getTraining()
+    assert len(training) == 8 and sorted(training["iteration"].unique()) == [0, 1]
+    assert (training["time"] == 2.0).all()  # 30 steps of 1/15 s
+
+
+def test_evaluation_metrics_json_as_deepracer_writes_it(tmp_path):
+    fixture = Path("/work/shared/deepracer-model/reInvent2019-TestModel/metrics/evaluation")
+    path = tmp_path / "evaluation.json"
+    result = run_race([BotController("bot:follow@2.0")], RaceConfig(laps=2, race="time_trial", seed=1),
+                      recorders=[EvaluationMetricsRecorder(path)])
+    trials = json.loads(path.read_text())["metrics"]
+    if fixture.exists():
+        real = json.loads(next(fixture.glob("*.json")).read_text())["metrics"][0]
+        assert all(set(t) == set(real) for t in trials)
+    lap_times = result["cars"][0]["lap_times"]
+    assert [t["trial"] for t in trials] == [1, 2]
+    assert all(t["episode_status"] == "Lap complete" and t["completion_percentage"] == 100 for t in trials)
+    np.testing.assert_allclose([t["elapsed_time_in_milliseconds"] / 1000 for t in trials], lap_times, atol=1 / 15)
+    assert trials[1]["start_time"] == trials[0]["metric_time"]

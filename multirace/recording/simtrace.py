@@ -146,7 +146,13 @@ class SimTraceWriter:
 
 
 class CommandTap:
-    """Stands in for a race controller and notes each command it gives (and its discrete action index)."""
+    """Stands in for a race controller and notes each command it gives (and its discrete action index).
+
+    The index is None for an agent with a continuous action space (the row's action is then
+    ``[steer throttle]``, as DeepRacer writes it) and -1 for a controller without an action space
+    (a scripted bot), deepracer-utils' value for "no action index", so that a bot's rows leave the
+    agents' action breakdown intact.
+    """
 
     def __init__(self, controller):
         self.controller = controller
@@ -165,7 +171,9 @@ class CommandTap:
         command = self.controller.act(observation, info)
         self.command = tuple(float(v) for v in command)
         space = getattr(getattr(self.controller, "agent", None), "action_space", None)
-        if space is not None and space.discrete and self.command in space.actions:
+        if space is None:
+            self.index = -1
+        elif space.discrete and self.command in space.actions:
             self.index = space.actions.index(self.command)
         return command
 
