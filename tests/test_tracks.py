@@ -135,3 +135,80 @@ def test_an_open_route_is_refused_as_not_a_closed_loop():
     straight = np.column_stack([s, np.zeros(50), s, np.full(50, 0.4), s, np.full(50, -0.4)])
     with pytest.raises(TrackError, match="not a closed loop"):
         Track(straight, source="Straight_track.npy")
+
+
+def _ring(points=200, radius=3.0, half_width=0.4):
+    theta = np.linspace(0, 2 * np.pi, points)
+    unit = np.column_stack([np.cos(theta), np.sin(theta)])
+    return np.column_stack([radius * unit, (radius - half_width) * unit, (radius + half_width) * unit])
+
+
+@pytest.mark.parametrize("case, words", [
+    ("empty", "0 waypoints"),
+    ("centimetres", "implausible scale"),
+    ("millimetres", "implausible scale"),
+    ("six_cm_road", "0.060 m wide"),
+    ("centre_outside", "centre line lies outside the road"),
+    ("complex", "not real numbers"),
+])
+def test_implausible_tracks_are_refused_naming_the_file(tmp_path, case, words):
+    ring = _ring()
+    array = {"empty": np.zeros((0, 6)), "centimetres": ring * 100, "millimetres": ring * 1000,
+             "six_cm_road": _ring(half_width=0.03),
+             "centre_outside": np.column_stack([ring[:, 0:2] * 1.2, ring[:, 2:6]]),
+             "complex": ring.astype(np.complex128)}[case]
+    path = _save(tmp_path, f"{case}.npy", array)
+    with pytest.raises(TrackError) as err:
+        load_track(path)
+    assert str(path) in str(err.value) and words in str(err.value), str(err.value)
+
+
+def test_a_folder_or_fifo_named_like_a_track_is_refused_unread(tmp_path):
+    import os
+
+    (tmp_path / "folder.npy").mkdir()
+    os.mkfifo(tmp_path / "fifo.npy")
+    for name in ("folder.npy", "fifo.npy"):
+        with pytest.raises(TrackError, match="not a regular file"):
+            load_track(tmp_path / name)
+
+
+def test_a_loop_too_short_for_the_grid_is_refused_before_the_race():
+    import multirace
+
+    small = Track(_ring(radius=0.38, half_width=0.3), source="small_loop.npy")  # a 2.4 m loop
+    with pytest.raises(TrackError, match="small_loop.npy: 8 cars need a start grid of 6.00 m"):
+        multirace.parallel_env(track=small, num_cars=8)
+    multirace.parallel_env(track=small, num_cars=3).reset(seed=0)  # 2.25 m of grid fits
+
+
+def test_self_intersection_check_agrees_with_brute_force_and_scales():
+    from multirace.sim.tracks import find_self_intersection
+
+    def brute(pts):
+        pts = np.vstack([pts, pts[:1]])
+        n = len(pts) - 1
+
+        def orient(p, q, r):
+            return (q[0] - p[0]) * (r[1] - p[1]) - (q[1] - p[1]) * (r[0] - p[0])
+
+        for i in range(n):
+            for j in range(i + 2, n - (i == 0)):
+                a0, a1, b0, b1 = pts[i], pts[i + 1], pts[j], pts[j + 1]
+                if orient(b0, b1, a0) * orient(b0, b1, a1) < 0 and orient(a0, a1, b0) * orient(a0, a1, b1) < 0:
+                    return i, j
+        return None
+
+    rng = np.random.default_rng(1)
+    for trial in range(200):
+        m = int(rng.integers(4, 50))
+        theta = np.sort(rng.uniform(0, 2 * np.pi, m))
+        radius = rng.uniform(1, 3, m) if trial % 2 else np.full(m, 2.0)
+        pts = rng.uniform(0, 5, (m, 2)) if trial % 3 == 0 else np.column_stack([radius * np.cos(theta),
+                                                                                radius * np.sin(theta)])
+        assert find_self_intersection(pts) == brute(pts)
+    big = _ring(points=100_000, radius=10.0)  # 100k points: grid-binned, not quadratic
+    crossed = big.copy()
+    crossed[[100, 60_000], 2:4] = crossed[[60_000, 100], 2:4]
+    assert find_self_intersection(big[:, 2:4]) is None
+    assert find_self_intersection(crossed[:, 2:4]) == (99, 60_000)

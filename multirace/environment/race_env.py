@@ -95,6 +95,7 @@ class RaceEnv(ParallelEnv):
         self.num_cars = int(num_cars)
         self._camera_cars = np.arange(self.num_cars)
         self.total_cars = self.num_cars + len(self.bots)
+        self._check_args()
         self.actions = load_action_space(action_space)
         self.reward_function = load_reward_function(reward_function)
         self.randomization = Randomization.from_config(randomize)
@@ -154,6 +155,10 @@ class RaceEnv(ParallelEnv):
         self.races: list[CarRace] = []
         self.steps = 0
         self.sim_time = 0.0
+
+    def _check_args(self) -> None:
+        """Refuse up front what would fail at reset: a loop too short for every car's start slot."""
+        self.track.start_grid(self.total_cars)
 
     # ------------------------------------------------------------ spaces
     def observation_space(self, agent):

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
+import stat
 from pathlib import Path
 
 import numba
@@ -25,6 +27,11 @@ from ..resources import list_tracks, tracks_dir
 
 TRACKS_DIR = tracks_dir()
 MIN_POINTS = 4
+MAX_ROWS = 100_000  # waypoints in one file (DeepRacer's tracks have a few hundred)
+MAX_TRACK_BYTES = 16 * 2**20  # a .npy file larger than this is refused unread
+MAX_EXTENT = 100.0  # metres across; DeepRacer's tracks span under 30 m (a file in cm or mm is far larger)
+MIN_ROAD_WIDTH = 0.2  # metres: median width of the road between its border lines (a car is 0.2 m wide)
+MAX_ROAD_WIDTH = 10.0  # metres: median distance between paired border points
 
 
 class TrackError(ValueError):
@@ -51,38 +58,87 @@ def load_track(track: str | Path, reverse: bool = False) -> "Track":
     """Load a bundled track by name, or any DeepRacer `.npy` file by path."""
     path = resolve_track_path(track)
     try:
+        info = os.stat(path)
+    except OSError as exc:
+        raise TrackError(f"track file {path}: cannot be read ({exc.strerror})") from None
+    if not stat.S_ISREG(info.st_mode):
+        raise TrackError(f"track file {path}: not a regular file (a folder, device or FIFO)")
+    if info.st_size > MAX_TRACK_BYTES:
+        raise TrackError(f"track file {path}: {info.st_size / 2**20:.0f} MB, over the "
+                         f"{MAX_TRACK_BYTES // 2**20} MB limit of a track file ({MAX_ROWS:,} waypoints at most)")
+    try:
         rows = np.load(path, allow_pickle=False)
     except Exception as exc:  # numpy raises several types for bad files
         raise TrackError(f"track file {path}: cannot be read as a .npy array ({exc})") from exc
     return Track(rows, name=path.stem, source=str(path), reverse=reverse)
 
 
-def _segments_cross(a0, a1, b0, b1) -> bool:
-    """Proper intersection of segments a0-a1 and b0-b1 (touching ends excluded)."""
-
-    def orient(p, q, r):
-        return (q[0] - p[0]) * (r[1] - p[1]) - (q[1] - p[1]) * (r[0] - p[0])
-
-    d1, d2 = orient(b0, b1, a0), orient(b0, b1, a1)
-    d3, d4 = orient(a0, a1, b0), orient(a0, a1, b1)
-    return d1 * d2 < 0 and d3 * d4 < 0
+MAX_CHECK_PAIRS = 5_000_000  # candidate segment pairs the crossing check may test (real tracks: thousands)
+LONG_SEGMENT_CELLS = 64  # a segment over more grid cells than this is tested against all others instead
+MAX_LONG_SEGMENTS = 64
+CROWDED = 32  # pairs in a cell of more segments are enumerated at once
 
 
-def find_self_intersection(loop: np.ndarray) -> tuple[int, int] | None:
-    """First pair of non-adjacent crossing segments of a closed polyline, or None."""
-    pts = loop if np.allclose(loop[0], loop[-1]) else np.vstack([loop, loop[:1]])
+def find_self_intersection(loop: np.ndarray, source: str = "<array>") -> tuple[int, int] | None:
+    """First pair (i, j), i < j, of non-adjacent properly crossing segments of a closed polyline, or None.
+
+    Segments are binned in a uniform grid about as fine as the median segment, and only segments sharing a
+    cell are tested, so a loop of n points costs about O(n log n), not O(n^2).
+    """
+    pts = np.asarray(loop, np.float64)
+    pts = pts if np.allclose(pts[0], pts[-1]) else np.vstack([pts, pts[:1]])
     n = len(pts) - 1
     a0, a1 = pts[:-1], pts[1:]
     lo, hi = np.minimum(a0, a1), np.maximum(a0, a1)
-    for i in range(n):
-        # bounding-box prefilter, then the exact test on the few candidates
-        overlap = np.all((lo <= hi[i]) & (hi >= lo[i]), axis=1)
-        for j in np.nonzero(overlap)[0]:
-            if j <= i + 1 or (i == 0 and j == n - 1):
-                continue
-            if _segments_cross(a0[i], a1[i], a0[j], a1[j]):
-                return i, int(j)
-    return None
+    extent = float(np.max(hi.max(axis=0) - lo.min(axis=0))) or 1.0
+    cell = max(2.0 * float(np.median(np.linalg.norm(a1 - a0, axis=1))), extent * 1e-6)
+    while True:  # coarser cells until the short segments cover a bounded number of cells in all
+        first = np.floor((lo - lo.min(axis=0)) / cell).astype(np.int64)
+        span = np.floor((hi - lo.min(axis=0)) / cell).astype(np.int64) - first + 1
+        covered = span[:, 0] * span[:, 1]
+        long = covered > LONG_SEGMENT_CELLS  # the few long segments are tested against every segment
+        if long.sum() <= MAX_LONG_SEGMENTS and covered[~long].sum() <= 16 * n + 64:
+            break
+        cell *= 2.0
+    covered[long] = 0
+    seg = np.repeat(np.arange(n), covered)  # one entry per (segment, cell it covers)
+    k = np.arange(len(seg)) - np.repeat(np.cumsum(covered) - covered, covered)
+    cx = first[seg, 0] + k % span[seg, 0]
+    cy = first[seg, 1] + k // span[seg, 0]
+    order = np.lexsort((seg, cy, cx))
+    key = (cx * (int(cy.max(initial=0)) + 1) + cy)[order]
+    seg = seg[order]
+    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    sizes = np.diff(np.r_[starts, len(key)])
+    if int((sizes * (sizes - 1) // 2).sum()) > MAX_CHECK_PAIRS:
+        raise TrackError(f"track file {source}: border points too densely packed to check "
+                         f"({int(sizes.max())} segments within {cell:.3g} m)")
+    pairs = [np.column_stack([np.full(n, s), np.arange(n)]) for s in np.flatnonzero(long)]
+    for offset in range(1, min(int(sizes.max(initial=0)), CROWDED)):  # entries `offset` apart in one cell
+        same = key[offset:] == key[:-offset]
+        pairs.append(np.column_stack([seg[:-offset][same], seg[offset:][same]]))
+    for start, size in zip(starts[sizes > CROWDED], sizes[sizes > CROWDED]):  # the rest of a crowded cell's pairs
+        a, b = np.triu_indices(size, CROWDED)
+        pairs.append(np.column_stack([seg[start + a], seg[start + b]]))
+    if not pairs:
+        return None
+    i, j = np.concatenate(pairs).T
+    i, j = np.minimum(i, j), np.maximum(i, j)
+    keep = (j > i + 1) & ~((i == 0) & (j == n - 1))
+    i, j = i[keep], j[keep]  # a pair sharing several cells is tested several times: the answer is the same
+    # bounding boxes overlap, then proper crossing (touching ends excluded)
+    boxes = np.all((lo[i] <= hi[j]) & (hi[i] >= lo[j]), axis=1)
+    i, j = i[boxes], j[boxes]
+
+    def orient(p, q, r):
+        return (q[:, 0] - p[:, 0]) * (r[:, 1] - p[:, 1]) - (q[:, 1] - p[:, 1]) * (r[:, 0] - p[:, 0])
+
+    crosses = ((orient(a0[j], a1[j], a0[i]) * orient(a0[j], a1[j], a1[i]) < 0)
+               & (orient(a0[i], a1[i], a0[j]) * orient(a0[i], a1[i], a1[j]) < 0))
+    if not crosses.any():
+        return None
+    first = int(np.min(i[crosses] * n + j[crosses]))
+    return first // n, first % n
 
 
 COLLAPSED = 0.01  # m: a border point this close to its centre point is a degenerate row
@@ -93,16 +149,15 @@ def repair_collapsed_borders(rows: np.ndarray) -> np.ndarray:
     get border points interpolated from the nearest sound rows on either side."""
     rows = rows.copy()
     n = len(rows) - 1  # the closed loop's rows (the last repeats the first)
+    index = np.arange(n)
     for cols in (slice(2, 4), slice(4, 6)):
         bad = np.linalg.norm(rows[:n, cols] - rows[:n, 0:2], axis=1) < COLLAPSED
-        if bad.all():
-            continue  # nothing to interpolate from: the width check names the track
-        good = np.nonzero(~bad)[0]
-        for k in np.nonzero(bad)[0]:
-            before = good[good < k][-1] if np.any(good < k) else good[-1] - n
-            after = good[good > k][0] if np.any(good > k) else good[0] + n
-            t = (k - before) / (after - before)
-            rows[k, cols] = (1 - t) * rows[before % n, cols] + t * rows[after % n, cols]
+        if bad.all() or not bad.any():
+            continue  # nothing to repair, or nothing to interpolate from (the width check names the track)
+        good = index[~bad]
+        around = np.concatenate([good - n, good, good + n])  # the loop's sound rows, periodically
+        for c in range(cols.start, cols.stop):
+            rows[index[bad], c] = np.interp(index[bad], around, np.tile(rows[good, c], 3))
         rows[n, cols] = rows[0, cols]
     return rows
 
@@ -110,9 +165,9 @@ def repair_collapsed_borders(rows: np.ndarray) -> np.ndarray:
 BORDER_WINDOW = 15  # border segments searched on each side of a waypoint's own row
 
 
-def border_distances(center: np.ndarray, border: np.ndarray) -> np.ndarray:
-    """Distance from each centre waypoint to the nearest segment of a closed border line, among the
-    border segments within `BORDER_WINDOW` rows of its own (so the far side of a hairpin never counts)."""
+def nearest_border_points(center: np.ndarray, border: np.ndarray) -> np.ndarray:
+    """For each centre waypoint, the nearest point of a closed border line, among the border segments within
+    `BORDER_WINDOW` rows of its own (so the far side of a hairpin never counts)."""
     n = len(center) - 1  # rows of the closed loop (the last repeats the first)
     a = border[:-1]
     b = np.roll(a, -1, axis=0)
@@ -120,8 +175,9 @@ def border_distances(center: np.ndarray, border: np.ndarray) -> np.ndarray:
     a, ab = a[rows], (b - a)[rows]  # (n, window, 2)
     p = center[:n, None, :]
     t = np.clip(np.einsum("nwk,nwk->nw", p - a, ab) / np.maximum(np.einsum("nwk,nwk->nw", ab, ab), 1e-12), 0, 1)
-    nearest = np.linalg.norm(p - (a + t[..., None] * ab), axis=2).min(axis=1)
-    return np.append(nearest, nearest[0])
+    foot = a + t[..., None] * ab
+    nearest = foot[np.arange(n), np.linalg.norm(p - foot, axis=2).argmin(axis=1)]
+    return np.vstack([nearest, nearest[:1]])
 
 
 @dataclasses.dataclass
@@ -186,7 +242,17 @@ class Track:
         # The road's extent to each side at every waypoint: the distance from the centre point to the
         # nearest part of that side's border line (paired border rows can be skewed or coincide with the
         # centre in hairpins, as in DeepRacer's own Tokyo_Training_track; the border lines are still right).
-        to_inner, to_outer = border_distances(self.center, self.inner), border_distances(self.center, self.outer)
+        near_inner = nearest_border_points(self.center, self.inner)
+        near_outer = nearest_border_points(self.center, self.outer)
+        side_inner = np.einsum("ij,ij->i", near_inner - self.center, wp_normal)
+        side_outer = np.einsum("ij,ij->i", near_outer - self.center, wp_normal)
+        outside = (side_inner * side_outer > 0) & (np.minimum(abs(side_inner), abs(side_outer)) > COLLAPSED)
+        if outside.any():
+            raise TrackError(f"track file {source}: the centre line lies outside the road (both border lines on "
+                             f"the same side of it) at {int(outside.sum())} of {len(outside)} waypoints, first at "
+                             f"waypoint {int(np.argmax(outside))}")
+        to_inner = np.linalg.norm(near_inner - self.center, axis=1)
+        to_outer = np.linalg.norm(near_outer - self.center, axis=1)
         self.left_width = to_inner if self.inner_side > 0 else to_outer
         self.right_width = to_outer if self.inner_side > 0 else to_inner
         self.width = self.left_width + self.right_width
@@ -197,6 +263,9 @@ class Track:
             bad = int(np.argmin(self.left_width + self.right_width))
             raise TrackError(f"track file {source}: zero width at waypoint {bad}")
         self.median_width = float(np.median(self.width))
+        if self.median_width < MIN_ROAD_WIDTH:
+            raise TrackError(f"track file {source}: the road is {self.median_width:.3f} m wide (median), under the "
+                             f"{MIN_ROAD_WIDTH} m a car needs (DeepRacer's roads are 0.6-1.1 m)")
         xy = np.vstack([self.inner, self.outer])
         self.bounds = (xy.min(axis=0), xy.max(axis=0))
 
@@ -208,12 +277,20 @@ class Track:
                 f"track file {source}: wrong shape {rows.shape}, expected (N, 6) rows of "
                 "[center_x, center_y, inner_x, inner_y, outer_x, outer_y]"
             )
-        if not np.issubdtype(rows.dtype, np.number):
-            raise TrackError(f"track file {source}: dtype {rows.dtype} is not numeric")
+        if not (np.issubdtype(rows.dtype, np.floating) or np.issubdtype(rows.dtype, np.integer)):
+            raise TrackError(f"track file {source}: dtype {rows.dtype} is not real numbers")
+        if not 1 <= len(rows) <= MAX_ROWS:
+            raise TrackError(f"track file {source}: {len(rows)} waypoints; a track has {MIN_POINTS} to {MAX_ROWS:,}")
         rows = rows.astype(np.float64)
         if not np.all(np.isfinite(rows)):
             bad = int(np.argwhere(~np.isfinite(rows))[0][0])
             raise TrackError(f"track file {source}: NaN or infinite value in row {bad}")
+        extent = float(np.max(rows.reshape(-1, 2).max(axis=0) - rows.reshape(-1, 2).min(axis=0)))
+        paired = float(np.median(np.linalg.norm(rows[:, 2:4] - rows[:, 4:6], axis=1)))
+        if extent > MAX_EXTENT or paired > MAX_ROAD_WIDTH:
+            raise TrackError(f"track file {source}: implausible scale: it spans {extent:.4g} with a road "
+                             f"{paired:.4g} wide; tracks are in metres, at most {MAX_EXTENT:g} m across with roads "
+                             f"under {MAX_ROAD_WIDTH:g} m (is this file in centimetres or millimetres?)")
         if not np.allclose(rows[0], rows[-1]):
             gap = float(np.linalg.norm(rows[0, :2] - rows[-1, :2]))
             step = float(np.median(np.linalg.norm(np.diff(rows[:, :2], axis=0), axis=1)))
@@ -226,7 +303,7 @@ class Track:
             raise TrackError(f"track file {source}: {distinct} distinct points, need at least {MIN_POINTS}")
         rows = repair_collapsed_borders(rows)
         for label, cols in (("inner", slice(2, 4)), ("outer", slice(4, 6))):
-            crossing = find_self_intersection(rows[:, cols])
+            crossing = find_self_intersection(rows[:, cols], source)
             if crossing is not None:
                 raise TrackError(
                     f"track file {source}: self-intersecting {label} border "
@@ -293,8 +370,12 @@ class Track:
     def start_grid(self, num_cars: int, spacing: float = 0.75, lanes: bool = True) -> list[tuple[float, float]]:
         """(s, lateral) start slots: car k is `k * spacing` behind the line, lanes alternating.
 
-        With one car (or `lanes=False`) cars start on the centre line.
+        With one car (or `lanes=False`) cars start on the centre line. TrackError if the loop is too short
+        for the grid (the last car would reach the first).
         """
+        if num_cars > 1 and num_cars * spacing > self.length:
+            raise TrackError(f"track file {self.source}: {num_cars} cars need a start grid of "
+                             f"{num_cars * spacing:.2f} m but the loop is only {self.length:.2f} m long")
         slots = []
         for k in range(num_cars):
             s = (-k * spacing) % self.length
