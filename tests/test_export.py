@@ -17,7 +17,8 @@ from multirace.deepracer.importer import ModelImportError, import_model
 from multirace.deepracer.tfgraph import DT_FLOAT, DT_INT32, GraphBuilder
 from multirace.environment.actions import load_action_space
 from multirace.racing.agentfile import load_agent, make_metadata, save_agent
-from multirace.racing.nets import SHALLOW, TINY, build_net
+from multirace.deepracer.drnet import GraphNet
+from multirace.racing.nets import SHALLOW, TINY, CameraNet, build_net
 
 ov = pytest.importorskip("openvino")
 FIXTURES = Path("/work/shared/deepracer-model")
@@ -154,73 +155,168 @@ def test_import_round_trips_a_continuous_tiny_net(tmp_path, frames):
         np.testing.assert_allclose(after.command(obs["camera"]), before.command(obs["camera"]), atol=1e-4)
 
 
-def deepracer_shallow_graph(weights, actions: int) -> bytes:
-    """A frozen graph as DeepRacer's simapp writes a shallow PPO model (the `observation` input of
-    Sample_single_cam, network_0's placeholder, the gradient rescaler between middleware and head)."""
+SHALLOW_CONVS = [(8, 32, 4), (4, 64, 2), (3, 64, 1)]  # (kernel, filters, stride)
+FIVE_LAYER_CONVS = [(5, 32, 2), (3, 32, 1), (3, 64, 2), (3, 64, 1)]
+DEEP_CONVS = [(8, 32, 4), (4, 32, 2), (4, 64, 2), (3, 64, 1)]
+
+
+def deepracer_graph(rng, *, convs, outputs, embedder_dense=(), middleware=(512,), head_hidden=(),
+                    algorithm="clipped_ppo", discrete=True, camera="observation", channels=1, lidar=0) -> bytes:
+    """A frozen policy graph laid out as DeepRacer's simapp writes one, with random weights: its names,
+    the placeholder in network_0 (PPO) or the policy network (SAC), /255 in the graph, interleaved
+    activation names, embeddings concatenated in sorted sensor order, the gradient rescaler between
+    middleware and head, and the `policy` output."""
     g = GraphBuilder()
-    root = "main_level/agent/main/online"
-    placeholder = f"{root}/network_0/observation/observation"
-    g.node(placeholder, "Placeholder", dtype=("type", DT_FLOAT), shape=("shape", [-1, 120, 160, 1]))
-    scope = f"{root}/network_1/observation"
+    sac = algorithm == "sac"
+    root = f"main_level/agent/{'policy' if sac else 'main'}/online"
+    net = f"{root}/network_0" if sac else f"{root}/network_1"
+
+    def dense(scope, x, n_in, n_out, relu_name=None):
+        x = g.op(f"{scope}/MatMul", "MatMul", [x, g.const(f"{scope}/kernel", rand(n_in, n_out, fan=n_in))])
+        x = g.op(f"{scope}/BiasAdd", "BiasAdd", [x, g.const(f"{scope}/bias", rand(n_out, fan=100))])
+        return g.op(relu_name, "Relu", [x]) if relu_name else x
+
+    def rand(*shape, fan):
+        return (rng.standard_normal(shape) / np.sqrt(fan)).astype(np.float32)
+
+    embeddings = {}
+    placeholder = f"{root}/network_0/{camera}/{camera}"
+    g.node(placeholder, "Placeholder", dtype=("type", DT_FLOAT), shape=("shape", [-1, 120, 160, channels]))
+    scope = f"{net}/{camera}"
     x = g.op(f"{scope}/truediv", "RealDiv", [placeholder, g.const(f"{scope}/truediv/y", np.float32(255))])
     x = g.op(f"{scope}/sub", "Sub", [x, g.const(f"{scope}/sub/y", np.float32(0))])
-    for k, (kernel, bias, stride) in enumerate(weights["convs"]):
-        x = g.op(f"{scope}/Conv2d_{2 * k}/Conv2D", "Conv2D", [x, g.const(f"{scope}/Conv2d_{2 * k}/kernel", kernel)],
+    size, depth = np.array([120, 160]), channels
+    for k, (kernel, filters, stride) in enumerate(convs):
+        name = f"{scope}/Conv2d_{2 * k}"
+        x = g.op(f"{name}/Conv2D", "Conv2D", [x, g.const(f"{name}/kernel", rand(kernel, kernel, depth, filters,
+                                                                                     fan=kernel * kernel * depth))],
                  strides=("ints", [1, stride, stride, 1]), padding="VALID", data_format="NHWC")
-        x = g.op(f"{scope}/Conv2d_{2 * k}/BiasAdd", "BiasAdd", [x, g.const(f"{scope}/Conv2d_{2 * k}/bias", bias)])
+        x = g.op(f"{name}/BiasAdd", "BiasAdd", [x, g.const(f"{name}/bias", rand(filters, fan=100))])
         x = g.op(f"{scope}/BatchnormActivationDropout_{2 * k + 1}_activation", "Relu", [x])
-    shape = g.const(f"{scope}/Flatten/flatten/Reshape/shape", np.array([-1, 11264], np.int32))
-    x = g.node(f"{scope}/Flatten/flatten/Reshape", "Reshape", [x, shape], T=("type", DT_FLOAT),
-               Tshape=("type", DT_INT32))
-    mid = f"{root}/network_1/middleware_fc_embedder"
-    x = g.op(f"{mid}/Dense_0/MatMul", "MatMul", [x, g.const(f"{mid}/Dense_0/kernel", weights["dense"][0])])
-    x = g.op(f"{mid}/Dense_0/BiasAdd", "BiasAdd", [x, g.const(f"{mid}/Dense_0/bias", weights["dense"][1])])
-    x = g.op(f"{mid}/BatchnormActivationDropout_1_activation", "Relu", [x])
-    r = g.const(f"{root}/network_1/gradients_from_head_0-0_rescalers", np.ones(1, np.float32))
-    r = g.node(f"{root}/network_1/strided_slice", "StridedSlice",
-               [r, *(g.const(f"{root}/network_1/strided_slice/{n}", np.array([v], np.int32))
+        size, depth = (size - kernel) // stride + 1, filters
+    width = int(size.prod() * depth)
+    x = g.node(f"{scope}/Flatten/flatten/Reshape", "Reshape",
+               [x, g.const(f"{scope}/Flatten/flatten/Reshape/shape", np.array([-1, width], np.int32))],
+               T=("type", DT_FLOAT), Tshape=("type", DT_INT32))
+    for k, n in enumerate(embedder_dense):
+        x = dense(f"{scope}/Dense_{2 * len(convs) + 2 * k}", x, width, n,
+                  f"{scope}/BatchnormActivationDropout_{2 * len(convs) + 2 * k + 1}_activation")
+        width = n
+    embeddings[camera] = (x, width)
+    if lidar:
+        lidar_in = f"{root}/network_0/LIDAR/LIDAR"
+        g.node(lidar_in, "Placeholder", dtype=("type", DT_FLOAT), shape=("shape", [-1, lidar]))
+        y = dense(f"{net}/LIDAR/Dense_0", lidar_in, lidar, 256, f"{net}/LIDAR/BatchnormActivationDropout_1_activation")
+        y = dense(f"{net}/LIDAR/Dense_2", y, 256, 256, f"{net}/LIDAR/BatchnormActivationDropout_3_activation")
+        embeddings["LIDAR"] = (y, 256)
+    if len(embeddings) > 1:
+        parts = [embeddings[name] for name in sorted(embeddings)]
+        x = g.node(f"{net}/concat", "ConcatV2", [p for p, _ in parts] + [g.const(f"{net}/concat/axis", np.int32(1))],
+                   N=len(parts), T=("type", DT_FLOAT), Tidx=("type", DT_INT32))
+        width = sum(w for _, w in parts)
+    for k, n in enumerate(middleware):
+        x = dense(f"{net}/middleware_fc_embedder/Dense_{2 * k}", x, width, n,
+                  f"{net}/middleware_fc_embedder/BatchnormActivationDropout_{2 * k + 1}_activation")
+        width = n
+    r = g.const(f"{net}/gradients_from_head_0-0_rescalers", np.ones(1, np.float32))
+    r = g.node(f"{net}/strided_slice", "StridedSlice",
+               [r, *(g.const(f"{net}/strided_slice/{n}", np.array([v], np.int32))
                      for n, v in (("begin", 0), ("end", 1), ("strides", 1)))],
                T=("type", DT_FLOAT), Index=("type", DT_INT32), shrink_axis_mask=1)
-    one_minus = g.op(f"{root}/network_1/sub", "Sub", [g.const(f"{root}/network_1/sub/x", np.float32(1)), r])
-    stopped = g.op(f"{root}/network_1/StopGradient", "StopGradient", [x])
-    a = g.op(f"{root}/network_1/mul", "Mul", [one_minus, stopped])
-    b = g.op(f"{root}/network_1/mul_1", "Mul", [r, x])
-    x = g.op(f"{root}/network_1/add", "AddV2", [a, b])
-    head = f"{root}/network_1/ppo_head_0/policy_fc"
-    x = g.op(f"{head}/MatMul", "MatMul", [x, g.const(f"{head}/kernel", weights["head"][0])])
-    x = g.op(f"{head}/BiasAdd", "BiasAdd", [x, g.const(f"{head}/bias", weights["head"][1])])
-    g.op(OUTPUT, "Softmax", [x])
+    one_minus = g.op(f"{net}/sub", "Sub", [g.const(f"{net}/sub/x", np.float32(1)), r])
+    a = g.op(f"{net}/mul", "Mul", [one_minus, g.op(f"{net}/StopGradient", "StopGradient", [x])])
+    x = g.op(f"{net}/add", "AddV2", [a, g.op(f"{net}/mul_1", "Mul", [r, x])])
+    head = f"{net}/{'sac_policy_head_0' if sac else 'ppo_head_0'}"
+    for k, n in enumerate(head_hidden):
+        x = dense(f"{head}/dense_{k}", x, width, n, f"{head}/dense_{k}/Relu")
+        width = n
+    if discrete:
+        g.op(f"{head}/policy", "Softmax", [dense(f"{head}/policy_fc", x, width, outputs)])
+    else:
+        g.op(f"{head}/policy", "Identity", [dense(f"{head}/policy_mean", x, width, 2)])
     return g.to_bytes()
+
+
+def import_and_compare(tmp_path, frames, graph: bytes, metadata: dict, feeds, expect):
+    """Import the graph (a folder with agent/model.pb), then compare the policy with OpenVINO running the .pb:
+    `expect(openvino_output)` gives what the torch outputs should be."""
+    model = tmp_path / "model"
+    (model / "agent").mkdir(parents=True)
+    (model / "agent" / "model.pb").write_bytes(graph)
+    (model / "model_metadata.json").write_text(json.dumps(metadata))
+    assert cli_main(["agent", "import", str(model), "--out", str(tmp_path / "imported.pt")]) == 0
+    policy = multirace.load_agent(tmp_path / "imported.pt")
+    compiled = ov.Core().compile_model(ov.convert_model(str(model / "agent" / "model.pb")), "CPU",
+                                       {"INFERENCE_PRECISION_HINT": "f32"})
+    for obs in frames:
+        feed, observation = feeds(obs)
+        car = compiled(feed)[0][0]
+        mine = policy.agent.outputs(observation)[0]
+        np.testing.assert_allclose(expect(car, mine), mine[:len(expect(car, mine))], atol=1e-4)
+        policy.command(observation)
+    return policy
+
+
+def camera_feed(obs):
+    return {"main_level/agent/main/online/network_0/observation/observation:0":
+            obs["camera"][None].astype(np.float32)}, obs["camera"]
+
+
+def softmax_of(car, mine):
+    return np.log(car) - np.log(car)[0] + mine[0]  # the logits up to a constant, anchored on the first
 
 
 @needs_fixtures
 def test_import_a_deepracer_shallow_model(tmp_path, frames):
-    """A model laid out as DeepRacer writes it (names, input `observation`, rescaler) imports; the torch net
-    chooses as OpenVINO running the .pb chooses."""
-    rng = np.random.default_rng(0)
-
-    def rand(*shape, scale):
-        return (rng.standard_normal(shape) * scale).astype(np.float32)
-
-    weights = {"convs": [(rand(8, 8, 1, 32, scale=0.05), rand(32, scale=0.01), 4),
-                         (rand(4, 4, 32, 64, scale=0.05), rand(64, scale=0.01), 2),
-                         (rand(3, 3, 64, 64, scale=0.05), rand(64, scale=0.01), 1)],
-               "dense": (rand(11264, 512, scale=0.02), rand(512, scale=0.01)),
-               "head": (rand(512, 15, scale=0.1), rand(15, scale=0.01))}
-    model = tmp_path / "model"
-    (model / "agent").mkdir(parents=True)
-    (model / "agent" / "model.pb").write_bytes(deepracer_shallow_graph(weights, 15))
-    (model / "model_metadata.json").write_bytes((FIXTURES / "Sample_single_cam" / "model_metadata.json").read_bytes())
-    import_model(model, tmp_path / "imported.pt")
-    policy = multirace.load_agent(tmp_path / "imported.pt")
+    """A shallow PPO model laid out as DeepRacer writes it (Sample_single_cam's metadata: no `sensor`, input
+    `observation`, 15 actions) imports as multirace's shallow CameraNet that chooses as OpenVINO does."""
+    metadata = json.loads((FIXTURES / "Sample_single_cam" / "model_metadata.json").read_text())
+    graph = deepracer_graph(np.random.default_rng(0), convs=SHALLOW_CONVS, outputs=15)
+    policy = import_and_compare(tmp_path, frames, graph, metadata, camera_feed, softmax_of)
     assert policy.agent.net.network == SHALLOW and policy.sensor == ["FRONT_FACING_CAMERA"]
-    placeholder = "main_level/agent/main/online/network_0/observation/observation"
-    _, compiled = openvino_policy(model / "agent" / "model.pb", {placeholder: [1, 120, 160, 1]})
-    for obs in frames:
-        car = compiled(obs["camera"][None].astype(np.float32))[0][0]
-        mine = torch.softmax(torch.from_numpy(policy.agent.outputs(obs["camera"])[0]), 0).numpy()
-        np.testing.assert_allclose(mine, car, atol=1e-5)
-        assert policy.command(obs["camera"]) == policy.agent.action_space.actions[int(np.argmax(car))]
+    assert isinstance(policy.agent.net, CameraNet)  # so races and leagues load it too
+
+
+def test_import_a_deepracer_five_layer_discrete_model(tmp_path, frames):
+    metadata = {"action_space": [{"steering_angle": s, "speed": 1.5} for s in (-30, -15, 0, 15, 30)],
+                "sensor": ["FRONT_FACING_CAMERA"], "neural_network": "DEEP_CONVOLUTIONAL_NETWORK"}
+    graph = deepracer_graph(np.random.default_rng(1), convs=FIVE_LAYER_CONVS, embedder_dense=(64,), outputs=5,
+                            camera="FRONT_FACING_CAMERA")
+
+    def feed(obs):
+        return {input_name("FRONT_FACING_CAMERA") + ":0": obs["camera"][None].astype(np.float32)}, obs["camera"]
+
+    policy = import_and_compare(tmp_path, frames, graph, metadata, feed, softmax_of)
+    assert isinstance(policy.agent.net, GraphNet) and policy.metadata["neural_network"] == "DEEP_CONVOLUTIONAL_NETWORK"
+
+
+def test_import_a_deepracer_deep_continuous_ppo_model(tmp_path, frames):
+    metadata = {**CONTINUOUS, "sensor": ["FRONT_FACING_CAMERA"], "neural_network": "DEEP_CONVOLUTIONAL_NETWORK_DEEP"}
+    graph = deepracer_graph(np.random.default_rng(2), convs=DEEP_CONVS, embedder_dense=(512, 512),
+                            middleware=(256, 128), outputs=2, discrete=False, camera="FRONT_FACING_CAMERA")
+
+    def feed(obs):
+        return {input_name("FRONT_FACING_CAMERA") + ":0": obs["camera"][None].astype(np.float32)}, obs["camera"]
+
+    # the car's linear map of [-1, 1] onto steering -30..30 and speed 1..3
+    import_and_compare(tmp_path, frames, graph, metadata, feed, lambda car, mine: [30 * car[0], 2 + car[1]])
+
+
+def test_import_a_deepracer_sac_camera_lidar_model(tmp_path, frames):
+    metadata = {**CONTINUOUS, "sensor": ["FRONT_FACING_CAMERA", "LIDAR"], "training_algorithm": "sac",
+                "neural_network": "DEEP_CONVOLUTIONAL_NETWORK_SHALLOW"}
+    graph = deepracer_graph(np.random.default_rng(3), convs=SHALLOW_CONVS, head_hidden=(256,), outputs=2,
+                            discrete=False, algorithm="sac", camera="FRONT_FACING_CAMERA", lidar=64)
+    root = "main_level/agent/policy/online/network_0"
+
+    def feed(obs):
+        return ({f"{root}/FRONT_FACING_CAMERA/FRONT_FACING_CAMERA:0": obs["camera"][None].astype(np.float32),
+                 f"{root}/LIDAR/LIDAR:0": obs["lidar"][None].astype(np.float32)}, obs)
+
+    # SAC's policy output is the pre-tanh mean; DeepRacer's simulator squashes it with tanh
+    policy = import_and_compare(tmp_path, frames, graph, metadata, feed,
+                                lambda car, mine: [30 * np.tanh(car[0]), 2 + np.tanh(car[1])])
+    assert policy.sensor == ["FRONT_FACING_CAMERA", "LIDAR"]
 
 
 def test_import_names_what_it_cannot_read(tmp_path):

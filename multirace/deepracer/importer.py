@@ -18,8 +18,10 @@ A graph whose layers are one of multirace's networks (`nets.NETWORKS`: DeepRacer
 shallow network, multirace's small and tiny CNNs; camera, or camera plus a
 64-64 LIDAR branch) with a PPO head becomes a `CameraNet` agent file that every
 multirace command loads. Other DeepRacer networks (5-layer, deep, SAC heads,
-DeepRacer's 256-256 LIDAR embedder) are refused with a message naming what
-does not fit (see `GraphNet` in `drnet` for running them).
+stereo cameras, DeepRacer's 256-256 LIDAR embedder) become a `drnet.GraphNet`
+agent file (its layers in the metadata field ``deepracer_graph``), which
+`multirace.load_agent` runs; the agent-file loader (races, leagues) does not
+build it yet.
 """
 from __future__ import annotations
 
@@ -43,6 +45,10 @@ CONTINUOUS_LOG_STD = -1.0  # imported continuous policies: the log-std outputs (
 
 class ModelImportError(ValueError):
     """A DeepRacer model that cannot be imported; the message names the file, node or field."""
+
+
+class NotCameraNet(ModelImportError):
+    """The graph is a valid DeepRacer network but not one of multirace's `CameraNet`s."""
 
 
 @dataclass
@@ -234,7 +240,7 @@ def _dense_stack(layers, source, what):
         elif kind == "relu" and stack:
             stack[-1][2] = True
         else:
-            raise ModelImportError(f"{source}: {what}: a {kind} layer where only dense layers were expected")
+            raise NotCameraNet(f"{source}: {what}: a {kind} layer where only dense layers were expected")
     return stack
 
 
@@ -243,16 +249,18 @@ def to_camera_net(spec: GraphSpec, space: ActionSpace, source: str) -> CameraNet
     cameras = [s for s in spec.inputs if s not in ("LIDAR", "SECTOR_LIDAR")]
     lidars = [s for s in spec.inputs if s in ("LIDAR", "SECTOR_LIDAR")]
     if len(cameras) != 1 or len(lidars) > 1:
-        raise ModelImportError(f"{source}: inputs {list(spec.inputs)}: multirace agents read one camera (and a LIDAR)")
+        raise NotCameraNet(f"{source}: inputs {list(spec.inputs)}: multirace agents read one camera (and a LIDAR)")
     shape, cam_layers = spec.inputs[cameras[0]]
     height, width, channels = [int(v) for v in (shape or [-1, 120, 160, 1])[1:]]
+    if channels not in (1, 3):
+        raise NotCameraNet(f"{source}: {cameras[0]} has {channels} channels; multirace's networks read 1 or 3")
     scale = next((p for kind, p in cam_layers if kind == "scale"), {"scale": 1.0, "shift": 0.0})
     if abs(scale["scale"] * 255.0 - 1.0) > 1e-6 or abs(scale["shift"]) > 1e-9:
-        raise ModelImportError(f"{source}: the camera input is scaled by {scale['scale']} and shifted by "
+        raise NotCameraNet(f"{source}: the camera input is scaled by {scale['scale']} and shifted by "
                            f"{scale['shift']}; DeepRacer's networks (and multirace's) read pixels/255")
     flat_at = next((k for k, (kind, _) in enumerate(cam_layers) if kind == "flatten"), None)
     if flat_at is None or flat_at != len(cam_layers) - 1:
-        raise ModelImportError(f"{source}: the camera embedder has dense layers after its flatten "
+        raise NotCameraNet(f"{source}: the camera embedder has dense layers after its flatten "
                            "(DeepRacer's 5-layer or deep network), which no multirace network has")
     lidar_stack = []
     if lidars:
@@ -260,10 +268,10 @@ def to_camera_net(spec: GraphSpec, space: ActionSpace, source: str) -> CameraNet
         lidar_stack = _dense_stack([layer for layer in lidar_layers if layer[0] != "scale"], source, "LIDAR embedder")
     post = _dense_stack(spec.layers, source, "middleware and head")
     if len(post) != 2 or not post[0][2] or post[1][2]:
-        raise ModelImportError(f"{source}: {len(post)} dense layers after the embedders (a SAC head or a deep "
+        raise NotCameraNet(f"{source}: {len(post)} dense layers after the embedders (a SAC head or a deep "
                            "middleware); multirace networks have one hidden layer and the output layer")
     if spec.output == "tanh" or "sac_policy_head" in spec.output_node:
-        raise ModelImportError(f"{source}: a SAC policy (tanh-squashed mean) is not one of multirace's networks")
+        raise NotCameraNet(f"{source}: a SAC policy (tanh-squashed mean) is not one of multirace's networks")
     outputs = num_outputs_for(space)
     lidar_samples = int(lidar_stack[0][0].shape[0]) if lidar_stack else 0
     for network in NETWORKS:
@@ -280,7 +288,7 @@ def to_camera_net(spec: GraphSpec, space: ActionSpace, source: str) -> CameraNet
             continue
         _fill(net, cam_layers, lidar_stack, post, space, source)
         return net.eval()
-    raise ModelImportError(f"{source}: the camera layers {_graph_signature(cam_layers)} are not one of multirace's "
+    raise NotCameraNet(f"{source}: the camera layers {_graph_signature(cam_layers)} are not one of multirace's "
                        f"networks ({', '.join(NETWORKS)})")
 
 
@@ -371,12 +379,41 @@ def import_model(path, out, name: str | None = None) -> Path:
     except ActionSpaceError as exc:
         raise ModelImportError(str(exc)) from None
     spec = graph_spec(graph, source)
-    net = to_camera_net(spec, space, source)
-    lidar = bool(net.lidar_samples)
     name = name or Path(out).stem
     notes = {"imported_from": Path(str(path)).name, "training_algorithm": metadata.get("training_algorithm",
                                                                                        "clipped_ppo")}
+    try:
+        net = to_camera_net(spec, space, source)
+    except NotCameraNet as exc:
+        return _import_graph_net(spec, space, metadata, source, out, name, notes, reason=str(exc))
     agent_meta = make_metadata(space, net.network, name, net.image_shape,
                                version=str(metadata.get("version", "5")), training_algorithm="deepracer_import",
-                               lidar=lidar, training=notes)
+                               lidar=bool(net.lidar_samples), training=notes)
     return save_agent(out, net, agent_meta)
+
+
+def _import_graph_net(spec, space, metadata, source, out, name, notes, reason) -> Path:
+    """A DeepRacer network that no multirace network matches, as a `drnet.GraphNet` agent file."""
+    from .drnet import GraphNet, save_graph_agent, spec_from_graph
+
+    try:
+        layers, state = spec_from_graph(spec, source)
+        net = GraphNet(layers, space)
+        net.load_state_dict(state, strict=True)
+        net.eval()
+        with torch.no_grad():
+            blank = torch.zeros(1, *net.image_shape, dtype=torch.uint8)
+            out_row = net({"camera": blank, "lidar": torch.zeros(1, net.lidar_samples)} if net.lidar_samples
+                          else blank)
+    except (ValueError, RuntimeError) as exc:
+        raise ModelImportError(f"{source}: not a network multirace can run ({exc}; {reason})") from None
+    if out_row.shape != (1, net.num_outputs):
+        raise ModelImportError(f"{source}: the policy gives {out_row.shape[1]} outputs; model_metadata.json's "
+                               f"{space.kind} action space needs {net.num_outputs}")
+    height, width, channels = net.image_shape
+    agent_meta = {"name": name, "sensor": sorted(spec.inputs),
+                  "image": {"height": height, "width": width, "channels": channels},
+                  "neural_network": metadata.get("neural_network", GraphNet.network),
+                  "training_algorithm": "deepracer_import", "version": str(metadata.get("version", "5")),
+                  "training": {**notes, "network": reason}, **space.to_metadata()}
+    return save_graph_agent(out, net, agent_meta)
