@@ -329,3 +329,15 @@ def test_import_names_what_it_cannot_read(tmp_path):
         tar.add(tmp_path / "model.pb", "b/model.pb")
     with pytest.raises(ModelImportError, match="2 .pb files"):
         import_model(tmp_path / "two.tar.gz", tmp_path / "x.pt")
+
+
+def test_a_graph_declaring_a_huge_constant_is_refused_unallocated(tmp_path):
+    g = GraphBuilder()
+    g.node("big", "Const", dtype=("type", DT_FLOAT), value=np.zeros(1, np.float32))
+    graph = g.graph
+    graph.node[0].attr["value"].tensor.tensor_shape.dim[0].size = 10**12  # declared, not stored
+    g.op(OUTPUT, "Softmax", ["big"])
+    (tmp_path / "model.pb").write_bytes(g.to_bytes())
+    (tmp_path / "model_metadata.json").write_text(json.dumps({"action_space": CONTINUOUS["action_space"]}))
+    with pytest.raises(ModelImportError, match="constant of shape"):
+        import_model(tmp_path / "model.pb", tmp_path / "x.pt")

@@ -361,6 +361,8 @@ def read_model(path) -> tuple[bytes, dict, str]:
                           if (p / "model_metadata.json").is_file()), None)
         if meta_path is None:
             raise ModelImportError(f"{pb}: no model_metadata.json beside it")
+        if pb.stat().st_size > MAX_ARCHIVE_BYTES or meta_path.stat().st_size > 2**20:
+            raise ModelImportError(f"{pb}: larger than {MAX_ARCHIVE_BYTES // 2**20} MB (or its metadata over 1 MB)")
         graph, metadata_bytes, source = pb.read_bytes(), meta_path.read_bytes(), str(pb)
     try:
         metadata = json.loads(metadata_bytes.decode("utf-8"))

@@ -13,6 +13,7 @@ constant values as NumPy arrays.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,6 +23,7 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 DT_FLOAT, DT_INT32 = 1, 3
 _NUMPY = {DT_FLOAT: np.float32, DT_INT32: np.int32}
 _DTYPE = {np.dtype(np.float32): DT_FLOAT, np.dtype(np.int32): DT_INT32}
+MAX_CONST_ELEMENTS = 2**26  # values in one constant (a 256 MB float32 tensor)
 PRODUCER = 27  # a TF1-era GraphDef version (TF 1.13), which every converter accepts
 
 
@@ -174,7 +176,7 @@ class Node:
     attrs: dict = field(default_factory=dict)
 
 
-def _decode_attr(a):
+def _decode_attr(a, where: str):
     kind = a.WhichOneof("value")
     if kind == "tensor":
         t = a.tensor
@@ -182,10 +184,14 @@ def _decode_attr(a):
         shape = [d.size for d in t.tensor_shape.dim]
         if dtype is None:
             return None
+        if any(d < 0 for d in shape) or math.prod(shape) > MAX_CONST_ELEMENTS:
+            raise GraphError(f"{where}: a constant of shape {shape} (at most {MAX_CONST_ELEMENTS:,} values)")
+        count = math.prod(shape)
         if t.tensor_content:
+            if len(t.tensor_content) != count * np.dtype(dtype).itemsize:
+                raise GraphError(f"{where}: a constant of shape {shape} holds {len(t.tensor_content)} bytes")
             return np.frombuffer(t.tensor_content, dtype=dtype).reshape(shape).copy()
         values = list(t.float_val) if t.dtype == DT_FLOAT else list(t.int_val)
-        count = int(np.prod(shape)) if shape else 1
         return np.resize(np.asarray(values or [0], dtype=dtype), count).reshape(shape)
     if kind == "shape":
         return [d.size for d in a.shape.dim]
@@ -208,7 +214,8 @@ def parse_graph(data: bytes, source: str = "<graph>") -> dict[str, Node]:
     nodes = {}
     for n in graph.node:
         inputs = [i.split(":")[0].lstrip("^") for i in n.input if not i.startswith("^")]
-        nodes[n.name] = Node(n.name, n.op, inputs, {k: _decode_attr(v) for k, v in n.attr.items()})
+        nodes[n.name] = Node(n.name, n.op, inputs,
+                             {k: _decode_attr(v, f"{source}: node {n.name!r}") for k, v in n.attr.items()})
     return nodes
 
 
