@@ -63,17 +63,3 @@ def test_reward_function_from_file_survives_pickling():
     _, rewards, _, _, _ = clone.step({"car_0": 7})
     assert rewards["car_0"] == 1.0
 
-
-def test_train_takes_a_reward_file_and_names_a_bad_one(tmp_path, capsys):
-    from multirace.cli import main
-
-    good = FILES / "centerline.py"
-    out = tmp_path / "agent.pt"
-    assert main(["train", "--config", "tiny", "--minutes", "0.05", "--reward", str(good), "--out", str(out),
-                 "--no-progress", "--envs", "1", "--cars", "1"]) == 0
-    assert out.stat().st_size > 0
-    bad = FILES / "bad_raises.py"
-    assert main(["train", "--config", "tiny", "--minutes", "0.05", "--reward", str(bad),
-                 "--out", str(tmp_path / "bad.pt"), "--no-progress", "--envs", "1"]) == 2
-    assert "bad_raises.py" in capsys.readouterr().err
-    assert not (tmp_path / "bad.pt").exists()

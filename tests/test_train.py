@@ -3,6 +3,7 @@
 Real env, real torch, real worker process; about a minute in all.
 """
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -263,3 +264,21 @@ def test_reward_scale_keeps_discounted_returns_near_unit_size():
         raw[done], scaled[done] = 0.0, 0.0
     assert np.mean(raw_returns[1000:]) > 100  # value targets in the hundreds without it
     assert 0.3 < np.std(scaled_returns[1000:]) < 3.0 and np.mean(scaled_returns[1000:]) < 20
+
+
+REWARD_FILES = Path(__file__).parent / "reward_files"
+
+
+def test_train_command_takes_a_reward_file_and_names_a_bad_one(tmp_path, capsys):
+    from multirace.cli import main
+
+    out = tmp_path / "agent.pt"
+    tiny = ["--config", "tiny", "--minutes", "0.05", "--no-progress", "--envs", "1", "--cars", "1"]
+    assert main(["train", *tiny, "--reward", str(REWARD_FILES / "centerline.py"), "--out", str(out)]) == 0
+    agent = load_agent(out, step_budget=None)
+    assert agent.metadata["training"]["reward"].endswith("centerline.py")
+    assert main(["train", *tiny, "--reward", str(REWARD_FILES / "bad_raises.py"),
+                 "--out", str(tmp_path / "bad.pt")]) == 2
+    err = capsys.readouterr().err
+    assert "bad_raises.py" in err and "Traceback" not in err
+    assert not (tmp_path / "bad.pt").exists() and not (tmp_path / "bad.ckpt").exists()

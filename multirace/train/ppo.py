@@ -163,6 +163,56 @@ def make_vector_env(config: TrainConfig, shared=None, cars=None, bots=None):
     return SubprocVectorEnv(factories, info_keys=INFO_KEYS)
 
 
+# ------------------------------------------------------------------ the rollout
+def collect_rollout(vec, net, policy: Policy, rollout: Rollout, robust: RobustKnobs, learner_mask,
+                    reward_scale, config: TrainConfig):
+    """T steps of every env into `rollout`, inference batched over all cars (the pool's opponents drive
+    theirs). Returns the value of the last observations, the env's own reward summed over the rollout
+    (`rollout.rew` may be scaled and bootstrapped) and the training episodes that ended."""
+    E, A = config.num_envs, config.cars_per_env
+    N = E * A
+    net.eval()
+    env_reward, episodes = 0.0, []
+    for t in range(rollout.steps):
+        x = rollout.net_input(rollout.next_obs)
+        rollout.store_input(t, x)
+        rollout.done[t] = rollout.next_done
+        with torch.no_grad():
+            out, value = net.forward_all(x)
+            dist = policy.dist(out)
+            action = dist.sample()
+            rollout.logp[t] = policy.log_prob(dist, action)
+        rollout.act[t], rollout.val[t], rollout.expert[t] = action, value, rollout.next_expert
+        actions = robust.override(action.numpy().reshape(E, A, *rollout.act_shape), rollout.next_obs, learner_mask)
+        rollout.learn[t] = learner_mask.reshape(N)
+        rollout.next_obs, reward, env_done, _, infos = vec.step(actions)
+        if config.expert_coef:
+            rollout.next_expert = expert_actions(infos, policy.discrete)
+        done = np.array([[infos[e][a]["train_done"] for a in range(A)] for e in range(E)]).reshape(N)
+        step_reward = reward.reshape(N).astype(np.float64)
+        env_reward += float(step_reward.sum())
+        if reward_scale is not None:
+            step_reward = reward_scale(step_reward, done)
+        rollout.rew[t] = torch.from_numpy(step_reward.astype(np.float32))
+        # an episode cut by the step limit (not by an off-track or a crash) would have gone on:
+        # bootstrap it, with this state's value standing in for the unseen next state's
+        cut = np.array([[infos[e][a]["time_limit"] for a in range(A)] for e in range(E)]).reshape(N)
+        rollout.rew[t] += config.gamma * value * torch.from_numpy(cut.astype(np.float32))
+        rollout.next_done = torch.from_numpy(done.astype(np.float32))
+        episodes += finished_episodes(infos, learner_mask)
+        robust.after_step(infos, reward, env_done)
+    with torch.no_grad():
+        next_value = net.forward_all(rollout.net_input(rollout.next_obs))[1]
+    return next_value, env_reward, episodes
+
+
+def anneal_learning_rate(optimiser, config: TrainConfig, fraction: float) -> None:
+    """Linear decay of the learning rate over the time budget, to a floor of 10 %."""
+    if config.anneal_lr:
+        for group in optimiser.param_groups:
+            group["lr"] = config.lr * max(0.1, 1.0 - fraction)
+
+
 # ------------------------------------------------------------------ the PPO update
 def ppo_update(net, policy: Policy, optimiser, batch: dict, config: TrainConfig, space, lidar: bool,
                value_only: bool) -> dict:
@@ -257,8 +307,7 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
     run.restore(checkpoint, net, optimiser, reward_scale)
     robust.start_pool(space, obs_shape, rng, R)
     rollout = Rollout(T, N, obs_shape, R, space)
-    expert_now = expert_actions(reset_infos, space.discrete)
-    next_done = torch.zeros(N)
+    rollout.start(obs, expert_actions(reset_infos, space.discrete))
 
     try:
         start_iteration = run.iteration
@@ -268,51 +317,19 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
 
             # --- 4. rollout: T steps of every env, batched inference over all cars
             t0 = time.perf_counter()
-            net.eval()
-            env_reward, episodes = 0.0, []  # the env's own rewards (rollout.rew may be scaled and bootstrapped)
-            for t in range(T):
-                x = rollout.net_input(obs)
-                rollout.store_input(t, x)
-                rollout.done[t] = next_done
-                with torch.no_grad():
-                    out_, value = net.forward_all(x)
-                    dist = policy.dist(out_)
-                    action = dist.sample()
-                    rollout.logp[t] = policy.log_prob(dist, action)
-                rollout.act[t], rollout.val[t], rollout.expert[t] = action, value, expert_now
-                actions = robust.override(action.numpy().reshape(E, A, *rollout.act_shape), obs, learner_mask)
-                rollout.learn[t] = learner_mask.reshape(N)
-                obs, reward, env_done, _, infos = vec.step(actions)
-                if config.expert_coef:
-                    expert_now = expert_actions(infos, space.discrete)
-                done = np.array([[infos[e][a]["train_done"] for a in range(A)] for e in range(E)]).reshape(N)
-                step_reward = reward.reshape(N).astype(np.float64)
-                env_reward += float(step_reward.sum())
-                if reward_scale is not None:
-                    step_reward = reward_scale(step_reward, done)
-                rollout.rew[t] = torch.from_numpy(step_reward.astype(np.float32))
-                # an episode cut by the step limit (not by an off-track or a crash) would have gone on:
-                # bootstrap it, with this state's value standing in for the unseen next state's
-                cut = np.array([[infos[e][a]["time_limit"] for a in range(A)] for e in range(E)]).reshape(N)
-                rollout.rew[t] += config.gamma * value * torch.from_numpy(cut.astype(np.float32))
-                next_done = torch.from_numpy(done.astype(np.float32))
-                episodes += finished_episodes(infos, learner_mask)
-                robust.after_step(infos, reward, env_done)
+            next_value, env_reward, episodes = collect_rollout(vec, net, policy, rollout, robust, learner_mask,
+                                                               reward_scale, config)
             samples = int(rollout.learn.sum())
             run.agent_steps += samples
-            with torch.no_grad():
-                next_value = net.forward_all(rollout.net_input(obs))[1]
             run.sample_time += time.perf_counter() - t0
 
             # --- 5. advantages (GAE) and the PPO update on the learner's samples
             # (the workers are idle meanwhile: the learner may use their cores)
             t1 = time.perf_counter()
-            advantages, returns = rollout.advantages(next_value, next_done, config.gamma, config.gae_lambda)
-            torch.set_num_threads(int(config.update_threads))
-            if config.anneal_lr:
-                for group in optimiser.param_groups:
-                    group["lr"] = config.lr * max(0.1, 1.0 - fraction)
+            advantages, returns = rollout.advantages(next_value, config.gamma, config.gae_lambda)
+            anneal_learning_rate(optimiser, config, fraction)
             value_only = bool(init) and run.iteration - start_iteration < config.value_warmup and checkpoint is None
+            torch.set_num_threads(int(config.update_threads))
             stats = ppo_update(net, policy, optimiser, rollout.learner_batch(advantages, returns), config, space,
                                lidar=bool(R), value_only=value_only)
             torch.set_num_threads(int(config.threads))

@@ -25,6 +25,13 @@ class Rollout:
         self.val = torch.zeros((T, N))
         self.expert = torch.zeros((T, N, *self.act_shape), dtype=act_dtype)  # the pass driver's actions
         self.learn = np.zeros((T, N), bool)
+        self.next_obs = None  # where the next rollout starts: the last observations, dones and expert labels
+        self.next_done = torch.zeros(N)
+        self.next_expert = None
+
+    def start(self, obs, expert) -> None:
+        """The envs' first observations (and the pass driver's labels for them)."""
+        self.next_obs, self.next_expert = obs, expert
 
     def net_input(self, obs):
         """(E, A, ...) observations as the net's input for N cars: images, or images and LIDAR ranges."""
@@ -39,9 +46,10 @@ class Rollout:
         if self.lidar_samples:
             self.lidar[t] = x["lidar"]
 
-    def advantages(self, next_value, next_done, gamma: float, gae_lambda: float):
-        """GAE advantages and returns; a done at step t+1 means the episode ended with step t."""
-        T = self.steps
+    def advantages(self, next_value, gamma: float, gae_lambda: float):
+        """GAE advantages and returns, bootstrapped with the value of `next_obs`; a done at step t+1 means
+        the episode ended with step t."""
+        T, next_done = self.steps, self.next_done
         advantages = torch.zeros((T, self.cars))
         last = torch.zeros(self.cars)
         for t in reversed(range(T)):

@@ -24,8 +24,7 @@ class TrainingRun:
         self.started = time.perf_counter()
         self.config, self.command, self.log = config, command, log
         self.out = Path(out)
-        self.ckpt_dir = self.out.with_name(self.out.stem + ".ckpt")
-        self.ckpt_dir.mkdir(parents=True, exist_ok=True)
+        self.ckpt_dir = self.out.with_name(self.out.stem + ".ckpt")  # made at the first checkpoint or snapshot
         self.budget = 60.0 * float(config.minutes)
         self.agent_steps, self.iteration, self.spent = 0, 0, 0.0
         self.history: list = []
@@ -88,6 +87,7 @@ class TrainingRun:
 
     def save_checkpoint(self, net, optimiser, reward_scale) -> None:
         """Write the resumable checkpoint (atomically)."""
+        self.ckpt_dir.mkdir(parents=True, exist_ok=True)
         torch.save({"net": net.state_dict(), "optimiser": optimiser.state_dict(), "agent_steps": self.agent_steps,
                     "reward_scale": json.dumps(reward_scale.state() if reward_scale is not None else None),
                     "iteration": self.iteration, "history": json.dumps(self.history),
