@@ -218,15 +218,19 @@ def deepracer_graph(rng, *, convs, outputs, embedder_dense=(), middleware=(512,)
         x = dense(f"{net}/middleware_fc_embedder/Dense_{2 * k}", x, width, n,
                   f"{net}/middleware_fc_embedder/BatchnormActivationDropout_{2 * k + 1}_activation")
         width = n
+    # the gradient rescaler as in the real checkpoint graph (11_Step-38428.ckpt.meta): x packed into a new
+    # axis, (1 - r) * stop_gradient(x) + r * x, then the head's strided_slice takes [0]
     r = g.const(f"{net}/gradients_from_head_0-0_rescalers", np.ones(1, np.float32))
-    r = g.node(f"{net}/strided_slice", "StridedSlice",
-               [r, *(g.const(f"{net}/strided_slice/{n}", np.array([v], np.int32))
-                     for n, v in (("begin", 0), ("end", 1), ("strides", 1)))],
-               T=("type", DT_FLOAT), Index=("type", DT_INT32), shrink_axis_mask=1)
     one_minus = g.op(f"{net}/sub", "Sub", [g.const(f"{net}/sub/x", np.float32(1)), r])
-    a = g.op(f"{net}/mul", "Mul", [one_minus, g.op(f"{net}/StopGradient", "StopGradient", [x])])
-    x = g.op(f"{net}/add", "AddV2", [a, g.op(f"{net}/mul_1", "Mul", [r, x])])
+    packed = [g.node(f"{net}/{name}", "Pack", [x], N=1, axis=0, T=("type", DT_FLOAT))
+              for name in ("StopGradient/input", "mul_1/y")]
+    a = g.op(f"{net}/mul", "Mul", [one_minus, g.op(f"{net}/StopGradient", "StopGradient", [packed[0]])])
+    x = g.op(f"{net}/add", "Add", [a, g.op(f"{net}/mul_1", "Mul", [r, packed[1]])])
     head = f"{net}/{'sac_policy_head_0' if sac else 'ppo_head_0'}"
+    x = g.node(f"{head}/strided_slice", "StridedSlice",
+               [x, *(g.const(f"{head}/strided_slice/{n}", np.array([v], np.int32))
+                     for n, v in (("stack", 0), ("stack_1", 1), ("stack_2", 1)))],
+               T=("type", DT_FLOAT), Index=("type", DT_INT32), shrink_axis_mask=1)
     for k, n in enumerate(head_hidden):
         x = dense(f"{head}/dense_{k}", x, width, n, f"{head}/dense_{k}/Relu")
         width = n

@@ -40,6 +40,7 @@ from .tfgraph import GraphError, parse_graph
 
 MAX_ARCHIVE_BYTES = 512 * 2**20  # unpacked members of a car archive read at most
 PASS_THROUGH = ("Identity", "StopGradient", "Snapshot")
+RESCALER_OPS = ("StridedSlice", "Sub", "VariableV2", "VarHandleOp", "ReadVariableOp")  # the factors r and 1-r
 CONTINUOUS_LOG_STD = -1.0  # imported continuous policies: the log-std outputs (the .pb has no log-std)
 
 
@@ -83,9 +84,20 @@ class _Walker:
         return None if node is None or node.op != "Const" else node.attrs.get("value")
 
     def _strip(self, name):
-        while self.nodes[name].op in PASS_THROUGH:
+        while self.nodes[name].op in PASS_THROUGH or self._is_pack_of_one(self.nodes[name]):
             name = self.nodes[name].inputs[0]
         return name
+
+    @staticmethod
+    def _is_pack_of_one(node) -> bool:
+        return node.op == "Pack" and len(node.inputs) == 1
+
+    def _is_unpack(self, node) -> bool:
+        """`x[0]` of a tensor packed into a new first axis (the head's StridedSlice after the rescaler)."""
+        if node.op != "StridedSlice" or node.attrs.get("shrink_axis_mask") != 1 or len(node.inputs) < 2:
+            return False
+        begin = self.value(node.inputs[1])
+        return begin is not None and np.asarray(begin).ravel().tolist() == [0]
 
     def _variable_input(self, node):
         inputs = [i for i in node.inputs if self.value(i) is None]
@@ -100,7 +112,7 @@ class _Walker:
             if mul is None or mul.op != "Mul":
                 return None
             for i in mul.inputs:
-                if self.value(i) is None and self.nodes[self._strip(i)].op not in ("StridedSlice", "Sub", "Pack"):
+                if self.value(i) is None and self.nodes[self._strip(i)].op not in RESCALER_OPS:
                     sources.add(self._strip(i))
         return sources.pop() if len(sources) == 1 else None
 
@@ -114,7 +126,7 @@ class _Walker:
         if op == "Placeholder":
             sensor = name.rstrip("/").split("/")[-1]
             return Chain(sensor=sensor, shape=node.attrs.get("shape"))
-        if op in PASS_THROUGH:
+        if op in PASS_THROUGH or self._is_pack_of_one(node) or self._is_unpack(node):
             return self.walk(node.inputs[0], depth + 1)
         if op in ("ConcatV2", "Concat"):
             inputs, _ = self._variable_input(node)
@@ -125,6 +137,10 @@ class _Walker:
                 raise ModelImportError(f"{where}: an addition of two computed tensors is not a layer DeepRacer's "
                                    "networks have")
             return self.walk(source, depth + 1)
+        if op in ("Reshape", "Flatten"):
+            chain = self.walk(node.inputs[0], depth + 1)
+            chain.layers.append(("flatten", {}))
+            return chain
         inputs, constants = self._variable_input(node)
         if len(inputs) != 1:
             raise ModelImportError(f"{where}: expected one computed input, found {len(inputs)}")
@@ -156,8 +172,6 @@ class _Walker:
             layers.append(("pool", {"k": int(k[1])}))
         elif op in ("Relu", "Tanh", "Softmax"):
             layers.append((op.lower(), {}))
-        elif op in ("Reshape", "Flatten"):
-            layers.append(("flatten", {}))
         elif op in ("RealDiv", "Mul", "Sub") and len(constants) == 1 and np.asarray(constants[0]).size == 1:
             c = float(np.asarray(constants[0]).ravel()[0])
             if op == "RealDiv" and c == 0:
