@@ -111,21 +111,21 @@ def cmd_plot(args) -> int:
 
 
 def cmd_agent_inspect(args) -> int:
-    from .racing.agentfile import inspect_agent
+    from .racing.agentfile import inspect_agent_isolated
 
-    info = inspect_agent(args.file)
+    info = inspect_agent_isolated(args.file)  # under memory and time limits: the file may be anyone's
     if args.json:
         print(json.dumps(info, indent=2))
         return 0 if info["valid"] else 1
     console = Console(width=120)
-    console.print(f"[bold]{info['file']}[/bold]  ({info['size_bytes']} bytes)")
+    console.print(f"[bold]{escape(display_name(info['file'], 1000))}[/bold]  ({info['size_bytes']} bytes)")
     console.print(f"sha256      {info['sha256']}")
     if info["valid"]:
-        console.print(f"name        {info['name']}")
+        console.print(f"name        {escape(display_name(info['name']))}")
         console.print(f"network     {info['network']}  ({info['parameters']:,} parameters, "
                       f"{info['outputs']} outputs{', value head' if info['value_head'] else ''})")
     else:
-        console.print(f"[red]invalid[/red]     {info['error']}")
+        console.print(f"[red]invalid[/red]     {escape(display_name(info['error'], 1000))}")
     if "metadata" in info:
         console.print("model_metadata:")
         console.print_json(json.dumps(info["metadata"]))

@@ -38,7 +38,10 @@ import math
 import os
 import pickle
 import pickletools
+import resource
 import stat
+import subprocess
+import sys
 import time
 import warnings
 import zipfile
@@ -165,12 +168,16 @@ def check_archive(data: bytes, source: str) -> None:
     try:
         archive = zipfile.ZipFile(io.BytesIO(data))
         pickles = [i for i in archive.infolist() if i.filename.endswith("/data.pkl")]
-        if len(pickles) != 1 or pickles[0].file_size > MAX_PICKLE_BYTES:
-            raise AgentFileError(f"{source}: not an agent file (no single data.pkl within "
-                                 f"{MAX_PICKLE_BYTES // 2**20} MB in the torch archive)")
+        if len(pickles) != 1:
+            raise AgentFileError(f"{source}: not an agent file (no single data.pkl in the torch archive)")
+        if pickles[0].file_size > MAX_PICKLE_BYTES:
+            raise AgentFileError(f"{source}: its metadata and structure take {pickles[0].file_size / 2**20:.1f} MB, "
+                                 f"over the {MAX_PICKLE_BYTES // 2**20} MB limit (weights are stored apart)")
         prefix = pickles[0].filename[: -len("data.pkl")]
         records = {i.filename: i for i in archive.infolist()}
         code = archive.read(pickles[0])
+    except AgentFileError:
+        raise
     except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, ValueError, KeyError) as exc:
         _refuse_code(data, source)  # a bare pickle (torch's legacy format) that names code is refused as such
         raise AgentFileError(f"{source}: unreadable or truncated agent file ({type(exc).__name__}: not the torch "
@@ -382,8 +389,19 @@ def load_agent(path, step_budget: float | None = DEFAULT_STEP_BUDGET, smoke_runs
 
     The smoke inference runs on a blank image (up to `smoke_runs` tries); the
     fastest must finish within `step_budget` seconds (None: no time check).
+    Any failure while loading (a RecursionError, MemoryError, an odd tensor...)
+    is an AgentFileError, so a bad file forfeits its entrant and never stops a
+    race; only a missing file is a FileNotFoundError.
     """
-    path = Path(path)
+    try:
+        return _load_agent(Path(path), step_budget, smoke_runs)
+    except (AgentFileError, FileNotFoundError):
+        raise
+    except Exception as exc:
+        raise AgentFileError(f"{path}: cannot be loaded ({type(exc).__name__}: {str(exc)[:200]})") from None
+
+
+def _load_agent(path: Path, step_budget: float | None, smoke_runs: int) -> Agent:
     data = read_agent_bytes(path)
     payload = payload_from_bytes(data, path)
     source = str(path)
@@ -458,8 +476,42 @@ def smoke_test(agent: Agent, step_budget: float | None, runs: int = 5) -> None:
                              f"{step_budget * 1000:.1f} ms step budget")
 
 
+INSPECT_MEMORY = 1536 * 2**20  # bytes of address space an isolated inspection may use
+INSPECT_TIMEOUT = 120.0  # seconds
+
+
+def _limit_memory(limit: int):
+    def apply():  # runs in the child before it starts Python
+        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+    return apply
+
+
+def inspect_agent_isolated(path, timeout: float = INSPECT_TIMEOUT, memory: int = INSPECT_MEMORY) -> dict:
+    """`inspect_agent` in a subprocess held to `memory` bytes of address space and `timeout` seconds, so a
+    hostile file can neither exhaust this process's memory nor hang it. Returns the same dict; a file that
+    overruns the limits is reported invalid with the reason."""
+    path = Path(path)
+    if not os.path.lexists(path):
+        raise FileNotFoundError(f"{path}: no such agent file")
+    code = ("import json, sys\nfrom multirace.racing.agentfile import inspect_agent\n"
+            "print(json.dumps(inspect_agent(sys.argv[1])))\n")
+    failed = {"file": str(path), "sha256": None, "size_bytes": None, "valid": False}
+    try:
+        done = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True,
+                              timeout=timeout, preexec_fn=_limit_memory(memory), stdin=subprocess.DEVNULL)
+    except subprocess.TimeoutExpired:
+        return {**failed, "error": f"{path}: inspection did not finish within {timeout:g} s"}
+    try:
+        return json.loads(done.stdout.strip().splitlines()[-1])
+    except (IndexError, json.JSONDecodeError):
+        last = (done.stderr.strip().splitlines() or ["no output"])[-1][:200]
+        return {**failed, "error": f"{path}: inspection failed within its {memory // 2**20} MB memory limit "
+                                   f"(exit {done.returncode}: {last})"}
+
+
 def inspect_agent(path) -> dict:
-    """What `multirace agent inspect` prints: metadata, parameter count, sha256, validity."""
+    """What `multirace agent inspect` prints: metadata, parameter count, sha256, validity (in this process;
+    `inspect_agent_isolated` runs it under memory and time limits)."""
     path = Path(path)
     info = {"file": str(path), "sha256": None, "size_bytes": None}
     try:
@@ -514,17 +566,17 @@ class AgentController(Controller):
         try:
             self.agent = load_agent(self.path, step_budget=self.step_budget)
             self.name, self.file_sha256 = self.agent.name, self.agent.sha256
-        except (AgentFileError, RecursionError, MemoryError) as exc:
-            self.error = str(exc) if isinstance(exc, AgentFileError) else f"cannot be loaded ({type(exc).__name__})"
+        except AgentFileError as exc:
+            self.error = str(exc)
             try:
                 self.file_sha256 = hashlib.sha256(read_agent_bytes(self.path)).hexdigest()
-            except AgentFileError:
+            except (AgentFileError, OSError):
                 pass
             try:  # name the car after its metadata even when the file is bad, if that is readable
                 meta = parse_metadata(read_payload(self.path), str(self.path))
                 if isinstance(meta.get("name"), str) and meta["name"].strip():
                     self.name = meta["name"]
-            except (AgentFileError, FileNotFoundError):
+            except (AgentFileError, OSError):
                 pass
         self.steps = 0
         self.step_times: list[float] = []
