@@ -345,3 +345,49 @@ def test_a_graph_declaring_a_huge_constant_is_refused_unallocated(tmp_path):
     (tmp_path / "model_metadata.json").write_text(json.dumps({"action_space": CONTINUOUS["action_space"]}))
     with pytest.raises(ModelImportError, match="constant of shape"):
         import_model(tmp_path / "model.pb", tmp_path / "x.pt")
+
+
+@needs_fixtures
+def test_import_a_training_checkpoint_folder(tmp_path, frames):
+    """DeepRacer's model/ folder: the real checkpoint's .index and .meta (reInvent2019-TestModel), with a .data
+    file of stand-in weights at the offsets the index gives; the imported net computes what the checkpoint's
+    variables compute (a reference forward pass by the variables' names)."""
+    from multirace.deepracer.checkpoint import Checkpoint, read_index
+
+    source = FIXTURES / "reInvent2019-TestModel" / "model"
+    model = tmp_path / "model"
+    model.mkdir()
+    for name in (".coach_checkpoint", "11_Step-38428.ckpt.index", "11_Step-38428.ckpt.meta", "model_metadata.json"):
+        (model / name).write_bytes((source / name).read_bytes())
+    index = read_index(model / "11_Step-38428.ckpt.index")
+    rng = np.random.default_rng(5)
+    data = bytearray(max(e["offset"] + e["size"] for e in index.values()))
+    for entry in index.values():
+        shape = entry["shape"]
+        fan = int(np.prod(shape[:-1])) if len(shape) > 1 else 100
+        values = (rng.standard_normal(int(np.prod(shape))) / np.sqrt(fan)).astype("<f4")
+        data[entry["offset"]:entry["offset"] + entry["size"]] = values.tobytes()
+    (model / "11_Step-38428.ckpt.data-00000-of-00001").write_bytes(bytes(data))
+    assert cli_main(["agent", "import", str(tmp_path), "--out", str(tmp_path / "checkpoint.pt")]) == 0
+    policy = multirace.load_agent(tmp_path / "checkpoint.pt")
+    assert isinstance(policy.agent.net, CameraNet) and policy.agent.net.network == SHALLOW
+    variables = Checkpoint(model / "11_Step-38428.ckpt")
+    net1 = "main_level/agent/main/online/network_1"
+
+    def reference(image):  # TF's NHWC graph, step by step, from the variables by name
+        x = torch.from_numpy(image[None].astype(np.float32) / 255).permute(0, 3, 1, 2)
+        for k, stride in ((0, 4), (2, 2), (4, 1)):
+            scope = f"{net1}/FRONT_FACING_CAMERA/Conv2d_{k}"
+            x = torch.relu(torch.nn.functional.conv2d(
+                x, torch.from_numpy(variables[f"{scope}/kernel"]).permute(3, 2, 0, 1),
+                torch.from_numpy(variables[f"{scope}/bias"]), stride=stride))
+        x = x.permute(0, 2, 3, 1).flatten(1)
+        for scope, relu in (("middleware_fc_embedder/Dense_0", True), ("ppo_head_0/policy_fc", False)):
+            x = x @ torch.from_numpy(variables[f"{net1}/{scope}/kernel"]) + torch.from_numpy(
+                variables[f"{net1}/{scope}/bias"])
+            x = torch.relu(x) if relu else x
+        return torch.softmax(x, 1)[0].numpy()
+
+    for obs in frames:
+        mine = torch.softmax(torch.from_numpy(policy.agent.outputs(obs["camera"])[0]), 0).numpy()
+        np.testing.assert_allclose(mine, reference(obs["camera"]), atol=1e-5)

@@ -1,7 +1,9 @@
 """`multirace agent import PATH --out FILE.pt`: a DeepRacer model as a multirace agent file.
 
 PATH is a car archive (`.tar.gz` with one `.pb` and `model_metadata.json`), a
-folder holding them, or a frozen `.pb` with `model_metadata.json` beside it.
+folder holding them, a frozen `.pb` with `model_metadata.json` beside it, or a
+training checkpoint folder (DeepRacer's `model/`: the graph from the `.meta`, the
+weights from the `.ckpt.index` + `.data`, see `checkpoint`).
 
 The weights are found by walking the graph back from its output (the
 ``.../ppo_head_0/policy`` or ``.../sac_policy_head_0/policy`` node, else the
@@ -73,14 +75,16 @@ class GraphSpec:
 
 
 class _Walker:
-    def __init__(self, nodes, source):
-        self.nodes, self.source = nodes, source
+    def __init__(self, nodes, source, variables=None):
+        self.nodes, self.source, self.variables = nodes, source, variables
 
     def value(self, name):
-        """The constant a node evaluates to (Const through Identity), else None."""
+        """The constant a node evaluates to (Const, or a checkpoint's variable, through Identity), else None."""
         node = self.nodes.get(name)
-        while node is not None and node.op in PASS_THROUGH:
+        while node is not None and node.op in PASS_THROUGH + ("ReadVariableOp",):
             node = self.nodes.get(node.inputs[0]) if node.inputs else None
+        if node is not None and node.op in ("VariableV2", "VarHandleOp") and self.variables is not None:
+            return self.variables[node.name] if node.name in self.variables else None
         return None if node is None or node.op != "Const" else node.attrs.get("value")
 
     def _strip(self, name):
@@ -189,10 +193,12 @@ class _Walker:
 
 
 def output_node(nodes, source: str) -> str:
-    """The policy output: DeepRacer's PPO or SAC `policy` node, else the graph's only sink."""
-    for name in nodes:
-        if name.endswith("ppo_head_0/policy") or name.endswith("sac_policy_head_0/policy"):
-            return name
+    """The policy output: DeepRacer's PPO or SAC `policy` node (the online network's in a training graph),
+    else the graph's only sink."""
+    policies = sorted((name for name in nodes if name.endswith(("ppo_head_0/policy", "sac_policy_head_0/policy"))),
+                      key=lambda name: "/online/" not in name)
+    if policies:
+        return policies[0]
     consumed = {i for n in nodes.values() for i in n.inputs}
     sinks = [n for n in nodes if n not in consumed and nodes[n].op not in ("Const", "NoOp", "Placeholder")]
     if len(sinks) != 1:
@@ -201,14 +207,15 @@ def output_node(nodes, source: str) -> str:
     return sinks[0]
 
 
-def graph_spec(data: bytes, source: str) -> GraphSpec:
-    """Walk a frozen graph's bytes from the policy output (see the module docstring)."""
+def graph_spec(data: bytes, source: str, variables=None) -> GraphSpec:
+    """Walk a frozen graph's bytes from the policy output (see the module docstring); with `variables` (a
+    `checkpoint.Checkpoint`), the bytes are a training checkpoint's `.meta` and its weights come from there."""
     try:
-        nodes = parse_graph(data, source)
+        nodes = parse_graph(data, source, meta=variables is not None)
+        out = output_node(nodes, source)
+        top = _Walker(nodes, source, variables).walk(out)
     except GraphError as exc:
         raise ModelImportError(str(exc)) from None
-    out = output_node(nodes, source)
-    top = _Walker(nodes, source).walk(out)
     final = "identity"
     if top.layers and top.layers[-1][0] in ("softmax", "tanh"):
         final = top.layers.pop()[0]
@@ -342,6 +349,14 @@ def _fill(net: CameraNet, cam_layers, lidar_stack, post, space, source) -> None:
             net.head.bias.copy_(torch.cat([bias * half + centre, torch.full((2,), CONTINUOUS_LOG_STD)]))
 
 
+def _checkpoint_folder(path: Path) -> Path | None:
+    """The folder holding a training checkpoint (`*.ckpt.index`), if `path` is or holds one."""
+    for folder in (path, path / "model"):
+        if folder.is_dir() and any(folder.glob("*.ckpt.index")) and not any(folder.glob("*.pb")):
+            return folder
+    return None
+
+
 def read_model(path) -> tuple[bytes, dict, str]:
     """(graph bytes, model_metadata dict, source name) of a car archive, a folder or a `.pb` file."""
     path = Path(path)
@@ -387,14 +402,48 @@ def read_model(path) -> tuple[bytes, dict, str]:
     return graph, metadata, source
 
 
+def read_checkpoint(folder: Path):
+    """(.meta bytes, model_metadata dict, source, Checkpoint) of a DeepRacer training `model/` folder."""
+    from .checkpoint import Checkpoint, checkpoint_prefix
+
+    try:
+        prefix = checkpoint_prefix(folder)
+        variables = Checkpoint(prefix)
+    except GraphError as exc:
+        raise ModelImportError(str(exc)) from None
+    meta = Path(f"{prefix}.meta")
+    metadata_path = next((p for p in (folder / "model_metadata.json", folder.parent / "model_metadata.json")
+                          if p.is_file()), None)
+    if not meta.is_file() or metadata_path is None:
+        raise ModelImportError(f"{prefix}: a checkpoint needs its .meta graph and model_metadata.json beside it")
+    if meta.stat().st_size > MAX_ARCHIVE_BYTES:
+        raise ModelImportError(f"{meta}: larger than {MAX_ARCHIVE_BYTES // 2**20} MB")
+    try:
+        metadata = json.loads(metadata_path.read_bytes().decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ModelImportError(f"{metadata_path}: not UTF-8 JSON ({exc})") from None
+    if not isinstance(metadata, dict):
+        raise ModelImportError(f"{metadata_path}: not a JSON object")
+    return meta.read_bytes(), metadata, str(prefix), variables
+
+
 def import_model(path, out, name: str | None = None) -> Path:
-    """Import the DeepRacer model at `path` (see the module docstring) as the agent file `out`."""
-    graph, metadata, source = read_model(path)
+    """Import the DeepRacer model at `path` (see the module docstring) as the agent file `out`.
+
+    `path` may also be a training checkpoint folder (DeepRacer's `model/` with `.coach_checkpoint`,
+    `NAME.ckpt.index`, `.data-*` and `.meta`, and model_metadata.json there or one folder up).
+    """
+    folder = _checkpoint_folder(Path(path))
+    variables = None
+    if folder is not None:
+        graph, metadata, source, variables = read_checkpoint(folder)
+    else:
+        graph, metadata, source = read_model(path)
     try:
         space = ActionSpace(metadata, f"{source}: model_metadata.json")
     except ActionSpaceError as exc:
         raise ModelImportError(str(exc)) from None
-    spec = graph_spec(graph, source)
+    spec = graph_spec(graph, source, variables)
     name = name or Path(out).stem
     notes = {"imported_from": Path(str(path)).name, "training_algorithm": metadata.get("training_algorithm",
                                                                                        "clipped_ppo")}

@@ -9,7 +9,8 @@ by protobuf and ignored.
 
 `GraphBuilder` adds nodes (constants, placeholders, ops) and serialises the
 graph; `read_graph` parses a `.pb` into `{name: Node}` with attributes and
-constant values as NumPy arrays.
+constant values as NumPy arrays (`parse_graph(..., meta=True)`: the graph of a
+training checkpoint's `.meta`).
 """
 from __future__ import annotations
 
@@ -89,14 +90,24 @@ def _messages():
     message("GraphDef", [
         (1, "node", F.TYPE_MESSAGE, REP, ".tensorflow.NodeDef"),
         (4, "versions", F.TYPE_MESSAGE, OPT, ".tensorflow.VersionDef")])
+    message("MetaGraphDef", [(2, "graph_def", F.TYPE_MESSAGE, OPT, ".tensorflow.GraphDef")])  # a checkpoint's .meta
+    message("BundleHeaderProto", [(1, "num_shards", F.TYPE_INT32, OPT, None)])  # a checkpoint .index's header
+    message("BundleEntryProto", [  # one tensor of a checkpoint's .index
+        (1, "dtype", F.TYPE_INT32, OPT, None),
+        (2, "shape", F.TYPE_MESSAGE, OPT, ".tensorflow.TensorShapeProto"),
+        (3, "shard_id", F.TYPE_INT32, OPT, None),
+        (4, "offset", F.TYPE_INT64, OPT, None),
+        (5, "size", F.TYPE_INT64, OPT, None)])
     pool = descriptor_pool.DescriptorPool()
     pool.Add(proto)
     return {name: message_factory.GetMessageClass(pool.FindMessageTypeByName(f"tensorflow.{name}"))
-            for name in ("GraphDef", "NodeDef", "AttrValue", "TensorProto", "TensorShapeProto")}
+            for name in ("GraphDef", "NodeDef", "AttrValue", "TensorProto", "TensorShapeProto", "MetaGraphDef",
+                         "BundleHeaderProto", "BundleEntryProto")}
 
 
 _M = _messages()
-GraphDef = _M["GraphDef"]
+GraphDef, MetaGraphDef = _M["GraphDef"], _M["MetaGraphDef"]
+BundleHeaderProto, BundleEntryProto = _M["BundleHeaderProto"], _M["BundleEntryProto"]
 
 
 class GraphError(ValueError):
@@ -202,13 +213,16 @@ def _decode_attr(a, where: str):
     return getattr(a, kind) if kind else None
 
 
-def parse_graph(data: bytes, source: str = "<graph>") -> dict[str, Node]:
-    """`{name: Node}` of a serialised GraphDef; GraphError if the bytes are not one."""
-    graph = GraphDef()
+def parse_graph(data: bytes, source: str = "<graph>", meta: bool = False) -> dict[str, Node]:
+    """`{name: Node}` of a serialised GraphDef (`meta`: of a checkpoint's MetaGraphDef); GraphError if the
+    bytes are not one."""
+    graph = MetaGraphDef() if meta else GraphDef()
     try:
         graph.ParseFromString(data)
     except Exception as exc:  # protobuf's DecodeError and friends
-        raise GraphError(f"{source}: not a TensorFlow GraphDef ({exc})") from None
+        raise GraphError(f"{source}: not a TensorFlow {'MetaGraphDef' if meta else 'GraphDef'} ({exc})") from None
+    if meta:
+        graph = graph.graph_def
     if not graph.node:
         raise GraphError(f"{source}: the graph has no nodes (not a frozen TensorFlow .pb)")
     nodes = {}
