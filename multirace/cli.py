@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -36,9 +37,28 @@ def print_result(result: dict, console: Console) -> None:
     console.print(table)
 
 
+def check_output_paths(args, options=("json", "replay", "video", "simtrace")) -> None:
+    """Refuse, before anything runs, an output file that cannot be written (a folder, a missing or
+    read-only folder): the race should not run only to fail at the end."""
+    for option in options:
+        value = getattr(args, option, None)
+        if not value:
+            continue
+        path = Path(value)
+        where = f"--{option} {value}"
+        if path.is_dir():
+            raise ValueError(f"{where}: is a folder; give a file name")
+        parent = path.parent if str(path.parent) else Path(".")
+        if not parent.is_dir():
+            raise ValueError(f"{where}: folder {parent} does not exist")
+        if not os.access(parent, os.W_OK | os.X_OK) or (path.exists() and not os.access(path, os.W_OK)):
+            raise ValueError(f"{where}: cannot be written (permission denied)")
+
+
 def cmd_race(args) -> int:
     from .racing.runner import RaceConfig, make_controller, run_race
 
+    check_output_paths(args)
     controllers = [make_controller(spec) for spec in args.entrants]
     race_format = args.format or ("time_trial" if len(controllers) == 1 else "head_to_head")
     config = RaceConfig(track=args.track, reverse=args.reverse, race=race_format, laps=args.laps,

@@ -156,6 +156,8 @@ def load_action_space(spec) -> ActionSpace:
     if path.is_dir():
         raise ActionSpaceError(f"{path}: is a folder, not a model_metadata.json file")
     try:
+        if path.exists() and not path.is_file():
+            raise ActionSpaceError(f"{path}: not a regular file (a device, FIFO or socket)")
         if path.stat().st_size > MAX_METADATA_BYTES:
             raise ActionSpaceError(f"{path}: larger than {MAX_METADATA_BYTES // 2**20} MB; not a model_metadata.json")
         metadata = json.loads(path.read_bytes().decode("utf-8"))
@@ -167,6 +169,8 @@ def load_action_space(spec) -> ActionSpace:
         raise ActionSpaceError(f"{path}: not valid JSON ({exc})") from None
     except RecursionError:
         raise ActionSpaceError(f"{path}: JSON nested too deeply") from None
+    except OSError as exc:
+        raise ActionSpaceError(f"{path}: cannot be read ({exc.strerror})") from None
     if not isinstance(metadata, dict):
         raise ActionSpaceError(f"{path}: expected a JSON object")
     return ActionSpace(metadata, str(path))

@@ -20,15 +20,20 @@ import contextlib
 import importlib.util
 import math
 import numbers
+import os
 import signal
 import sys
 import threading
+import time
 from pathlib import Path
 from typing import Callable
 
 REWARD_LIMIT = 1e5
 CALL_TIME_LIMIT = 1.0  # seconds per call of a reward function
 LOAD_TIME_LIMIT = 10.0  # seconds to load (execute) a reward file
+RETRY_INTERVAL = 0.1  # seconds between repeated timeouts into code that caught the first
+GIVE_UP_AFTER = 5.0  # seconds past the limit before the process is ended
+TIMEOUT_EXIT_CODE = 124  # exit status then (as timeout(1))
 
 PARAM_KEYS = (
     "all_wheels_on_track", "x", "y", "heading", "distance_from_center", "projection_distance",
@@ -50,16 +55,24 @@ class _TimeUp(BaseException):
 
 @contextlib.contextmanager
 def time_limit(seconds: float):
-    """Raise `_TimeUp` in the block after `seconds` (main thread only; elsewhere the block runs unlimited)."""
+    """Raise `_TimeUp` in the block after `seconds`, again every `RETRY_INTERVAL` if the code swallows it
+    (a bare ``except:``), and end the process with a message after `GIVE_UP_AFTER` more seconds: a reward
+    function must never hang a run. Main thread only (elsewhere the block runs unlimited)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
+    deadline = time.monotonic() + seconds + GIVE_UP_AFTER
 
     def time_up(signum, frame):
+        if time.monotonic() > deadline:
+            sys.stderr.write(f"multirace: a reward function ignored its {seconds:g} s time limit for "
+                             f"{GIVE_UP_AFTER:g} s more (it catches the timeout); stopping the process\n")
+            sys.stderr.flush()
+            os._exit(TIMEOUT_EXIT_CODE)
         raise _TimeUp()
 
     previous = signal.signal(signal.SIGALRM, time_up)
-    signal.setitimer(signal.ITIMER_REAL, seconds)
+    signal.setitimer(signal.ITIMER_REAL, seconds, RETRY_INTERVAL)
     try:
         yield
     finally:
@@ -102,8 +115,11 @@ class RewardFunction:
         naming the file, step and car on any failure."""
         name, when = f"reward function {self.label}", f"at step {step} for {car}"
         try:
+            start = time.monotonic()
             with time_limit(CALL_TIME_LIMIT):
                 value = self.function(private_params(params))
+            if time.monotonic() - start > CALL_TIME_LIMIT:  # it caught the timeout and returned late
+                raise _TimeUp()
         except _TimeUp:
             raise RewardFunctionError(f"{name} did not return within {CALL_TIME_LIMIT:g} s {when}") from None
         except SystemExit as exc:
