@@ -260,9 +260,10 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_argument("--out", required=True, metavar="MODEL.tar.gz", help="archive to write")
     export.set_defaults(func=cmd_agent_export)
     imported = agent_sub.add_parser("import", help="turn a DeepRacer model into an agent file",
-                                    description="Read a car archive (.tar.gz), a folder, or a frozen .pb with its "
-                                                "model_metadata.json, and write an equivalent agent file.")
-    imported.add_argument("path", help="DeepRacer model: .tar.gz, folder or model.pb")
+                                    description="Read a car archive (.tar.gz), a folder, a frozen .pb with its "
+                                                "model_metadata.json, or a training checkpoint folder (model/ with "
+                                                ".ckpt files), and write an equivalent agent file.")
+    imported.add_argument("path", help="DeepRacer model: .tar.gz, folder, model.pb or checkpoint folder")
     imported.add_argument("--out", required=True, metavar="FILE.pt", help="agent file to write")
     imported.add_argument("--name", default=None, help="agent name in the metadata (default: file stem)")
     imported.set_defaults(func=cmd_agent_import)

@@ -391,3 +391,44 @@ def test_import_a_training_checkpoint_folder(tmp_path, frames):
     for obs in frames:
         mine = torch.softmax(torch.from_numpy(policy.agent.outputs(obs["camera"])[0]), 0).numpy()
         np.testing.assert_allclose(mine, reference(obs["camera"]), atol=1e-5)
+
+
+@pytest.mark.parametrize("kind", ["five_layer", "sac_lidar"])
+def test_imported_deepracer_networks_go_back_to_the_car(tmp_path, frames, kind):
+    """An imported 5-layer or SAC (camera+LIDAR) model exports to a car archive that OpenVINO runs as the
+    imported policy does (SAC's tanh inside the graph), and imports back to the same commands."""
+    if kind == "five_layer":
+        metadata = {"action_space": [{"steering_angle": s, "speed": 1.5} for s in (-30, -15, 0, 15, 30)],
+                    "sensor": ["FRONT_FACING_CAMERA"], "neural_network": "DEEP_CONVOLUTIONAL_NETWORK"}
+        graph = deepracer_graph(np.random.default_rng(1), convs=FIVE_LAYER_CONVS, embedder_dense=(64,), outputs=5,
+                                camera="FRONT_FACING_CAMERA")
+    else:
+        metadata = {**CONTINUOUS, "sensor": ["FRONT_FACING_CAMERA", "LIDAR"], "training_algorithm": "sac"}
+        graph = deepracer_graph(np.random.default_rng(3), convs=SHALLOW_CONVS, head_hidden=(256,), outputs=2,
+                                discrete=False, algorithm="sac", camera="FRONT_FACING_CAMERA", lidar=64)
+    (tmp_path / "in").mkdir()
+    (tmp_path / "in" / "model.pb").write_bytes(graph)
+    (tmp_path / "in" / "model_metadata.json").write_text(json.dumps(metadata))
+    import_model(tmp_path / "in" / "model.pb", tmp_path / "imported.pt")
+    policy = multirace.load_agent(tmp_path / "imported.pt")
+    assert cli_main(["agent", "export", str(tmp_path / "imported.pt"), "--out", str(tmp_path / "car.tar.gz")]) == 0
+    folder = unpack(tmp_path / "car.tar.gz", tmp_path / "car")
+    car_metadata = json.loads((folder / "model_metadata.json").read_text())
+    assert car_metadata["sensor"] == metadata["sensor"] and car_metadata["training_algorithm"] == "clipped_ppo"
+    compiled = ov.Core().compile_model(ov.convert_model(str(folder / "agent" / "model.pb")), "CPU",
+                                       {"INFERENCE_PRECISION_HINT": "f32"})
+    import_model(tmp_path / "car.tar.gz", tmp_path / "back.pt")
+    back = multirace.load_agent(tmp_path / "back.pt")
+    for obs in frames:
+        lidar = kind == "sac_lidar"
+        feed = {input_name("FRONT_FACING_CAMERA") + ":0": obs["camera"][None].astype(np.float32)}
+        if lidar:
+            feed[input_name("LIDAR") + ":0"] = obs["lidar"][None].astype(np.float32)
+        observation = obs if lidar else obs["camera"]
+        car = compiled(feed)[0][0]
+        mine = policy.agent.outputs(observation)[0]
+        if lidar:  # the car maps [-1, 1] linearly: steering 30 v, speed 2 + v
+            np.testing.assert_allclose([30 * car[0], 2 + car[1]], mine[:2], atol=1e-4)
+        else:
+            np.testing.assert_allclose(car, torch.softmax(torch.from_numpy(mine), 0).numpy(), atol=1e-5)
+        np.testing.assert_allclose(back.command(observation), policy.command(observation), atol=1e-4)

@@ -80,9 +80,9 @@ def read_index(path) -> dict[str, dict]:
                 entry = BundleEntryProto.FromString(value)
                 tensors[key.decode()] = {"dtype": entry.dtype, "shape": [d.size for d in entry.shape.dim],
                                          "shard": entry.shard_id, "offset": entry.offset, "size": entry.size}
-    except (struct.error, UnicodeDecodeError, Exception) as exc:
-        if isinstance(exc, GraphError):
-            raise
+    except GraphError:
+        raise
+    except Exception as exc:  # struct, protobuf and decoding errors of a damaged file
         raise GraphError(f"{path}: unreadable checkpoint index ({type(exc).__name__}: {exc})") from None
     return tensors
 

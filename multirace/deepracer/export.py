@@ -18,7 +18,9 @@ Layers are named as DeepRacer's networks name them (``Conv2d_0``,
 ``BatchnormActivationDropout_1_activation``, ``Flatten/flatten/Reshape``,
 ``middleware_fc_embedder/Dense_0``, ``ppo_head_0/policy_fc``), convolutions are
 VALID NHWC with HWIO kernels, and the flatten is NHWC's, so the graph computes
-exactly what the torch policy computes.
+exactly what the torch policy computes. An imported DeepRacer network that
+multirace runs as a `drnet.GraphNet` (5-layer, deep, SAC, stereo) exports from
+its layers the same way (`graph_net_graph`).
 """
 from __future__ import annotations
 
@@ -30,9 +32,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..racing.agentfile import load_agent
+from ..racing.agentfile import load_agent, parse_metadata, read_payload
 from ..racing.nets import AveragePool, CameraNet
 from ..racing.runner import resolve_agent_path
+from .drnet import load_graph_agent
 from .tfgraph import DT_FLOAT, DT_INT32, GraphBuilder
 
 CAMERA_SIZE = (120, 160)  # (height, width) the car's inference feeds
@@ -67,7 +70,6 @@ def _camera_embedder(g: GraphBuilder, net: CameraNet, sensor: str, scope: str) -
     x = g.op(f"{scope}/truediv", "RealDiv", [input_name(sensor), g.const(f"{scope}/truediv/y", np.float32(255.0))])
     x = g.op(f"{scope}/sub", "Sub", [x, g.const(f"{scope}/sub/y", np.float32(0.0))])
     index = 0
-    shape = (height, width, channels)
     for layer in net.conv:
         if isinstance(layer, AveragePool):
             k = int(layer.kernel_size)
@@ -133,6 +135,73 @@ def policy_graph(net: CameraNet, space) -> bytes:
     return g.to_bytes()
 
 
+def graph_net_graph(net) -> bytes:
+    """The frozen GraphDef bytes of an imported DeepRacer network (`drnet.GraphNet`), under PPO's names.
+
+    A SAC policy's mean goes through ``tanh`` inside the graph, so that its output is a PPO head's
+    ``[-1, 1]`` (what DeepRacer's simulator drove it with), which every car maps the same way.
+    """
+    g = GraphBuilder()
+    state = {k: v.detach() for k, v in net.state_dict().items()}
+    net1 = f"{ROOT}/network_1"
+    embeddings = []
+
+    def layers(spec, x, scope, prefix, feature):
+        dense_index = 0
+        for i, layer in enumerate(spec):
+            kind, name = layer["type"], f"{scope}/layer_{i}"
+            if kind == "scale":
+                if abs(layer["scale"] * 255.0 - 1.0) < 1e-9:
+                    x = g.op(f"{scope}/truediv", "RealDiv", [x, g.const(f"{scope}/truediv/y", np.float32(255.0))])
+                else:
+                    x = g.op(f"{scope}/mul", "Mul", [x, g.const(f"{scope}/mul/y", np.float32(layer["scale"]))])
+                x = g.op(f"{scope}/sub", "Sub", [x, g.const(f"{scope}/sub/y", np.float32(-layer["shift"]))])
+            elif kind == "conv":
+                w, b = state[f"{prefix}.{i}.weight"], state[f"{prefix}.{i}.bias"]
+                s = layer["stride"]
+                x = g.op(f"{name}/Conv2D", "Conv2D", [x, g.const(f"{name}/kernel", w.permute(2, 3, 1, 0).numpy())],
+                         strides=("ints", [1, s, s, 1]), padding="VALID", data_format="NHWC",
+                         dilations=("ints", [1, 1, 1, 1]))
+                x = g.op(f"{name}/BiasAdd", "BiasAdd", [x, g.const(f"{name}/bias", b.numpy())], data_format="NHWC")
+            elif kind == "pool":
+                k = layer["k"]
+                x = g.op(f"{name}/AvgPool", "AvgPool", [x], ksize=("ints", [1, k, k, 1]),
+                         strides=("ints", [1, k, k, 1]), padding="VALID", data_format="NHWC")
+            elif kind == "relu":
+                x = g.op(f"{name}/Relu", "Relu", [x])
+            elif kind == "flatten":
+                shape = g.const(f"{name}/Reshape/shape", np.array([-1, feature(i)], np.int32))
+                x = g.node(f"{name}/Reshape", "Reshape", [x, shape], T=("type", DT_FLOAT), Tshape=("type", DT_INT32))
+            elif kind == "dense":
+                x = _dense(g, f"{scope}/Dense_{dense_index}", x, state[f"{prefix}.{i}.weight"],
+                           state[f"{prefix}.{i}.bias"])
+                dense_index += 1
+        return x
+
+    for sensor in net.sensors:
+        spec = net.spec["inputs"][sensor]
+        g.node(input_name(sensor), "Placeholder", dtype=("type", DT_FLOAT), shape=("shape", [-1, *spec["shape"]]))
+        embedder = net.embedders[sensor]
+
+        def feature(i, embedder=embedder, shape=spec["shape"]):
+            with torch.no_grad():
+                return int(embedder[:i + 1](torch.zeros(1, shape[2], shape[0], shape[1])).shape[1])
+
+        embeddings.append(layers(spec["layers"], input_name(sensor), f"{net1}/{sensor}", f"embedders.{sensor}",
+                                 feature))
+    x = embeddings[0]
+    if len(embeddings) > 1:
+        axis = g.const(f"{net1}/concat/axis", np.int32(1))
+        x = g.node(f"{net1}/concat", "ConcatV2", [*embeddings, axis], N=len(embeddings), T=("type", DT_FLOAT),
+                   Tidx=("type", DT_INT32))
+    x = layers(net.spec["layers"], x, f"{net1}/middleware_and_head", "post", None)
+    if net.output == "softmax":
+        g.op(OUTPUT, "Softmax", [x])
+    else:
+        g.op(OUTPUT, "Identity", [g.op(f"{net1}/ppo_head_0/tanh", "Tanh", [x]) if net.output == "sac" else x])
+    return g.to_bytes()
+
+
 def car_metadata(metadata: dict, space, channels: int, lidar: bool) -> dict:
     """model_metadata.json as the car reads it (sensor, algorithm, action space), plus the agent's notes."""
     sensor = [camera_sensor(channels)] + (["LIDAR"] if lidar else [])
@@ -147,13 +216,20 @@ def export_agent(path, out) -> Path:
     path, out = resolve_agent_path(str(path)), Path(out)
     if not out.name.endswith(".tar.gz"):
         raise ExportError(f"{out}: the car accepts only archives named *.tar.gz")
-    agent = load_agent(path, step_budget=None)
+    graph_net = "deepracer_graph" in parse_metadata(read_payload(path), str(path))
+    agent = load_graph_agent(path) if graph_net else load_agent(path, step_budget=None)
     height, width, channels = agent.image_shape
     if (height, width) != CAMERA_SIZE or channels not in (1, 2):
         raise ExportError(f"{path}: the agent reads {height}x{width}x{channels} images; the car feeds "
                           f"{CAMERA_SIZE[0]}x{CAMERA_SIZE[1]} grey images (1 channel, 2 for stereo)")
-    graph = policy_graph(agent.net, agent.action_space)
-    metadata = car_metadata(agent.metadata, agent.action_space, channels, bool(agent.lidar_samples))
+    if graph_net:
+        graph = graph_net_graph(agent.net)
+        metadata = {k: v for k, v in agent.metadata.items() if k != "deepracer_graph"}
+        metadata = car_metadata(metadata, agent.action_space, channels, False)
+        metadata["sensor"] = list(agent.net.sensors)
+    else:
+        graph = policy_graph(agent.net, agent.action_space)
+        metadata = car_metadata(agent.metadata, agent.action_space, channels, bool(agent.lidar_samples))
     out.parent.mkdir(parents=True, exist_ok=True)
     with tarfile.open(out, "w:gz") as tar:
         for name, data in (("agent/model.pb", graph),
