@@ -41,7 +41,8 @@ def test_a_bad_reward_function_is_a_clear_error_naming_the_file_and_step(tmp_pat
     ("while True:\n    pass\n", "did not finish within"),
     ("import sys\nsys.exit(3)\n", r"sys\.exit\(3\)"),
 ])
-def test_a_reward_file_that_hangs_or_exits_when_loaded_is_a_clear_error(tmp_path, source, words):
+def test_a_reward_file_that_hangs_or_exits_when_loaded_is_a_clear_error(tmp_path, monkeypatch, source, words):
+    monkeypatch.setattr("multirace.environment.rewards.LOAD_TIME_LIMIT", 1.0)  # the limit, not its 10 s value
     path = tmp_path / "load.py"
     path.write_text(source + "def reward_function(params):\n    return 1.0\n")
     with pytest.raises(RewardFunctionError, match=words):
@@ -400,3 +401,152 @@ def test_init_refuses_a_missing_template_and_a_path_that_is_a_file(tmp_path):
     (tmp_path / "file").write_text("x")
     with pytest.raises(LeagueError, match="not a folder"):
         init_league(tmp_path / "file")
+
+
+# ------------------------------------------------------------------ nothing a file holds is ever run
+class _Payload:
+    """Pickles as a call that would create the marker file if anything ever ran it."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (os.system, (f"touch {self.marker}",))
+
+
+def _torch_zip_with_code(path, marker):
+    torch_save({"format": "multirace-agent", "format_version": 1, "metadata": "{}",
+                "state_dict": {"x": _Payload(marker)}}, path)
+
+
+def _raw_pickle(path, marker):
+    path.write_bytes(pickle.dumps(_Payload(marker), protocol=4))
+
+
+def _protocol0_global(path, marker):
+    path.write_bytes(f"cos\nsystem\n(S'touch {marker}'\ntR.".encode())
+
+
+@pytest.mark.parametrize("make", [_torch_zip_with_code, _raw_pickle, _protocol0_global],
+                         ids=["reduce_in_torch_zip", "raw_pickle", "protocol0_global"])
+def test_code_in_an_agent_file_is_refused_and_never_run(tmp_path, make):
+    marker = tmp_path / "ran"
+    path = tmp_path / "evil.pt"
+    make(path, marker)
+    with pytest.raises(AgentFileError, match="refused|unreadable"):
+        load_agent(path, step_budget=None)
+    assert not marker.exists()
+
+
+def test_code_in_a_track_file_is_refused_and_never_run(tmp_path):
+    from multirace.sim.tracks import TrackError, load_track
+
+    marker = tmp_path / "ran"
+    np.save(tmp_path / "evil.npy", np.array([_Payload(marker)] * 6, dtype=object).reshape(1, 6), allow_pickle=True)
+    with pytest.raises(TrackError, match="evil.npy: cannot be read"):
+        load_track(tmp_path / "evil.npy")
+    assert not marker.exists()
+
+
+def test_agent_inspect_runs_under_memory_and_time_limits(tmp_path):
+    from multirace.racing.agentfile import inspect_agent_isolated
+
+    info = inspect_agent_isolated(_bytearray_bomb(tmp_path / "bomb.pt"))
+    assert info["valid"] is False and "bytearray" in info["error"]
+    info = inspect_agent_isolated(_valid_agent(tmp_path / "ok.pt"), timeout=0.01)
+    assert info["valid"] is False and "did not finish within" in info["error"]
+
+
+def test_agent_inspect_prints_a_hostile_name_as_text(tmp_path, capsys):
+    from multirace.cli import main
+
+    path = save_agent(tmp_path / "evil.pt", build_net(TINY, (120, 160, 1), SPACE), make_metadata(SPACE, TINY, EVIL_NAME))
+    assert main(["agent", "inspect", str(path)]) == 0
+    name_line = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("name"))
+    assert "\x1b" not in name_line and "\x07" not in name_line and "[link=http://x]evil" in name_line
+
+
+# ------------------------------------------------------------------ tracks
+def _ring(points=120, radius=3.0, half_width=0.4):
+    theta = np.linspace(0, 2 * np.pi, points)
+    unit = np.column_stack([np.cos(theta), np.sin(theta)])
+    return np.column_stack([radius * unit, (radius - half_width) * unit, (radius + half_width) * unit])
+
+
+HOSTILE_TRACKS = {
+    "empty": (lambda: np.zeros((0, 6)), "0 waypoints"),
+    "centimetres": (lambda: _ring() * 100, "implausible scale"),
+    "millimetres": (lambda: _ring() * 1000, "implausible scale"),
+    "six_cm_road": (lambda: _ring(half_width=0.03), "wide \\(median\\)"),
+    "centre_outside": (lambda: np.column_stack([_ring()[:, 0:2] * 1.2, _ring()[:, 2:6]]), "outside the road"),
+    "too_many_rows": (lambda: _ring(points=100_001, radius=10.0), "100001 waypoints"),
+    "open_route": (lambda: np.column_stack([np.linspace(0, 10, 50), np.zeros(50), np.linspace(0, 10, 50),
+                                            np.full(50, 0.4), np.linspace(0, 10, 50), np.full(50, -0.4)]),
+                   "not a closed loop"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(HOSTILE_TRACKS))
+def test_hostile_track_files_are_clear_errors_naming_the_file(tmp_path, case):
+    from multirace.sim.tracks import TrackError
+
+    make, words = HOSTILE_TRACKS[case]
+    path = tmp_path / f"{case}.npy"
+    np.save(path, make())
+    start = time.monotonic()
+    with pytest.raises(TrackError, match=words) as err:
+        multirace.parallel_env(track=str(path), num_cars=1)
+    assert str(path) in str(err.value)
+    assert time.monotonic() - start < 30  # no quadratic check, no giant texture
+
+
+@pytest.mark.parametrize("case", ["fifo", "folder", "huge"])
+def test_special_track_files_are_refused_unread(tmp_path, case):
+    from multirace.sim.tracks import TrackError
+
+    path = tmp_path / "t.npy"
+    if case == "fifo":
+        os.mkfifo(path)
+    elif case == "folder":
+        path.mkdir()
+    else:
+        with open(path, "wb") as handle:  # sparse: 1 GB without writing it
+            handle.truncate(2**30)
+    with pytest.raises(TrackError, match="not a regular file|over the 16 MB limit"):
+        multirace.parallel_env(track=str(path), num_cars=1)
+
+
+def test_eight_cars_on_a_short_loop_is_a_clear_error():
+    from multirace.sim.tracks import Track, TrackError
+
+    small = Track(_ring(radius=0.38, half_width=0.3), source="small.npy")
+    with pytest.raises(TrackError, match="8 cars need a start grid"):
+        multirace.parallel_env(track=small, num_cars=8)
+
+
+# ------------------------------------------------------------------ more reward functions, action spaces, outputs
+def test_a_reward_function_that_swallows_its_timeout_is_still_an_error(tmp_path):
+    env = _env_with(tmp_path, "def reward_function(params):\n    try:\n        while True:\n            pass\n"
+                              "    except BaseException:\n        return 1.0\n", "swallow.py")
+    env.reset(seed=0)
+    with pytest.raises(RewardFunctionError, match="swallow.py did not return within"):
+        env.step({"car_0": 0})
+
+
+def test_a_fifo_action_space_file_is_refused_unread(tmp_path):
+    os.mkfifo(tmp_path / "model_metadata.json")
+    with pytest.raises(ActionSpaceError, match="not a regular file"):
+        load_action_space(tmp_path / "model_metadata.json")
+
+
+@pytest.mark.parametrize("option, value, words", [("--json", ".", "is a folder"),
+                                                   ("--replay", "file/race.rrd", "does not exist"),
+                                                   ("--video", "missing/race.mp4", "does not exist")])
+def test_unusable_output_paths_are_refused_before_the_race(tmp_path, monkeypatch, capsys, option, value, words):
+    from multirace.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "file").write_text("a file, not a folder")
+    assert main(["race", "bot:follow@1.0", "--max-steps", "5", option, value]) == 2
+    out, err = capsys.readouterr()
+    assert words in err and option in err and "time_trial" not in out  # no race ran
