@@ -96,6 +96,7 @@ def test_openvino_runs_the_graph_like_the_torch_policy(tmp_path, frames, agent):
                                                                                        else image)
 
 
+@pytest.mark.slow
 def test_continuous_shallow_head_gives_the_cars_minus_one_to_one(tmp_path, frames):
     space = load_action_space(CONTINUOUS)
     torch.manual_seed(1)
@@ -281,6 +282,7 @@ def test_import_a_deepracer_shallow_model(tmp_path, frames):
     assert isinstance(policy.agent.net, CameraNet)  # so races and leagues load it too
 
 
+@pytest.mark.slow
 def test_import_a_deepracer_five_layer_discrete_model(tmp_path, frames):
     metadata = {"action_space": [{"steering_angle": s, "speed": 1.5} for s in (-30, -15, 0, 15, 30)],
                 "sensor": ["FRONT_FACING_CAMERA"], "neural_network": "DEEP_CONVOLUTIONAL_NETWORK"}
@@ -294,6 +296,7 @@ def test_import_a_deepracer_five_layer_discrete_model(tmp_path, frames):
     assert isinstance(policy.agent.net, GraphNet) and policy.metadata["neural_network"] == "DEEP_CONVOLUTIONAL_NETWORK"
 
 
+@pytest.mark.slow
 def test_import_a_deepracer_deep_continuous_ppo_model(tmp_path, frames):
     metadata = {**CONTINUOUS, "sensor": ["FRONT_FACING_CAMERA"], "neural_network": "DEEP_CONVOLUTIONAL_NETWORK_DEEP"}
     graph = deepracer_graph(np.random.default_rng(2), convs=DEEP_CONVS, embedder_dense=(512, 512),
@@ -306,6 +309,7 @@ def test_import_a_deepracer_deep_continuous_ppo_model(tmp_path, frames):
     import_and_compare(tmp_path, frames, graph, metadata, feed, lambda car, mine: [30 * car[0], 2 + car[1]])
 
 
+@pytest.mark.slow
 def test_import_a_deepracer_sac_camera_lidar_model(tmp_path, frames):
     metadata = {**CONTINUOUS, "sensor": ["FRONT_FACING_CAMERA", "LIDAR"], "training_algorithm": "sac",
                 "neural_network": "DEEP_CONVOLUTIONAL_NETWORK_SHALLOW"}
@@ -347,6 +351,7 @@ def test_a_graph_declaring_a_huge_constant_is_refused_unallocated(tmp_path):
         import_model(tmp_path / "model.pb", tmp_path / "x.pt")
 
 
+@pytest.mark.slow
 @needs_fixtures
 def test_import_a_training_checkpoint_folder(tmp_path, frames):
     """DeepRacer's model/ folder: the real checkpoint's .index and .meta (reInvent2019-TestModel), with a .data
@@ -393,6 +398,7 @@ def test_import_a_training_checkpoint_folder(tmp_path, frames):
         np.testing.assert_allclose(mine, reference(obs["camera"]), atol=1e-5)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["five_layer", "sac_lidar"])
 def test_imported_deepracer_networks_go_back_to_the_car(tmp_path, frames, kind):
     """An imported 5-layer or SAC (camera+LIDAR) model exports to a car archive that OpenVINO runs as the
