@@ -105,7 +105,7 @@ class GraphNet(nn.Module):
         features = {self.camera: self.embedders[self.camera](x.permute(0, 3, 1, 2).float())}
         if self.lidar_sensor:
             if ranges is None:
-                raise ValueError(f"this net needs {{'camera': images, 'lidar': ranges}} observations")
+                raise ValueError("this net needs {'camera': images, 'lidar': ranges} observations")
             features[self.lidar_sensor] = self.embedders[self.lidar_sensor](ranges.reshape(x.shape[0], -1))
         out = self.post(torch.cat([features[s] for s in self.sensors], dim=1))
         if self.space.discrete:

@@ -231,7 +231,7 @@ def export_agent(path, out) -> Path:
         graph = policy_graph(agent.net, agent.action_space)
         metadata = car_metadata(agent.metadata, agent.action_space, channels, bool(agent.lidar_samples))
     out.parent.mkdir(parents=True, exist_ok=True)
-    with tarfile.open(out, "w:gz") as tar:
+    with tarfile.open(out, "w:gz", compresslevel=6) as tar:
         for name, data in (("agent/model.pb", graph),
                            ("model_metadata.json", json.dumps(metadata, indent=4).encode())):
             info = tarfile.TarInfo(name)
