@@ -160,6 +160,20 @@ def _patched_count(path):
     return _rewrite(_valid_agent(path), edit)
 
 
+def _patched_shape(path):
+    def edit(name, data, compress):  # the first tensor claims 2**30 rows over its small storage
+        if name.endswith("data.pkl"):
+            import pickletools
+
+            ops = list(pickletools.genops(data))
+            at = next(k for k, (op, _, _) in enumerate(ops) if op.name == "BINPERSID")
+            op, _, pos = ops[at + 3]  # storage offset, MARK, then the first size
+            assert op.name == "BININT1"
+            data = data[:pos] + b"J" + (2**30).to_bytes(4, "little") + data[pos + 2:]
+        return name, data, compress
+    return _rewrite(_valid_agent(path), edit)
+
+
 def _deflated(path):
     return _rewrite(_valid_agent(path), lambda n, d, c: (n, d, zipfile.ZIP_DEFLATED if "/data/" in n else c))
 
@@ -191,6 +205,7 @@ HOSTILE_AGENTS = {
     "bytearray_bomb": (_bytearray_bomb, "refused: the file's pickle names '.*bytearray'"),
     "patched_element_count": (_patched_count, "declares 1000000000 elements"),
     "deflated_storage": (_deflated, "stored, uncompressed"),
+    "patched_tensor_shape": (_patched_shape, "unreadable"),
     "metadata_claims_huge_images": (_huge_image, "out of range|over the limit"),
     "deeply_nested_metadata": (_deep_metadata, "nested too deeply|unreadable"),
     "fifo": (_fifo, "not a regular file"),

@@ -38,7 +38,6 @@ import math
 import os
 import pickle
 import pickletools
-import resource
 import stat
 import subprocess
 import sys
@@ -480,12 +479,6 @@ INSPECT_MEMORY = 1536 * 2**20  # bytes of address space an isolated inspection m
 INSPECT_TIMEOUT = 120.0  # seconds
 
 
-def _limit_memory(limit: int):
-    def apply():  # runs in the child before it starts Python
-        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
-    return apply
-
-
 def inspect_agent_isolated(path, timeout: float = INSPECT_TIMEOUT, memory: int = INSPECT_MEMORY) -> dict:
     """`inspect_agent` in a subprocess held to `memory` bytes of address space and `timeout` seconds, so a
     hostile file can neither exhaust this process's memory nor hang it. Returns the same dict; a file that
@@ -493,12 +486,14 @@ def inspect_agent_isolated(path, timeout: float = INSPECT_TIMEOUT, memory: int =
     path = Path(path)
     if not os.path.lexists(path):
         raise FileNotFoundError(f"{path}: no such agent file")
-    code = ("import json, sys\nfrom multirace.racing.agentfile import inspect_agent\n"
+    code = ("import json, resource, sys\n"  # the limit is set before torch or the file is loaded
+            f"resource.setrlimit(resource.RLIMIT_AS, ({int(memory)}, {int(memory)}))\n"
+            "from multirace.racing.agentfile import inspect_agent\n"
             "print(json.dumps(inspect_agent(sys.argv[1])))\n")
     failed = {"file": str(path), "sha256": None, "size_bytes": None, "valid": False}
     try:
         done = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True,
-                              timeout=timeout, preexec_fn=_limit_memory(memory), stdin=subprocess.DEVNULL)
+                              timeout=timeout, stdin=subprocess.DEVNULL)
     except subprocess.TimeoutExpired:
         return {**failed, "error": f"{path}: inspection did not finish within {timeout:g} s"}
     try:
