@@ -94,14 +94,16 @@ def _camera_embedder(g: GraphBuilder, net: CameraNet, sensor: str, scope: str) -
     return x, shape
 
 
-def policy_graph(net: CameraNet, space) -> bytes:
-    """The frozen GraphDef bytes of `net`'s policy with the car's node names (see the module docstring)."""
+def policy_graph(net: CameraNet, space, lidar_sensor: str = "LIDAR") -> bytes:
+    """The frozen GraphDef bytes of `net`'s policy with the car's node names (see the module docstring);
+    `lidar_sensor` names its LIDAR input (``LIDAR`` or ``SECTOR_LIDAR``)."""
     height, width, channels = net.image_shape
     g = GraphBuilder()
     sensor = camera_sensor(channels)
     g.node(input_name(sensor), "Placeholder", dtype=("type", DT_FLOAT), shape=("shape", [-1, height, width, channels]))
     if net.lidar_samples:
-        g.node(input_name("LIDAR"), "Placeholder", dtype=("type", DT_FLOAT), shape=("shape", [-1, net.lidar_samples]))
+        g.node(input_name(lidar_sensor), "Placeholder", dtype=("type", DT_FLOAT),
+               shape=("shape", [-1, net.lidar_samples]))
     net1 = f"{ROOT}/network_1"
     x, (h, w, c) = _camera_embedder(g, net, sensor, f"{net1}/{sensor}")
     fc = net.fc[0]
@@ -111,10 +113,11 @@ def policy_graph(net: CameraNet, space) -> bytes:
     camera_cols = weight[:, :conv_flat].reshape(-1, c, h, w).permute(0, 2, 3, 1).reshape(-1, conv_flat)
     weight = torch.cat([camera_cols, weight[:, conv_flat:]], dim=1)
     if net.lidar_samples:
-        lidar = g.op(f"{net1}/LIDAR/sub", "Sub", [input_name("LIDAR"), g.const(f"{net1}/LIDAR/sub/y", np.float32(0.0))])
+        scope = f"{net1}/{lidar_sensor}"
+        lidar = g.op(f"{scope}/sub", "Sub", [input_name(lidar_sensor), g.const(f"{scope}/sub/y", np.float32(0.0))])
         for k, layer in ((0, net.lidar[0]), (2, net.lidar[2])):
-            lidar = _dense(g, f"{net1}/LIDAR/Dense_{k}", lidar, layer.weight, layer.bias)
-            lidar = g.op(f"{net1}/LIDAR/BatchnormActivationDropout_{k + 1}_activation", "Relu", [lidar])
+            lidar = _dense(g, f"{scope}/Dense_{k}", lidar, layer.weight, layer.bias)
+            lidar = g.op(f"{scope}/BatchnormActivationDropout_{k + 1}_activation", "Relu", [lidar])
         axis = g.const(f"{net1}/concat/axis", np.int32(1))
         x = g.node(f"{net1}/concat", "ConcatV2", [x, lidar, axis], N=2, T=("type", DT_FLOAT), Tidx=("type", DT_INT32))
     x = _dense(g, f"{net1}/middleware_fc_embedder/Dense_0", x, weight, fc.bias)
@@ -202,9 +205,15 @@ def graph_net_graph(net) -> bytes:
     return g.to_bytes()
 
 
+def lidar_sensor_of(metadata: dict) -> str:
+    """The agent's LIDAR sensor name in its metadata: ``SECTOR_LIDAR`` if declared, else ``LIDAR``."""
+    sensor = metadata.get("sensor")
+    return "SECTOR_LIDAR" if "SECTOR_LIDAR" in ([sensor] if isinstance(sensor, str) else sensor or []) else "LIDAR"
+
+
 def car_metadata(metadata: dict, space, channels: int, lidar: bool) -> dict:
     """model_metadata.json as the car reads it (sensor, algorithm, action space), plus the agent's notes."""
-    sensor = [camera_sensor(channels)] + (["LIDAR"] if lidar else [])
+    sensor = [camera_sensor(channels)] + ([lidar_sensor_of(metadata)] if lidar else [])
     out = {k: v for k, v in metadata.items() if k not in ("action_space", "action_space_type")}
     out.update(sensor=sensor, training_algorithm=CAR_ALGORITHM, **space.to_metadata())
     out.setdefault("version", "5")
@@ -228,7 +237,7 @@ def export_agent(path, out) -> Path:
         metadata = car_metadata(metadata, agent.action_space, channels, False)
         metadata["sensor"] = list(agent.net.sensors)
     else:
-        graph = policy_graph(agent.net, agent.action_space)
+        graph = policy_graph(agent.net, agent.action_space, lidar_sensor_of(agent.metadata))
         metadata = car_metadata(agent.metadata, agent.action_space, channels, bool(agent.lidar_samples))
     out.parent.mkdir(parents=True, exist_ok=True)
     with tarfile.open(out, "w:gz", compresslevel=6) as tar:

@@ -38,6 +38,7 @@ import torch
 from ..environment.actions import ActionSpace, ActionSpaceError
 from ..racing.agentfile import make_metadata, save_agent
 from ..racing.nets import NETWORKS, AveragePool, CameraNet, num_outputs_for
+from ..sensors.lidar import LidarSpec
 from .tfgraph import GraphError, parse_graph
 
 MAX_ARCHIVE_BYTES = 512 * 2**20  # unpacked members of a car archive read at most
@@ -295,6 +296,9 @@ def to_camera_net(spec: GraphSpec, space: ActionSpace, source: str) -> CameraNet
         raise NotCameraNet(f"{source}: a SAC policy (tanh-squashed mean) is not one of multirace's networks")
     outputs = num_outputs_for(space)
     lidar_samples = int(lidar_stack[0][0].shape[0]) if lidar_stack else 0
+    if lidars and (lidars[0] != "LIDAR" or lidar_samples != LidarSpec().samples):
+        raise NotCameraNet(f"{source}: {lidars[0]} with {lidar_samples} inputs; multirace's networks read the "
+                           f"{LidarSpec().samples}-beam LIDAR")
     for network in NETWORKS:
         try:
             net = CameraNet(network, (height, width, channels), outputs, lidar_samples=lidar_samples)
