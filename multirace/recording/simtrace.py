@@ -16,9 +16,9 @@ DeepRacer's units and meanings (see ../shared/formats/README.md):
                      step limit)
 ``pause_duration``   penalty seconds added on that step
 
-No extra column is written: deepracer-utils reads these files positionally
-(`pd.read_csv(names=[...], header=0)`), so any added column would shift its
-columns. Instead, in a race log every car's run is one *episode*: the
+No extra column is written (older deepracer-utils releases read these files
+positionally, so an added column would shift theirs). In a race log every
+car's run is one *episode*: the
 ``episode`` column is the car's slot (car_0 -> 0, car_1 -> 1, ...), so
 deepracer-utils' per-episode analysis gives per-car analysis. One row per car
 per step while the car races (and on the step its run ends, with done=True).
