@@ -24,7 +24,10 @@ will), and every tensor storage it declares must match its stored,
 uncompressed record byte for byte, within `MAX_WEIGHT_BYTES` in all; then
 ``torch.load(..., weights_only=True)`` reads it. The network that the
 metadata names is sized on torch's meta device before any weights are
-allocated (`MAX_PARAMETERS`).
+allocated (`MAX_PARAMETERS`). Any failure while loading is an
+`AgentFileError` (the entrant forfeits; the race goes on), and
+`inspect_agent_isolated` inspects a file in a subprocess under an
+address-space limit and a timeout.
 Validation on load checks the metadata, the weights against the architecture,
 the output shape against the action space, and a smoke inference (finite
 output, within the time budget). Every error names the file and the field.
@@ -423,6 +426,8 @@ def _load_agent(path: Path, step_budget: float | None, smoke_runs: int) -> Agent
             raise AgentFileError(f"{source}: the {network} network on {shape[0]}x{shape[1]}x{shape[2]} images "
                                  f"has {planned:,} parameters, over the limit of {MAX_PARAMETERS:,}")
         net = CameraNet(network, shape, expected, value_head=value_head, lidar_samples=lidar_samples(metadata))
+    except AgentFileError:
+        raise
     except ValueError as exc:
         raise AgentFileError(f"{source}: metadata field 'image': {exc}") from None
     try:
