@@ -565,3 +565,15 @@ def test_unusable_output_paths_are_refused_before_the_race(tmp_path, monkeypatch
     assert main(["race", "bot:follow@1.0", "--max-steps", "5", option, value]) == 2
     out, err = capsys.readouterr()
     assert words in err and option in err and "time_trial" not in out  # no race ran
+
+
+def test_a_reward_function_that_keeps_catching_its_timeout_ends_the_process_with_a_message(tmp_path):
+    path = tmp_path / "stubborn.py"
+    path.write_text("def reward_function(params):\n    while True:\n        try:\n            while True:\n"
+                    "                pass\n        except BaseException:\n            pass\n")
+    code = ("import sys\nimport multirace\nfrom multirace.environment import rewards\n"
+            "rewards.CALL_TIME_LIMIT, rewards.GIVE_UP_AFTER = 0.2, 0.5\n"
+            "env = multirace.parallel_env(num_cars=1, reward_function=sys.argv[1], max_steps=5)\n"
+            "env.reset(seed=0)\nenv.step({'car_0': 0})\n")
+    done = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 124 and "ignored its 0.2 s time limit" in done.stderr, done.stderr[-2000:]

@@ -63,3 +63,18 @@ def test_reward_function_from_file_survives_pickling():
     _, rewards, _, _, _ = clone.step({"car_0": 7})
     assert rewards["car_0"] == 1.0
 
+
+
+@pytest.mark.parametrize("value, ok", [("np.float32(0.5)", True), ("np.int64(2)", True), ("7", True),
+                                       ("np.bool_(True)", False), ("[1.0]", False), ("None", False),
+                                       ("float('nan')", False)])
+def test_a_reward_must_be_a_finite_number(tmp_path, value, ok):
+    path = tmp_path / "returns.py"
+    path.write_text(f"import numpy as np\ndef reward_function(params):\n    return {value}\n")
+    env = multirace.parallel_env(num_cars=1, reward_function=path, max_steps=5)
+    env.reset(seed=0)
+    if ok:
+        assert isinstance(env.step({"car_0": 7})[1]["car_0"], float)
+    else:
+        with pytest.raises(RewardFunctionError, match="returns.py"):
+            env.step({"car_0": 7})
