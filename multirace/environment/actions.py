@@ -95,6 +95,8 @@ class ActionSpace:
     def command(self, action) -> tuple[float, float]:
         """(steering degrees, speed m/s) for a policy action (index or [steer, speed])."""
         if self.discrete:
+            if isinstance(action, np.ndarray) and action.size == 1 and np.issubdtype(action.dtype, np.integer):
+                action = action.item()  # a one-element index array, as vectorised policies give
             if isinstance(action, (bool, np.bool_)):
                 raise ValueError(f"action {action!r}: expected an integer index 0-{len(self.actions) - 1}")
             try:
