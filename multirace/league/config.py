@@ -20,6 +20,7 @@ DEFAULT_TOML = league_dir() / "default.toml"
 TIME_TRIAL_FORMAT = "reset_rule"  # time trials run under the AWS Summit reset rule
 SUBMIT_TIMEOUT = 120.0
 WORKER_STARTUP_TIMEOUT = 120.0
+LEAGUE_NAME_LENGTH = 100
 
 
 class LeagueError(ValueError):
@@ -91,8 +92,9 @@ def parse_config(text: str, source: str = TOML) -> LeagueConfig:
             raise LeagueError(f"{source}: unknown section or key '{key}' (known: {', '.join(sorted(known))})")
     league = _field(data, "league", dict, source, "")
     name = _field(league, "name", str, source, "league.")
-    if not name.strip():
-        raise LeagueError(f"{source}: 'league.name' must not be empty")
+    if not name.strip() or len(name) > LEAGUE_NAME_LENGTH or not name.isprintable():
+        raise LeagueError(f"{source}: 'league.name' must be 1 to {LEAGUE_NAME_LENGTH} printable characters (no "
+                          f"control characters or line breaks), got {name[:80]!r}")
     seeds = _field(league, "seeds", list, source, "league.")
     if not seeds or not all(isinstance(s, int) and not isinstance(s, bool) and 0 <= s < 2**32 for s in seeds):
         raise LeagueError(f"{source}: 'league.seeds' must be a non-empty list of integers 0 to 2^32-1, "

@@ -12,11 +12,11 @@ import time
 from pathlib import Path
 
 from .config import REPLAYS, SUBMISSIONS, WORKER_STARTUP_TIMEOUT, LeagueConfig, LeagueError, load_config
-
-RUN_LOCK = "run.lock"
 from .schedule import sync_schedule
 from .store import connect, pending_matches, record_attempt_failure, record_result
 from .worker import _worker_command, _worker_env, run_match
+
+RUN_LOCK = "run.lock"
 
 
 class _Worker:
@@ -93,7 +93,11 @@ def run_league(folder, workers: int | None = None, ray_address: str | None = Non
         except ImportError:
             raise LeagueError("--ray: Ray is not installed; install it with: pip install 'multirace[ray]'") from None
     lock = _exclusive_run(folder)
-    conn = connect(folder)
+    try:
+        conn = connect(folder)
+    except LeagueError:
+        lock.close()
+        raise
     try:
         schedule = sync_schedule(folder, config, conn)
         current = {row["match_id"] for row in schedule}

@@ -43,12 +43,13 @@ CREATE TABLE IF NOT EXISTS results (
 COLUMNS = {"submissions": {"name", "sha256", "file", "metadata", "step_budget", "submitted_at"},
            "schedule": {"match_id", "seq", "kind", "round", "spec", "status", "attempts", "last_error"},
            "results": {"match_id", "status", "result", "reason", "replay", "wall_seconds", "recorded_at"}}
+BUSY_TIMEOUT = 60.0  # seconds to wait for another process's write transaction
 RECOVER = ("restore results.sqlite from a backup, or start a new league with `multirace league init NEW_DIR` and "
            "submit the agents again (their files are in submissions/)")
 
 
 def _open(path: Path) -> sqlite3.Connection:
-    conn = sqlite3.connect(path, timeout=60.0, isolation_level=None)
+    conn = sqlite3.connect(path, timeout=BUSY_TIMEOUT, isolation_level=None)
     conn.execute("PRAGMA journal_mode=WAL")
     conn.execute("PRAGMA synchronous=FULL")
     conn.execute("PRAGMA foreign_keys=ON")
@@ -71,32 +72,49 @@ def connect(folder) -> sqlite3.Connection:
     if not path.is_file() or path.stat().st_size == 0:
         state = "missing" if not path.exists() else "empty (truncated)"
         raise LeagueError(f"{path}: {state}: the league's history is gone; {RECOVER}")
+    conn = None
     try:
         conn = _open(path)
-        check = conn.execute("PRAGMA quick_check").fetchone()[0]
-        if check != "ok":
-            conn.close()
-            raise LeagueError(f"{path}: damaged (SQLite integrity check: {check}); {RECOVER}")
-        for table, wanted in COLUMNS.items():
-            found = {row[1] for row in conn.execute(f"PRAGMA table_info({table})")}
-            if not wanted <= found:
-                conn.close()
-                raise LeagueError(f"{path}: not a multirace league store (table {table!r} "
-                                  f"{'is missing' if not found else 'lacks ' + ', '.join(sorted(wanted - found))}); "
-                                  f"{RECOVER}")
-        stored = {row[0] for row in conn.execute("SELECT file FROM submissions")}
+        _check(conn, folder)
     except sqlite3.DatabaseError as exc:
+        if conn is not None:
+            conn.close()
+        if isinstance(exc, sqlite3.OperationalError) and ("locked" in str(exc) or "busy" in str(exc)):
+            raise LeagueError(f"{path}: busy: another process has held the store for over {BUSY_TIMEOUT:.0f} s "
+                              "(a stopped or hung `multirace league` command?); try again once it has finished"
+                              ) from None
         raise LeagueError(f"{path}: damaged ({exc}); {RECOVER}") from None
-    on_disk = {p.name for p in (folder / SUBMISSIONS).glob("*.pt")}
-    missing = sorted(Path(f).name for f in stored if Path(f).name not in on_disk)
-    unknown = sorted(on_disk - {Path(f).name for f in stored})
-    if missing or unknown:
+    except LeagueError:
         conn.close()
-        what = (f"{len(missing)} submitted file(s) missing from submissions/ ({', '.join(missing[:3])})" if missing
-                else f"{len(unknown)} file(s) in submissions/ that the store does not know ({', '.join(unknown[:3])}"
-                     "; remove a file left by an interrupted submit)")
-        raise LeagueError(f"{folder}: the store and the submissions folder disagree: {what}; {RECOVER}")
+        raise
     return conn
+
+
+def _check(conn: sqlite3.Connection, folder: Path) -> None:
+    """Raise LeagueError unless the store is intact, has the expected tables and agrees with submissions/.
+
+    Runs in an IMMEDIATE transaction, as `submit` stores a file and its row, so it never sees a submission
+    half made by a concurrent submit."""
+    path = folder / DB
+    check = conn.execute("PRAGMA quick_check").fetchone()[0]
+    if check != "ok":
+        raise LeagueError(f"{path}: damaged (SQLite integrity check: {check}); {RECOVER}")
+    for table, wanted in COLUMNS.items():
+        found = {row[1] for row in conn.execute(f"PRAGMA table_info({table})")}
+        if not wanted <= found:
+            lack = "is missing" if not found else "lacks " + ", ".join(sorted(wanted - found))
+            raise LeagueError(f"{path}: not a multirace league store (table {table!r} {lack}); {RECOVER}")
+    with _Tx(conn):
+        stored = {Path(row[0]).name for row in conn.execute("SELECT file FROM submissions")}
+        on_disk = {p.name for p in (folder / SUBMISSIONS).glob("*.pt")}
+    missing, unknown = sorted(stored - on_disk), sorted(on_disk - stored)
+    if missing:
+        raise LeagueError(f"{folder}: the store and the submissions folder disagree: {len(missing)} submitted "
+                          f"file(s) missing from submissions/ ({', '.join(missing[:3])}); {RECOVER}")
+    if unknown:
+        raise LeagueError(f"{folder}: the store and the submissions folder disagree: {len(unknown)} file(s) in "
+                          f"submissions/ that the store does not know ({', '.join(unknown[:3])}): remove them (a "
+                          f"file left by an interrupted submit) or {RECOVER}")
 
 
 class _Tx:

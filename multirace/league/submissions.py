@@ -6,6 +6,7 @@ import re
 import stat
 import json
 import os
+import sqlite3
 import subprocess
 import time
 from pathlib import Path
@@ -17,7 +18,7 @@ from .worker import _worker_command, _worker_env
 
 
 MAX_SUBMISSION_BYTES = 256 * 2**20  # as an agent file's limit
-ENTRANT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9 _.+@:-]{0,63}")
+ENTRANT_NAME = re.compile(r"[A-Za-z0-9](?:[A-Za-z0-9 _.+@:-]{0,62}[A-Za-z0-9_.+@:-])?")
 
 
 def init_league(folder, template=None) -> Path:
@@ -30,7 +31,10 @@ def init_league(folder, template=None) -> Path:
     template = Path(template) if template else DEFAULT_TOML
     if not template.is_file():
         raise LeagueError(f"{template}: no such league definition (--from names a league.toml file)")
-    text = template.read_text()
+    try:
+        text = template.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise LeagueError(f"{template}: unreadable ({exc})") from None
     parse_config(text, str(template))
     folder.mkdir(parents=True, exist_ok=True)
     (folder / SUBMISSIONS).mkdir(exist_ok=True)
@@ -41,15 +45,22 @@ def init_league(folder, template=None) -> Path:
 
 
 def _read_submission(path: Path) -> bytes:
-    """The bytes of a submitted file: a regular file (no FIFO or device) under the agent-file size limit."""
+    """The bytes of a submitted file, read once: a regular file (no FIFO or device) under the agent-file size
+    limit. The open file itself is checked (a path swapped for a FIFO after a check cannot block the read)."""
+    refused = f"{path}: refused: not a regular file under {MAX_SUBMISSION_BYTES // 2**20} MB"
     try:
-        info = os.stat(path)
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
     except OSError as exc:
         raise LeagueError(f"{path}: cannot be read ({exc.strerror})") from None
+    info = os.fstat(fd)
     if not stat.S_ISREG(info.st_mode) or info.st_size > MAX_SUBMISSION_BYTES:
-        raise LeagueError(f"{path}: refused: not a regular file under {MAX_SUBMISSION_BYTES // 2**20} MB")
-    with open(path, "rb") as handle:
-        return handle.read(MAX_SUBMISSION_BYTES)
+        os.close(fd)
+        raise LeagueError(refused)
+    with open(fd, "rb") as handle:
+        data = handle.read(MAX_SUBMISSION_BYTES + 1)
+    if len(data) > MAX_SUBMISSION_BYTES:  # it grew while being read
+        raise LeagueError(refused)
+    return data
 
 
 def validate_in_subprocess(path, step_budget: float, timeout: float = SUBMIT_TIMEOUT) -> dict:
@@ -99,7 +110,7 @@ def submit(folder, path, name: str, step_budget: float | None = None, validate: 
         metadata = {}
         stored = folder / SUBMISSIONS / f"{sha}.pt"
         stored.parent.mkdir(exist_ok=True)
-        copy = stored.with_name(f".{sha}.{os.getpid()}.tmp")  # the copy is what is validated and stored
+        copy = stored.resolve().with_name(f".{sha}.{os.getpid()}.tmp")  # the copy is what is validated and stored
         copy.write_bytes(data)
         try:
             if validate:
@@ -107,14 +118,18 @@ def submit(folder, path, name: str, step_budget: float | None = None, validate: 
                 if not check.get("ok"):
                     raise LeagueError(f"refused: {str(check.get('error')).replace(str(copy), str(path))}")
                 metadata = check.get("metadata") or {}
-            os.replace(copy, stored)
+            try:
+                with _Tx(conn):  # the file and its row appear together for every reader of the store
+                    conn.execute("INSERT INTO submissions (name, sha256, file, metadata, step_budget, "
+                                 "submitted_at) VALUES (?, ?, ?, ?, ?, ?)",
+                                 (name, sha, f"{SUBMISSIONS}/{sha}.pt", json.dumps(metadata, sort_keys=True),
+                                  step_budget, time.time()))
+                    os.replace(copy, stored)
+            except sqlite3.IntegrityError:
+                raise LeagueError(f"--name: refused: {name!r} or this file (sha256 {sha[:12]}) was submitted "
+                                  "meanwhile by another submit") from None
         finally:
             copy.unlink(missing_ok=True)
-        with _Tx(conn):
-            conn.execute("INSERT INTO submissions (name, sha256, file, metadata, step_budget, submitted_at) "
-                         "VALUES (?, ?, ?, ?, ?, ?)",
-                         (name, sha, f"{SUBMISSIONS}/{sha}.pt", json.dumps(metadata, sort_keys=True), step_budget,
-                          time.time()))
         return {"name": name, "sha256": sha, "file": str(stored), "metadata": metadata}
     finally:
         conn.close()
