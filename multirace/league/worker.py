@@ -25,17 +25,38 @@ def _worker_env() -> dict:
     return env
 
 
+def _entrant_controller(entrant: dict, folder: Path):
+    """The controller of one scheduled entrant. An agent file that cannot be loaded for any reason forfeits
+    its races (with the reason) rather than failing the match: one entrant never voids its opponents' heats."""
+    from ..racing.entrant import Controller, Forfeit
+    from ..racing.runner import make_controller
+
+    if entrant["spec"].startswith("bot:"):
+        return make_controller(entrant["spec"])
+    try:
+        return make_controller(str(folder / entrant["spec"]), step_budget=entrant["step_budget"])
+    except FileNotFoundError:  # the league lost the file: the match fails with the reason, nobody forfeits
+        raise
+    except Exception as exc:  # noqa: BLE001 - whatever a stranger's file makes the loader raise
+        reason = f"agent file cannot be loaded ({type(exc).__name__}: {str(exc)[:200]})"
+
+    class Unloadable(Controller):
+        file_sha256 = entrant.get("sha256")
+
+        def act(self, observation, info):
+            raise Forfeit(reason)
+
+    return Unloadable()
+
+
 def run_match(spec: dict, folder, replay_tmp: str | None, image_every: int = 0) -> dict:
     """Run one scheduled match (in a worker process); returns the race result record."""
-    from ..racing.runner import RaceConfig, make_controller, run_race
+    from ..racing.runner import RaceConfig, run_race
 
     folder = Path(folder)
     controllers = []
     for e in spec["entrants"]:
-        if e["spec"].startswith("bot:"):
-            controller = make_controller(e["spec"])
-        else:
-            controller = make_controller(str(folder / e["spec"]), step_budget=e["step_budget"])
+        controller = _entrant_controller(e, folder)
         controller.name = e["name"]
         controllers.append(controller)
     config = RaceConfig(track=spec["track"], reverse=spec["reverse"], race=spec["race"], laps=spec["laps"],
