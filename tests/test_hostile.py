@@ -592,3 +592,11 @@ def test_a_reward_function_that_keeps_catching_its_timeout_ends_the_process_with
             "env.reset(seed=0)\nenv.step({'car_0': 0})\n")
     done = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=120)
     assert done.returncode == 124 and "ignored its 0.2 s time limit" in done.stderr, done.stderr[-2000:]
+
+
+def test_integer_index_scalars_and_one_element_arrays_drive():
+    env = multirace.parallel_env(num_cars=2)
+    env.reset(seed=0)
+    _, _, _, _, infos = env.step({"car_0": np.int64(7), "car_1": np.array([7])})
+    assert env.actions.command(np.array([7])) == env.actions.command(np.int64(7)) == (0.0, 1.0)
+    assert infos["car_0"]["speed"] > 0 and infos["car_1"]["speed"] > 0
