@@ -48,10 +48,12 @@ def check_output_paths(args, options=("json", "replay", "video", "simtrace")) ->
         where = f"--{option} {value}"
         if path.is_dir():
             raise ValueError(f"{where}: is a folder; give a file name")
-        parent = path.parent if str(path.parent) else Path(".")
-        if not parent.is_dir():
-            raise ValueError(f"{where}: folder {parent} does not exist")
-        if not os.access(parent, os.W_OK | os.X_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        ancestor = path.absolute().parent  # the nearest existing folder (missing ones are created)
+        while not ancestor.exists():
+            ancestor = ancestor.parent
+        if not ancestor.is_dir():
+            raise ValueError(f"{where}: {ancestor} is a file, not a folder")
+        if not os.access(ancestor, os.W_OK | os.X_OK) or (path.exists() and not os.access(path, os.W_OK)):
             raise ValueError(f"{where}: cannot be written (permission denied)")
 
 
@@ -83,6 +85,7 @@ def cmd_race(args) -> int:
     result = run_race(controllers, config, recorders=recorders)
     print_result(result, Console(width=120))
     if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)  # as the other outputs do
         Path(args.json).write_text(json.dumps(result, indent=2))
     return 0
 

@@ -570,8 +570,9 @@ def test_a_fifo_action_space_file_is_refused_unread(tmp_path):
 
 
 @pytest.mark.parametrize("option, value, words", [("--json", ".", "is a folder"),
-                                                   ("--replay", "file/race.rrd", "does not exist"),
-                                                   ("--video", "missing/race.mp4", "does not exist")])
+                                                   ("--replay", "file/race.rrd", "is a file, not a folder"),
+                                                   ("--video", "file/sub/race.mp4", "is a file, not a folder"),
+                                                   ("--simtrace", "file/deeper/t.csv", "is a file, not a folder")])
 def test_unusable_output_paths_are_refused_before_the_race(tmp_path, monkeypatch, capsys, option, value, words):
     from multirace.cli import main
 
