@@ -231,6 +231,9 @@ def test_init_refuses_a_missing_template_and_an_existing_league(tmp_path, capsys
     folder = _league(tmp_path)
     assert main(["league", "init", str(folder)]) != 0
     assert "already exists" in capsys.readouterr().err
+    (folder / "league.toml").unlink()  # a league's results without its definition are not adopted silently
+    assert main(["league", "init", str(folder)]) != 0
+    assert "results.sqlite: already exists" in capsys.readouterr().err
     (tmp_path / "binary.toml").write_bytes(b"\xff\xfe\x00garbage")
     assert main(["league", "init", str(tmp_path / "other"), "--from", str(tmp_path / "binary.toml")]) != 0
     assert "binary.toml: unreadable" in capsys.readouterr().err

@@ -11,7 +11,7 @@ import subprocess
 import time
 from pathlib import Path
 
-from .config import (DEFAULT_TOML, REPLAYS, SUBMISSIONS, SUBMIT_TIMEOUT, TOML, LeagueError, load_config,
+from .config import (DB, DEFAULT_TOML, REPLAYS, SUBMISSIONS, SUBMIT_TIMEOUT, TOML, LeagueError, load_config,
                      parse_config)
 from .store import _Tx, connect, create_store
 from .worker import _worker_command, _worker_env
@@ -28,6 +28,9 @@ def init_league(folder, template=None) -> Path:
         raise LeagueError(f"{folder}: exists and is not a folder; choose a new folder for the league")
     if (folder / TOML).exists():
         raise LeagueError(f"{folder / TOML}: already exists; this folder is a league already")
+    if (folder / DB).exists():
+        raise LeagueError(f"{folder / DB}: already exists (a league's results without its league.toml); "
+                          "choose a new folder, or put the league's league.toml back")
     template = Path(template) if template else DEFAULT_TOML
     if not template.is_file():
         raise LeagueError(f"{template}: no such league definition (--from names a league.toml file)")
