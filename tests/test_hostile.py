@@ -220,12 +220,15 @@ MEMORY_LIMIT = 3 * 2**29  # 1.5 GB of address space for the loading process
 @pytest.fixture(scope="module")
 def hostile_agent_outcomes(tmp_path_factory):
     """Every hostile agent file loaded in one subprocess held to `MEMORY_LIMIT` of address space (an
-    allocation past it fails there); per file: what load_agent said and the process's peak RSS so far."""
+    allocation past it fails there); per file: what load_agent said and the process's peak RSS so far (VmHWM)."""
     folder = tmp_path_factory.mktemp("hostile_agents")
     paths = {case: str(make(folder / f"{case}.pt")) for case, (make, _) in HOSTILE_AGENTS.items()}
     code = ("import json, resource, sys\n"
             f"resource.setrlimit(resource.RLIMIT_AS, ({MEMORY_LIMIT}, {MEMORY_LIMIT}))\n"
             "from multirace.racing.agentfile import AgentFileError, load_agent\n"
+            "def peak_kb():  # this process's own peak RSS (ru_maxrss would include the parent's, kept over exec)\n"
+            "    with open('/proc/self/status') as status:\n"
+            "        return next(int(line.split()[1]) for line in status if line.startswith('VmHWM'))\n"
             "outcomes = {}\n"
             "for case, path in json.loads(sys.argv[1]).items():\n"
             "    try:\n"
@@ -233,7 +236,7 @@ def hostile_agent_outcomes(tmp_path_factory):
             "        outcome = 'loaded'\n"
             "    except AgentFileError as exc:\n"
             "        outcome = str(exc)\n"
-            "    outcomes[case] = [outcome, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss]\n"
+            "    outcomes[case] = [outcome, peak_kb()]\n"
             "print(json.dumps(outcomes))\n")
     done = subprocess.run([sys.executable, "-c", code, json.dumps(paths)], capture_output=True, text=True,
                           timeout=300)
