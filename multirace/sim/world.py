@@ -230,29 +230,26 @@ class World:
 
     def _command_dynamic(self, active: list[int], commands) -> None:
         """Run the tyre model for the active cars (a push since the last step joins their motion)."""
-        cid = self.client
-        step_time = self.physics_dt * self.substeps
         if not active:
             return
+        cid = self.client
+        step_time = self.physics_dt * self.substeps
+        yaws = self.poses[:, 2].tolist()  # plain floats: fast maths
+        pushes = []
         for i in active:
             (lvx, lvy, _), (_, _, wz) = pybullet.getBaseVelocity(self.car_ids[i], cid)
             sx, sy, sr = self._set_velocity[i]
-            yaw = self.poses[i, 2]
-            cos_y, sin_y = math.cos(yaw), math.sin(yaw)
+            cos_y, sin_y = math.cos(yaws[i]), math.sin(yaws[i])
             push_x, push_y = lvx - sx, lvy - sy
-            self.motion[i, 0] += push_x * cos_y + push_y * sin_y
-            self.motion[i, 1] += -push_x * sin_y + push_y * cos_y
-            self.motion[i, 2] += wz - sr
+            pushes.append((push_x * cos_y + push_y * sin_y, -push_x * sin_y + push_y * cos_y, wz - sr))
         rows = np.asarray(active)
-        state = self.motion[rows]
+        state = self.motion[rows] + pushes
         moved = advance(state, np.asarray(commands, np.float64)[rows], self.grip[rows], self.motor[rows],
                         self._params, step_time)
         self.motion[rows] = state
         self.drive_speed[rows] = state[:, 0]
-        for k, i in enumerate(active):
-            yaw = self.poses[i, 2]
-            cos_y, sin_y = math.cos(yaw), math.sin(yaw)
-            forward, left, turn = moved[k] / step_time
+        for i, (forward, left, turn) in zip(active, (moved / step_time).tolist()):
+            cos_y, sin_y = math.cos(yaws[i]), math.sin(yaws[i])
             vx, vy = forward * cos_y - left * sin_y, forward * sin_y + left * cos_y
             pybullet.resetBaseVelocity(self.car_ids[i], (vx, vy, 0.0), (0.0, 0.0, turn), cid)
             self._set_velocity[i] = (vx, vy, turn)
