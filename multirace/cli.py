@@ -356,11 +356,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    """Run the command line; bad input is a one-line error and exit code 2."""
+    from .environment.rewards import RewardFunctionError  # light: the reward module imports no heavy library
+
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (ValueError, FileNotFoundError) as exc:  # TrackError, AgentFileError... are ValueErrors
+    except (ValueError, FileNotFoundError, RewardFunctionError) as exc:  # TrackError, AgentFileError... are ValueErrors
         print(f"multirace {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

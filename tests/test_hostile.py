@@ -604,3 +604,24 @@ def test_integer_index_scalars_and_one_element_arrays_drive():
     _, _, _, _, infos = env.step({"car_0": np.int64(7), "car_1": np.array([7])})
     assert env.actions.command(np.array([7])) == env.actions.command(np.int64(7)) == (0.0, 1.0)
     assert infos["car_0"]["speed"] > 0 and infos["car_1"]["speed"] > 0
+
+
+# ------------------------------------------------------------------ CLI inputs that are not what they claim
+@pytest.mark.parametrize("argv, words", [
+    (["replay", "{garbage}", "--summary"], "not a rerun replay"),
+    (["plot", "/etc/passwd"], "not a DeepRacer sim-trace CSV"),
+    (["replay", "{missing}", "--summary"], "no such file"),
+])
+def test_files_that_are_not_what_the_command_reads_are_one_line_errors(tmp_path, capsys, argv, words):
+    from multirace.cli import main
+
+    (tmp_path / "garbage.rrd").write_bytes(b"garbage\n" * 10)
+    argv = [a.format(garbage=tmp_path / "garbage.rrd", missing=tmp_path / "missing.rrd") for a in argv]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert words in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_laps_given_as_text_are_refused():
+    with pytest.raises(ValueError, match="laps"):
+        multirace.parallel_env(num_cars=1, laps="2")

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 
 FORMATS = ("time_trial", "reset_rule", "object_avoidance", "head_to_head")
 STATUSES = ("finished", "out_of_resets", "timed_out", "forfeit", "not_finished")
@@ -216,7 +217,8 @@ def make_rules(race: str = "time_trial", laps: int = 3, obstacles: int | None = 
     """The rules of a named format with DeepRacer's defaults, overridable per field."""
     if race not in FORMATS:
         raise ValueError(f"race: unknown format {race!r}; choose one of {', '.join(FORMATS)}")
-    if isinstance(laps, bool) or not float(laps).is_integer() or int(laps) < 1:
+    whole = isinstance(laps, numbers.Integral) or (isinstance(laps, float) and laps.is_integer())
+    if isinstance(laps, bool) or not whole or laps < 1:
         raise ValueError(f"laps: expected a whole number of at least 1, got {laps!r}")
     defaults: dict = {"name": race, "laps": int(laps), "obstacles": 0}
     if race == "reset_rule":

@@ -30,8 +30,13 @@ def read_chunks(path) -> dict:
     from rerun.chunk import RrdReader
 
     by_entity: dict[str, list] = {}
-    for chunk in RrdReader(str(path)).stream():
-        by_entity.setdefault(chunk.entity_path.lstrip("/"), []).append(chunk.to_record_batch())
+    try:
+        for chunk in RrdReader(str(path)).stream():
+            by_entity.setdefault(chunk.entity_path.lstrip("/"), []).append(chunk.to_record_batch())
+    except (RuntimeError, OSError) as exc:  # rerun's reader raises RuntimeError on a file it cannot decode
+        if not Path(path).exists():
+            raise FileNotFoundError(f"replay {path}: no such file") from None
+        raise ValueError(f"{path}: not a rerun replay (.rrd) multirace can read ({str(exc).splitlines()[0]})") from None
     return by_entity
 
 

@@ -217,18 +217,33 @@ class SimTraceRecorder:
 def read_simtrace(path) -> list[dict]:
     """Rows of a sim-trace CSV as dicts with numbers and booleans parsed (no pandas needed)."""
     rows = []
-    with open(path, newline="") as f:
-        for raw in csv.DictReader(f):
-            row = dict(raw)
-            for key in ("steps", "X", "Y", "yaw", "steer", "throttle", "reward", "progress", "track_len",
-                        "tstamp", "pause_duration"):
-                if key in row and row[key] not in (None, ""):
-                    row[key] = float(row[key])
-            for key in ("episode", "closest_waypoint"):
-                if key in row and row[key] not in (None, ""):
-                    row[key] = int(float(row[key]))
-            for key in ("done", "all_wheels_on_track"):
-                if key in row:
-                    row[key] = str(row[key]).strip() == "True"
-            rows.append(row)
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            reader = csv.DictReader(f)
+            missing = [c for c in ("episode", "steps", "X", "Y", "track_len") if c not in (reader.fieldnames or ())]
+            if missing:
+                raise ValueError(f"{path}: not a DeepRacer sim-trace CSV (no column {', '.join(missing)})")
+            for raw in reader:
+                rows.append(_parsed(raw, path))
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a DeepRacer sim-trace CSV (not UTF-8 text)") from None
     return rows
+
+
+def _parsed(raw: dict, path) -> dict:
+    """One sim-trace row with its numbers and booleans parsed."""
+    row = dict(raw)
+    try:
+        for key in ("steps", "X", "Y", "yaw", "steer", "throttle", "reward", "progress", "track_len",
+                    "tstamp", "pause_duration"):
+            if key in row and row[key] not in (None, ""):
+                row[key] = float(row[key])
+        for key in ("episode", "closest_waypoint"):
+            if key in row and row[key] not in (None, ""):
+                row[key] = int(float(row[key]))
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{path}: a sim-trace row has a value that is not a number ({exc})") from None
+    for key in ("done", "all_wheels_on_track"):
+        if key in row:
+            row[key] = str(row[key]).strip() == "True"
+    return row
