@@ -318,3 +318,17 @@ def test_agents_that_break_the_loader_forfeit_and_the_heat_counts(tmp_path):
         assert cars[kind]["status"] == "forfeit" and cars[kind]["reason"], cars[kind]
     table = compute_table(folder)
     assert table["standings"][0]["entrant"] == "bot:follow@1.5" and not table["failed"]
+
+
+def test_a_store_that_fails_mid_run_is_a_clear_error_and_the_next_run_resumes(tmp_path, capsys):
+    folder = _league(tmp_path, LEAGUE.replace("[head_to_head]", "[head_to_head]\nenabled = false"))
+    with sqlite3.connect(folder / "results.sqlite") as conn:  # every result write now fails, as a full disk would
+        conn.execute("CREATE TRIGGER no_space BEFORE INSERT ON results BEGIN SELECT RAISE(ABORT, 'disk full'); END")
+    assert main(["league", "run", str(folder), "--workers", "1", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "results.sqlite" in err and "disk full" in err and "Traceback" not in err, err
+    with sqlite3.connect(folder / "results.sqlite") as conn:
+        conn.execute("DROP TRIGGER no_space")
+        assert conn.execute("SELECT COUNT(*) FROM results").fetchone()[0] == 0  # nothing half written
+    assert main(["league", "run", str(folder), "--workers", "1", "--quiet"]) == 0
+    assert {status for _, status, _ in _results(folder)} == {"ok"} and len(_results(folder)) == 2

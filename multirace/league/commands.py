@@ -1,9 +1,12 @@
 """`multirace league init|submit|run|table`: the command-line glue."""
 from __future__ import annotations
 
+import functools
+import sqlite3
 import sys
+from pathlib import Path
 
-from .config import TOML, LeagueError
+from .config import DB, TOML, LeagueError
 from .runner import run_league
 from .submissions import init_league, submit
 
@@ -44,6 +47,20 @@ def add_league_commands(sub) -> None:
     table.set_defaults(func=_cmd_table)
 
 
+def _store_errors(command):
+    """A league command whose SQLite store fails mid-way (disk full, damaged meanwhile) ends in a LeagueError
+    naming the store, not a traceback; what was committed before stays committed."""
+    @functools.wraps(command)
+    def run(args) -> int:
+        try:
+            return command(args)
+        except sqlite3.Error as exc:
+            raise LeagueError(f"{Path(args.dir) / DB}: {type(exc).__name__}: {exc} (results written before this "
+                              "were committed; fix the cause and run the command again)") from None
+    return run
+
+
+@_store_errors
 def _cmd_init(args) -> int:
     folder = init_league(args.dir, args.template)
     print(f"created league {folder} (edit {folder / TOML}, then 'multirace league submit {folder} FILE.pt "
@@ -51,6 +68,7 @@ def _cmd_init(args) -> int:
     return 0
 
 
+@_store_errors
 def _cmd_submit(args) -> int:
     try:
         row = submit(args.dir, args.file, args.name)
@@ -61,6 +79,7 @@ def _cmd_submit(args) -> int:
     return 0
 
 
+@_store_errors
 def _cmd_run(args) -> int:
     if args.workers is not None and args.workers < 1:
         raise LeagueError("--workers: must be at least 1")
@@ -70,6 +89,7 @@ def _cmd_run(args) -> int:
     return 0
 
 
+@_store_errors
 def _cmd_table(args) -> int:
     from .table import write_table
 
