@@ -53,6 +53,25 @@ class _TimeUp(BaseException):
     by the function's own `except Exception`)."""
 
 
+class _Alarm:
+    """The SIGALRM handler of the reward watchdog, installed once per process (main thread): each limited
+    block then costs two `setitimer` calls, not a handler swap (it runs for every car at every step)."""
+
+    deadline = None  # monotonic time past which a function that keeps swallowing the timeout ends the process
+    seconds = 0.0
+
+    @classmethod
+    def handle(cls, signum, frame):
+        if cls.deadline is None:  # a stray alarm after the block ended
+            return
+        if time.monotonic() > cls.deadline:
+            sys.stderr.write(f"multirace: a reward function ignored its {cls.seconds:g} s time limit for "
+                             f"{GIVE_UP_AFTER:g} s more (it catches the timeout); stopping the process\n")
+            sys.stderr.flush()
+            os._exit(TIMEOUT_EXIT_CODE)
+        raise _TimeUp()
+
+
 @contextlib.contextmanager
 def time_limit(seconds: float):
     """Raise `_TimeUp` in the block after `seconds`, again every `RETRY_INTERVAL` if the code swallows it
@@ -61,23 +80,15 @@ def time_limit(seconds: float):
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    deadline = time.monotonic() + seconds + GIVE_UP_AFTER
-
-    def time_up(signum, frame):
-        if time.monotonic() > deadline:
-            sys.stderr.write(f"multirace: a reward function ignored its {seconds:g} s time limit for "
-                             f"{GIVE_UP_AFTER:g} s more (it catches the timeout); stopping the process\n")
-            sys.stderr.flush()
-            os._exit(TIMEOUT_EXIT_CODE)
-        raise _TimeUp()
-
-    previous = signal.signal(signal.SIGALRM, time_up)
+    if signal.getsignal(signal.SIGALRM) is not _Alarm.handle:
+        signal.signal(signal.SIGALRM, _Alarm.handle)
+    _Alarm.seconds, _Alarm.deadline = seconds, time.monotonic() + seconds + GIVE_UP_AFTER
     signal.setitimer(signal.ITIMER_REAL, seconds, RETRY_INTERVAL)
     try:
         yield
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, previous)
+        _Alarm.deadline = None
 
 
 def private_params(params: dict) -> dict:
