@@ -54,11 +54,25 @@ class _TimeUp(BaseException):
 
 
 class _Alarm:
-    """The SIGALRM handler of the reward watchdog, installed once per process (main thread): each limited
-    block then costs two `setitimer` calls, not a handler swap (it runs for every car at every step)."""
+    """The SIGALRM timer of the reward watchdog. Its handler is installed once per process (main thread), so
+    arming and disarming it around a call are two `setitimer` calls (it runs for every car at every step)."""
 
+    installed = False
     deadline = None  # monotonic time past which a function that keeps swallowing the timeout ends the process
     seconds = 0.0
+
+    @classmethod
+    def arm(cls, seconds: float) -> None:
+        if not cls.installed:
+            signal.signal(signal.SIGALRM, cls.handle)
+            cls.installed = True
+        cls.seconds, cls.deadline = seconds, time.monotonic() + seconds + GIVE_UP_AFTER
+        signal.setitimer(signal.ITIMER_REAL, seconds, RETRY_INTERVAL)
+
+    @classmethod
+    def disarm(cls) -> None:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        cls.deadline = None
 
     @classmethod
     def handle(cls, signum, frame):
@@ -80,20 +94,20 @@ def time_limit(seconds: float):
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    if signal.getsignal(signal.SIGALRM) is not _Alarm.handle:
-        signal.signal(signal.SIGALRM, _Alarm.handle)
-    _Alarm.seconds, _Alarm.deadline = seconds, time.monotonic() + seconds + GIVE_UP_AFTER
-    signal.setitimer(signal.ITIMER_REAL, seconds, RETRY_INTERVAL)
+    _Alarm.arm(seconds)
     try:
         yield
     finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        _Alarm.deadline = None
+        _Alarm.disarm()
 
 
 def private_params(params: dict) -> dict:
     """A copy of the params for one call: its lists are copies too (their items are numbers and tuples)."""
-    return {key: list(value) if isinstance(value, list) else value for key, value in params.items()}
+    copy = params.copy()
+    for key, value in copy.items():
+        if type(value) is list:
+            copy[key] = value[:]
+    return copy
 
 
 def follow_centre_line(params: dict) -> float:
@@ -124,31 +138,44 @@ class RewardFunction:
     def __call__(self, params: dict, step: int, car: str) -> float:
         """Call the function on its own copy of `params`, under the time limit; raise RewardFunctionError
         naming the file, step and car on any failure."""
-        name, when = f"reward function {self.label}", f"at step {step} for {car}"
+        main = threading.current_thread() is threading.main_thread()
+        start = time.monotonic()
         try:
-            start = time.monotonic()
-            with time_limit(CALL_TIME_LIMIT):
+            if main:
+                _Alarm.arm(CALL_TIME_LIMIT)
+            try:
                 value = self.function(private_params(params))
+            finally:
+                if main:
+                    _Alarm.disarm()
             if time.monotonic() - start > CALL_TIME_LIMIT:  # it caught the timeout and returned late
                 raise _TimeUp()
         except _TimeUp:
-            raise RewardFunctionError(f"{name} did not return within {CALL_TIME_LIMIT:g} s {when}") from None
+            raise self._error(f"did not return within {CALL_TIME_LIMIT:g} s", step, car) from None
         except SystemExit as exc:
-            raise RewardFunctionError(f"{name} called sys.exit({exc.code!r}) {when}") from None
+            raise self._error(f"called sys.exit({exc.code!r})", step, car) from None
         except Exception as exc:
-            raise RewardFunctionError(f"{name} raised {when}: {type(exc).__name__}: {exc}") from exc
-        if isinstance(value, bool) or not isinstance(value, numbers.Real):
-            raise RewardFunctionError(f"{name} returned {repr(value)[:80]} {when}; expected a number "
-                                      f"(DeepRacer requires a float), not a {type(value).__name__}")
-        try:
-            value = float(value)
-        except OverflowError:
-            raise RewardFunctionError(f"{name} returned a number too large for a float {when}") from None
+            raise self._error("raised", step, car, f": {type(exc).__name__}: {exc}") from exc
+        if type(value) is not float:
+            value = self._as_float(value, step, car)
         if not math.isfinite(value) or abs(value) > REWARD_LIMIT:
             raise RewardFunctionError(
                 f"reward function {self.label} returned {value} at step {step} for {car}; "
                 f"expected a finite number in [-{REWARD_LIMIT:g}, {REWARD_LIMIT:g}]")
         return value
+
+    def _as_float(self, value, step: int, car: str) -> float:
+        """A returned value that is not a plain float, as one: any real number but a bool."""
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            raise self._error(f"returned {repr(value)[:80]}", step, car,
+                              f"; expected a number (DeepRacer requires a float), not a {type(value).__name__}")
+        try:
+            return float(value)
+        except OverflowError:
+            raise self._error("returned a number too large for a float", step, car) from None
+
+    def _error(self, what: str, step: int, car: str, detail: str = "") -> RewardFunctionError:
+        return RewardFunctionError(f"reward function {self.label} {what} at step {step} for {car}{detail}")
 
     def __getstate__(self):
         # functions loaded from files are re-loaded in worker processes
