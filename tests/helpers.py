@@ -61,3 +61,29 @@ class Wild(BotController):
         steer, speed = super().act(observation, info)
         lo, hi = self.window
         return (self.steer, 2.0) if lo <= self.env.steps < hi else (steer, speed)
+
+
+def small_league(name: str = "small", step_budget: float = 0.0667) -> str:
+    """A league.toml of one track forward, one seed, the bot:follow@1.5 bot, 1-lap time trials and 2-car heats."""
+    return f"""
+[league]
+name = "{name}"
+seeds = [1]
+bots = ["bot:follow@1.5"]
+step_budget = {step_budget}
+replays = false
+
+[[tracks]]
+name = "reinvent_base"
+directions = ["forward"]
+
+[time_trial]
+format = "reset_rule"
+laps = 1
+trials = 1
+
+[head_to_head]
+cars = 2
+laps = 1
+trials = 1
+"""

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import multirace
+from helpers import small_league
 from multirace.environment.rewards import RewardFunctionError
 
 # ------------------------------------------------------------------ reward functions
@@ -328,27 +329,7 @@ def test_league_names_are_escaped_in_every_table_format(tmp_path):
 
 
 # ------------------------------------------------------------------ leagues
-SMALL_LEAGUE = """
-[league]
-name = "small"
-seeds = [1]
-bots = ["bot:follow@1.5"]
-replays = false
-
-[[tracks]]
-name = "reinvent_base"
-directions = ["forward"]
-
-[time_trial]
-format = "reset_rule"
-laps = 1
-trials = 1
-
-[head_to_head]
-cars = 2
-laps = 1
-trials = 1
-"""
+SMALL_LEAGUE = small_league()
 
 
 @pytest.fixture

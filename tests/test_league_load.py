@@ -8,30 +8,11 @@ import pytest
 
 from multirace.cli import main
 from multirace.resources import agents_dir
+from helpers import small_league
 
-LEAGUE = """
-[league]
-name = "load test"
-seeds = [1]
-bots = ["bot:follow@1.5"]
-step_budget = 0.005              # 5 ms: over 10x the shipped agent's inference (about 0.4 ms of CPU),
-                                 # well under what a descheduled step takes in wall-clock time on a loaded CPU
-replays = false
-
-[[tracks]]
-name = "reinvent_base"
-directions = ["forward"]
-
-[time_trial]
-format = "reset_rule"
-laps = 1
-trials = 1
-
-[head_to_head]
-cars = 2
-laps = 1
-trials = 1
-"""
+# 5 ms: over 10x the shipped agent's inference (about 0.4 ms of CPU), well under what a descheduled step
+# takes in wall-clock time on a loaded CPU
+LEAGUE = small_league("load test", step_budget=0.005)
 
 
 def run_league(folder, toml) -> list:

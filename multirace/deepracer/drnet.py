@@ -22,8 +22,6 @@ instead of a `CameraNet` from ``neural_network``.)
 from __future__ import annotations
 
 import hashlib
-import io
-import json
 import math
 from pathlib import Path
 
@@ -32,8 +30,8 @@ import torch
 from torch import nn
 
 from ..environment.actions import ActionSpace
-from ..racing.agentfile import (FORMAT, FORMAT_VERSION, Agent, AgentFileError, parse_metadata, read_agent_bytes,
-                                read_payload)
+from ..racing.agentfile import (Agent, AgentFileError, parse_metadata, read_agent_bytes, read_payload,
+                                write_agent_file)
 from ..racing.nets import CONTINUOUS_OUTPUTS
 
 LIDAR_SENSORS = ("LIDAR", "SECTOR_LIDAR")
@@ -119,16 +117,7 @@ class GraphNet(nn.Module):
 
 def save_graph_agent(path, net: GraphNet, metadata: dict) -> Path:
     """Write `net` as an agent file whose metadata carries its spec (field ``deepracer_graph``)."""
-    path = Path(path)
-    metadata = {**metadata, "deepracer_graph": net.spec}
-    state = {k: v.detach().cpu().contiguous().clone() for k, v in net.state_dict().items()}
-    payload = {"format": FORMAT, "format_version": FORMAT_VERSION,
-               "metadata": json.dumps(metadata, indent=2, sort_keys=True), "state_dict": state}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    buffer = io.BytesIO()
-    torch.save(payload, buffer)
-    path.write_bytes(buffer.getvalue())
-    return path
+    return write_agent_file(path, {**metadata, "deepracer_graph": net.spec}, net)
 
 
 def load_graph_agent(path) -> Agent:

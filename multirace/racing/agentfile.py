@@ -111,6 +111,12 @@ def save_agent(path, net: CameraNet, metadata: dict) -> Path:
     if num_outputs_for(space) != net.num_outputs:
         raise AgentFileError(f"{path}: the net has {net.num_outputs} outputs but the action space needs "
                              f"{num_outputs_for(space)}")
+    return write_agent_file(path, metadata, net)
+
+
+def write_agent_file(path, metadata: dict, net) -> Path:
+    """Write an agent file (atomically) of `net`'s parameters and `metadata`, already checked."""
+    path = Path(path)
     state = {k: v.detach().cpu().contiguous().clone() for k, v in net.state_dict().items()}
     payload = {"format": FORMAT, "format_version": FORMAT_VERSION,
                "metadata": json.dumps(metadata, indent=2, sort_keys=True), "state_dict": state}
