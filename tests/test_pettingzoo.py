@@ -1,6 +1,4 @@
 """PettingZoo's own conformance tests, beyond the API and seed tests in test_env_api.py."""
-import os
-
 import numpy as np
 from PIL import Image
 from pettingzoo.test import max_cycles_test, render_test
@@ -58,4 +56,7 @@ def test_observations_pass_pettingzoos_save_check_and_save_as_png(tmp_path):
 def test_module_idiom():
     assert multirace_v0.raw_env is multirace.RaceEnv
     assert multirace_v0.metadata["name"] == "multirace_v0"
-    assert "human" in multirace_v0.metadata["render_modes"] and os.path.basename(multirace_v0.__file__)
+    assert set(multirace_v0.metadata["render_modes"]) == {"human", "rgb_array"}
+    env = multirace_v0.env(num_cars=1, max_cycles=3)
+    env.reset(seed=0)
+    assert env.unwrapped.max_steps == 3

@@ -1,10 +1,9 @@
 """Track loading, validation and geometry on the real DeepRacer tracks."""
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
-
-from pathlib import Path
 
 from multirace.sim.tracks import Track, TrackError, list_tracks, load_track
 
