@@ -172,15 +172,29 @@ def cmd_agent_import(args) -> int:
 def cmd_imitate(args) -> int:
     import shlex
 
-    from .train.imitate import DEFAULT_TRACKS, ImitationConfig, run_dagger
+    from .environment.bots import parse_bot
     from .racing.nets import NETWORKS
+    from .train.imitate import DEFAULT_TRACKS, ImitationConfig, run_dagger
+    from .train.splits import expand_tracks
 
     if args.network not in NETWORKS:
         raise ValueError(f"--network: unknown network {args.network!r}; choose from {', '.join(NETWORKS)}")
-    args.tracks = list(args.tracks or DEFAULT_TRACKS)
-    command = ["multirace", "imitate", "--out", args.out, "--tracks", *args.tracks, "--minutes",
-               f"{args.minutes:g}", "--seed", str(args.seed), "--network", args.network, "--speed",
+    if args.expert:
+        try:
+            parse_bot(args.expert)
+        except ValueError as exc:
+            raise ValueError(f"--expert: {exc}") from None
+    command = ["multirace", "imitate", "--out", args.out, "--tracks", *(args.tracks or DEFAULT_TRACKS),
+               "--minutes", f"{args.minutes:g}", "--seed", str(args.seed), "--network", args.network, "--speed",
                f"{args.speed:g}"]
+    args.tracks = expand_tracks(args.tracks or DEFAULT_TRACKS)
+    for option, value in (("--expert", args.expert), ("--randomize", args.randomize)):
+        if value:
+            command += [option, value]
+    if args.procedural_tracks:
+        command += ["--procedural-tracks", str(args.procedural_tracks)]
+    if args.max_samples != ImitationConfig.max_samples:
+        command += ["--max-samples", str(args.max_samples)]
     if args.action_space:
         command += ["--action-space", args.action_space]
     if args.one_direction:
@@ -195,7 +209,10 @@ def cmd_imitate(args) -> int:
     config = ImitationConfig(out=args.out, tracks=tuple(args.tracks), both_directions=not args.one_direction,
                              minutes=args.minutes, seed=args.seed, network=args.network,
                              action_space=args.action_space, expert_speed=args.speed, traffic=traffic,
-                             name=args.name, threads=args.threads, lidar=args.lidar, command=shlex.join(command))
+                             name=args.name, threads=args.threads, lidar=args.lidar, expert=args.expert,
+                             randomize=args.randomize, procedural_tracks=args.procedural_tracks,
+                             max_samples=args.max_samples,
+                             command=shlex.join(command))
     summary = run_dagger(config)
     print(f"wrote {summary['out']}: {summary['iterations']} DAgger iterations, {summary['samples']} samples, "
           f"final loss {summary['final_loss']}, {summary['wall_seconds']} s")
@@ -277,8 +294,11 @@ def build_parser() -> argparse.ArgumentParser:
                                          "the data is aggregated and the net retrained; writes an agent file.")
     imitate.add_argument("--out", required=True, metavar="FILE.pt", help="agent file to write")
     imitate.add_argument("--tracks", nargs="+", default=None, metavar="TRACK",
-                         help="tracks to train on (default: reinvent_base reInvent2019_track Oval_track "
+                         help="tracks to train on; the word train-split names every bundled track outside "
+                              "the held-out split (default: reinvent_base reInvent2019_track Oval_track "
                               "Bowtie_track)")
+    imitate.add_argument("--procedural-tracks", type=int, default=0, metavar="N",
+                         help="also drive N seeded generated tracks (default 0)")
     imitate.add_argument("--one-direction", action="store_true",
                          help="train on each track forwards only (default: both directions)")
     imitate.add_argument("--minutes", type=float, default=4.0, help="wall-clock training budget (default 4)")
@@ -289,10 +309,18 @@ def build_parser() -> argparse.ArgumentParser:
     imitate.add_argument("--action-space", default=None, metavar="JSON",
                          help="DeepRacer model_metadata.json with the action space (default: 10 actions, "
                               "steering -30..30 by 15 x speed 0.5, 1.0)")
-    imitate.add_argument("--speed", type=float, default=1.0, help="expert's speed in m/s (default 1.0)")
+    imitate.add_argument("--speed", type=float, default=1.0,
+                         help="the default pass expert's speed in m/s (default 1.0)")
+    imitate.add_argument("--expert", default=None, metavar="BOT",
+                         help="the expert as a bot spec, e.g. racingline@0.9 (default: pass@SPEED)")
+    imitate.add_argument("--randomize", default=None, choices=("mild", "strong"),
+                         help="domain randomisation of every episode (default: none)")
     imitate.add_argument("--traffic", default=None, metavar="BOTS",
                          help="bots in every env, comma-separated (e.g. follow@1.0,lanes@1.0): the expert "
                               "passes them wide, so the agent learns to overtake")
+    imitate.add_argument("--max-samples", type=int, default=40000, metavar="N",
+                         help="dataset cap; beyond it new samples replace random old ones (default 40000; "
+                              "each 120x160 sample is 19 kB)")
     imitate.add_argument("--lidar", action="store_true",
                          help="the agent also reads DeepRacer's 64-beam LIDAR (sensor FRONT_FACING_CAMERA + LIDAR)")
     imitate.add_argument("--name", default=None, help="agent name in the metadata (default: file stem)")

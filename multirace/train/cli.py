@@ -13,7 +13,8 @@ def add_train_parser(sub) -> None:
                                    "Writes FILE.pt (agent file), FILE.png (learning curve), FILE.train.json "
                                    "and FILE.ckpt/ (checkpoint, snapshots).")
     p.add_argument("--track", default="reinvent_base",
-                   help="track(s), comma-separated (bundled names or .npy paths; default reinvent_base)")
+                   help="track(s), comma-separated (bundled names or .npy paths; train-split: every bundled "
+                        "track outside the held-out split; default reinvent_base)")
     p.add_argument("--reverse", default="no", choices=("no", "yes", "both"), help="direction(s) (default no)")
     p.add_argument("--minutes", type=float, default=10.0, help="wall-clock budget (default 10)")
     p.add_argument("--out", metavar="FILE.pt", help="agent file to write (required)")
@@ -57,7 +58,9 @@ def config_from_args(args):
             overrides[key.strip()] = json.loads(value)
         except json.JSONDecodeError:
             overrides[key.strip()] = value
-    tracks = tuple(t.strip() for t in args.track.split(",") if t.strip())
+    from .splits import expand_tracks
+
+    tracks = tuple(expand_tracks(t.strip() for t in args.track.split(",") if t.strip()))
     if args.robust:
         overrides.setdefault("robust", True)
     config = make_config(args.config, tracks=tracks, reverse=args.reverse, minutes=args.minutes, seed=args.seed,
@@ -115,7 +118,12 @@ def add_evaluate_parser(sub) -> None:
     p.add_argument("--png", metavar="FILE.png",
                    help="write the report plot (default: next to --json, else AGENT.eval.png in the working folder)")
     p.add_argument("--tracks", default=None,
-                   help="comma-separated tracks (default: every bundled track the agent did not train on)")
+                   help="comma-separated tracks (default: the declared held-out split, less any track the agent "
+                        "trained on)")
+    p.add_argument("--directions", choices=("forward", "reverse", "both"), default="forward",
+                   help="race the held-out tracks forwards (default), in reverse or both")
+    p.add_argument("--randomize", choices=("mild", "strong"), default=None,
+                   help="domain randomisation on the held-out tracks (default: none)")
     p.add_argument("--laps", type=int, default=2, help="laps per run (default 2)")
     p.add_argument("--seeds", type=int, default=1, help="seeds per cell (default 1)")
     p.add_argument("--quick", action="store_true",

@@ -76,7 +76,8 @@ class TrainConfig:
     max_grad_norm: float = 0.5  # gradient norm clip
     target_kl: float | None = None  # stop an iteration's epochs early above this approximate KL
     norm_adv: bool = True  # normalise advantages per minibatch
-    expert_coef: float = 0.0  # weight of an auxiliary imitation loss toward the scripted pass driver's action (bots.passing_line, privileged state); 0 = pure RL
+    expert_coef: float = 0.0  # weight of an auxiliary imitation loss toward the expert's action (privileged state); 0 = pure RL
+    expert: str = ""  # the expert of expert_coef as a bot spec (e.g. "racingline@0.9"); "" = bot:pass at the action space's top speed
     value_warmup: int = 0  # with --init: first iterations train only the (new) value head, policy frozen
     # ---- budget, logging, outputs
     minutes: float = 10.0  # wall-clock budget, including evaluations and checkpoints

@@ -54,7 +54,7 @@ def env_settings(config) -> dict:
             "terminate_collision": config.terminate_collision, "proximity_penalty": config.proximity_penalty,
             "proximity_gap": config.proximity_gap, "proximity_side_room": config.proximity_side_room,
             "bots_ahead": config.bots_ahead, "bots_ahead_spread": config.bots_ahead_spread,
-            "expert_labels": config.expert_coef > 0}
+            "expert_labels": config.expert_coef > 0, "expert": config.expert}
 
 
 class TrainEnv:
@@ -64,7 +64,7 @@ class TrainEnv:
                  lidar=False, episode_steps=1500, terminate_off_track=True, off_track_penalty=1.0, progress_weight=1.0,
                  centre_weight=0.1, randomize=None, shared=None, worker=0, collision_penalty=0.0,
                  terminate_collision=False, proximity_penalty=0.0, proximity_gap=1.0, proximity_side_room=0.1,
-                 bots_ahead=0.0, bots_ahead_spread=0.0, expert_labels=False):
+                 bots_ahead=0.0, bots_ahead_spread=0.0, expert_labels=False, expert=""):
         self.runs = list(runs)  # [(track name/path or Track rows, reverse)]
         self.num_cars = int(num_cars)
         self.bots = tuple(bots)
@@ -83,7 +83,8 @@ class TrainEnv:
         self.bots_ahead = float(bots_ahead)
         self.bots_ahead_spread = float(bots_ahead_spread)
         self.expert_labels = bool(expert_labels)
-        self._expert = None  # the scripted pass driver that labels actions (built on first use)
+        self.expert = str(expert or "")  # the labelling driver's bot spec; "" = bot:pass at the space's top speed
+        self._expert = None  # that driver (built on first use)
         self.progress_weight = float(progress_weight)
         self.centre_weight = float(centre_weight)
         self.randomize = randomize
@@ -159,7 +160,7 @@ class TrainEnv:
         return obs, small
 
     def _expert_action(self, i: int, known: bool = True):
-        """The scripted pass driver's action for car i where it stands (its top speed: the space's).
+        """The expert's action for car i where it stands (`expert`, else the pass driver at the space's top speed).
 
         With `known` False (the worker resets the env after this step, so the label would not match
         the next observation) the label is marked missing: -1, or NaNs for a continuous space.
@@ -167,11 +168,11 @@ class TrainEnv:
         env, space = self.env, self.env.actions
         if not known:
             return -1 if space.discrete else [math.nan, math.nan]
-        if self._expert is None:  # every run shares the action space, so one driver at its top speed serves all
-            from ..environment.bots import Bot
+        if self._expert is None:  # every run shares the action space, so one driver serves all
+            from ..environment.bots import Bot, parse_bot
 
             top = max(a[1] for a in space.actions) if space.discrete else float(space.high[1])
-            self._expert = Bot(kind="pass", speed=top)
+            self._expert = parse_bot(self.expert) if self.expert else Bot(kind="pass", speed=top)
         steer, speed = self._expert.command(env.track, env.car_spec, env.world.poses[i], env.sim_time,
                                             env.races[i].segment_hint, env.traffic(i))
         label = space.nearest(steer, speed)

@@ -2,11 +2,14 @@
 
 Three parts, each a list of rows (one race per row and seed):
 
-1. held-out tracks: a time trial on every bundled track the agent did not
-   train on (its metadata's training notes), forwards; `--quick` takes the
-   first three of the declared split `HELD_OUT_TRACKS` that the agent did not
-   train on. Tracks named with `--tracks` that the agent trained on are
-   raced but labelled as such and left out of the held-out figures;
+1. held-out tracks: a time trial on every track of the declared held-out
+   split (`splits.HELD_OUT_TRACKS`) that the agent did not train on (its
+   metadata's training notes), forwards (``directions="both"``: and in
+   reverse), optionally under a randomisation preset; `--quick` takes the
+   first three. Tracks named with `--tracks` that the agent trained on are
+   raced but labelled as such and left out of the held-out figures. Each
+   row carries the reference lap of `bot:racingline` on the same track and
+   direction (nominal car, seed 0) and the agent's best lap over it;
 2. perturbation grid: a time trial on the reference track (the first training
    track, else reinvent_base) under each element of the grid: no
    perturbation, the "mild" and "strong" randomisation presets, and the nature
@@ -15,13 +18,17 @@ Three parts, each a list of rows (one race per row and seed):
 3. traffic: a head-to-head race on the reference track against two scripted
    bots (``follow@0.8``, ``lanes@1.0``).
 
-Per row: lap completion (laps finished / laps asked), best lap, off-tracks
-per lap driven, collisions per lap driven (and collisions the agent caused).
-Summary per agent: mean lap completion on held-out tracks, under the grid and
-nominal, the drop in points under perturbation, and traffic figures.
+Per row: lap completion (laps finished / laps asked), whether the run was
+clean (every lap finished, no off-track), best lap, off-tracks per lap driven,
+collisions per lap driven (and collisions the agent caused). Summary per
+agent: on held-out tracks the mean lap completion, the share of clean runs,
+the mean best-lap ratio to the racing line and the share of runs within
+1.25x of it; lap completion under the grid and nominal, the drop in points
+under perturbation, and traffic figures.
 """
 from __future__ import annotations
 
+import functools
 import json
 import math
 from pathlib import Path
@@ -30,16 +37,16 @@ import numpy as np
 
 from ..sim.tracks import list_tracks
 from .nature import UNCERTAINTY_SET
+from .splits import HELD_OUT_TRACKS
 
 GRID = [("none", None), ("mild", "mild"), ("strong", "strong")] + [
     (name, cfg) for name, cfg in UNCERTAINTY_SET if name not in ("nominal", "mild_everything")]
 QUICK_GRID = [("none", None), ("mild", "mild"), ("action_noise", dict(UNCERTAINTY_SET)["action_noise"]),
               ("dark", dict(UNCERTAINTY_SET)["dark"])]
 TRAFFIC_BOTS = ("follow@0.8", "lanes@1.0")
-# The project's declared held-out split: real DeepRacer tracks that none of its training recipes use.
-HELD_OUT_TRACKS = ("2022_april_open", "Canada_Training", "July_2020", "Mexico_track", "arctic_pro", "Aragon",
-                   "2022_september_pro", "Virtual_May19_Train_track")
 QUICK_COUNT = 3
+REFERENCE_BOT = "bot:racingline"
+GOOD_LAP_RATIO = 1.25  # a best lap within this many times the racing line's counts as racing pace
 
 
 def race_agent(agent_path, track="reinvent_base", reverse=False, laps=2, seed=0, randomize=None, bots=(),
@@ -65,7 +72,18 @@ def race_agent(agent_path, track="reinvent_base", reverse=False, laps=2, seed=0,
             "laps_driven": round(driven, 3), "off_tracks_per_lap": car["off_tracks"] / max(driven, 0.25),
             "collisions": car["collisions"], "collisions_caused": car["collisions_caused"],
             "collisions_per_lap": car["collisions"] / max(driven, 0.25),
-            "position": car["position"], "status": car["status"], "reason": car["reason"]}
+            "position": car["position"], "status": car["status"], "reason": car["reason"],
+            "clean": car["laps"] == laps and car["off_tracks"] == 0}
+
+
+@functools.lru_cache(maxsize=None)
+def reference_lap(track: str, reverse: bool = False, laps: int = 2):
+    """Best lap of `bot:racingline` on the track and direction (nominal car, seed 0): the reference lap."""
+    from ..racing.entrant import BotController
+    from ..racing.runner import RaceConfig, run_race
+
+    result = run_race([BotController(REFERENCE_BOT)], RaceConfig(track=track, reverse=reverse, laps=laps, seed=0))
+    return result["cars"][0]["best_lap"]
 
 
 def trained_tracks(agent_path) -> set:
@@ -79,30 +97,35 @@ def trained_tracks(agent_path) -> set:
 
 
 def held_out_tracks(seen: set, quick: bool = False) -> list[str]:
-    """Bundled tracks an agent that trained on `seen` never saw (`quick`: a few of the declared split)."""
-    if quick:
-        return [t for t in HELD_OUT_TRACKS if t not in seen][:QUICK_COUNT]
-    return [t for t in list_tracks() if t not in seen]
+    """Tracks of the declared held-out split that an agent trained on `seen` never saw (`quick`: a few)."""
+    tracks = [t for t in HELD_OUT_TRACKS if t not in seen and t in list_tracks()]
+    return tracks[:QUICK_COUNT] if quick else tracks
 
 
 def evaluate_agent(agent_path, tracks=None, grid=None, laps=2, seeds=1, reference=None, progress=None,
-                   quick=False) -> dict:
+                   quick=False, directions="forward", randomize=None) -> dict:
     """The full report for one agent file (see the module docstring)."""
     seen = trained_tracks(agent_path)
     if tracks is None:
         tracks = held_out_tracks(seen, quick)
     reference = reference or (sorted(seen)[0] if seen and sorted(seen)[0] in list_tracks() else "reinvent_base")
     grid = GRID if grid is None else grid
+    reverses = (False, True) if directions == "both" else (True,) if directions == "reverse" else (False,)
     report = {"agent": str(agent_path), "trained_on": sorted(seen), "reference_track": reference, "laps": laps,
-              "held_out": [], "perturbations": [], "traffic": []}
+              "directions": directions, "randomize": randomize, "held_out": [], "perturbations": [], "traffic": []}
     say = progress or (lambda line: None)
     for track in tracks:
-        for seed in range(seeds):
-            row = race_agent(agent_path, track, laps=laps, seed=seed)
-            row["trained_on"] = Path(track).stem in seen
-            report["held_out"].append(row)
-            say(f"{'trained-on' if row['trained_on'] else 'held-out'} {track} seed {seed}: "
-                f"{row['laps']}/{laps} laps, {row['off_tracks']} off-tracks")
+        for reverse in reverses:
+            ref = reference_lap(track, reverse, laps)
+            for seed in range(seeds):
+                row = race_agent(agent_path, track, reverse=reverse, laps=laps, seed=seed, randomize=randomize)
+                row["trained_on"] = Path(track).stem in seen
+                row["reference_lap"] = ref
+                row["lap_ratio"] = row["best_lap"] / ref if row["best_lap"] and ref else None
+                report["held_out"].append(row)
+                say(f"{'trained-on' if row['trained_on'] else 'held-out'} {track}{' reverse' if reverse else ''} "
+                    f"seed {seed}: {row['laps']}/{laps} laps, {row['off_tracks']} off-tracks, best lap "
+                    f"{_fmt(row['best_lap'])} (racing line {_fmt(ref)})")
     for name, cfg in grid:
         for seed in range(seeds):
             row = race_agent(agent_path, reference, laps=laps, seed=seed, randomize=cfg)
@@ -128,7 +151,12 @@ def summarise(report: dict) -> dict:
     perturbed = [r for r in report["perturbations"] if r["perturbation"] != "none"]
     held = [r for r in report["held_out"] if not r.get("trained_on")]
     summary = {
+        "held_out_runs": len(held),
         "held_out_completion": _mean([r["completion"] for r in held]),
+        "held_out_clean_share": _mean([float(r["clean"]) for r in held]),
+        "held_out_lap_ratio": _mean([r["lap_ratio"] for r in held]),
+        "held_out_clean_within_1_25_share": _mean([float(r["clean"] and r["lap_ratio"] is not None
+                                                         and r["lap_ratio"] <= GOOD_LAP_RATIO) for r in held]),
         "held_out_tracks_completed": sorted({r["track"] for r in held if r["laps"] >= 1}),
         "held_out_best_lap": _mean([r["best_lap"] for r in held]),
         "held_out_off_tracks_per_lap": _mean([r["off_tracks_per_lap"] for r in held]),
@@ -159,16 +187,17 @@ def print_report(reports: list, console) -> None:
     for report in reports:
         table = Table(title=f"{Path(report['agent']).name}: held-out tracks, perturbations (on "
                             f"{report['reference_track']}), traffic; {report['laps']} laps per race")
-        for column in ("part", "track / perturbation", "laps", "lap completion", "best lap", "off-tracks/lap",
-                       "collisions/lap", "status"):
+        for column in ("part", "track / perturbation", "laps", "lap completion", "best lap", "x racing line",
+                       "off-tracks/lap", "collisions/lap", "status"):
             table.add_column(column)
         for part, rows in (("held-out", report["held_out"]), ("perturbed", report["perturbations"]),
                            ("traffic", report["traffic"])):
             for r in rows:
-                label = r.get("perturbation", r["track"]) + (f" s{r['seed']}" if r["seed"] else "")
-                label += " (trained on)" if r.get("trained_on") else ""
+                label = r.get("perturbation", r["track"]) + (" reverse" if r["reverse"] else "")
+                label += (f" s{r['seed']}" if r["seed"] else "") + (" (trained on)" if r.get("trained_on") else "")
                 table.add_row(part, label, f"{r['laps']}/{r['target']}", f"{100 * r['completion']:.0f}%",
-                              _fmt(r["best_lap"]), _fmt(r["off_tracks_per_lap"]), _fmt(r["collisions_per_lap"]),
+                              _fmt(r["best_lap"]), _fmt(r.get("lap_ratio")), _fmt(r["off_tracks_per_lap"]),
+                              _fmt(r["collisions_per_lap"]),
                               r["status"] + (f" P{r['position']}" if part == "traffic" else ""))
         console.print(table)
     summary = Table(title="summary")
@@ -226,7 +255,8 @@ def run_evaluation(args) -> int:
         if not Path(agent).exists():
             raise FileNotFoundError(f"{agent}: no such agent file")
         reports.append(evaluate_agent(agent, tracks=tracks, grid=grid, laps=args.laps, seeds=args.seeds,
-                                      quick=args.quick, progress=lambda line: console.print(f"[dim]{line}[/dim]")))
+                                      quick=args.quick, directions=args.directions, randomize=args.randomize,
+                                      progress=lambda line: console.print(f"[dim]{line}[/dim]")))
     print_report(reports, console)
     png = Path(args.png) if args.png else (Path(args.json).with_suffix(".png") if args.json
                                            else Path.cwd() / (Path(args.agents[0]).stem + ".eval.png"))

@@ -1,9 +1,11 @@
-"""DAgger imitation of the scripted driver, from the camera: a first real agent in minutes on a CPU.
+"""DAgger imitation of a scripted driver, from the camera: a first real agent in minutes on a CPU.
 
-The expert is the scripted ``pass`` driver (`bots.passing_line` steering by
-`bots.PurePursuit`): it reads the car's true pose, the track and the other
-cars (privileged state) and says how to steer: along the centre line, and
-wide round slower cars when there are any (``traffic``). The learner is a camera CNN
+The expert is a scripted bot (`environment.bots`): by default the ``pass``
+driver (`bots.passing_line` steering by `bots.PurePursuit`), which keeps the
+centre line and goes wide round slower cars when there are any
+(``traffic``); ``expert="racingline@0.9"`` makes it the racing-line driver at
+0.9 of its speed profile, the teacher of fast racers. Either reads the car's
+true pose, the track and the other cars (privileged state). The learner is a camera CNN
 (`nets.py`) that sees only the front camera image. DAgger (Ross et al., 2011)
 lets the learner drive so it visits its own mistakes, and asks the expert what
 it should have done there:
@@ -26,7 +28,9 @@ bots, started at random gaps ahead of the learner each episode, so the
 dataset holds passes: the learner sees the cars in its camera and the
 expert's labels steer round them. With ``lidar`` the learner also reads
 DeepRacer's LIDAR (`lidar`), which sees the cars alongside and right ahead
-that the camera cannot.
+that the camera cannot. ``randomize`` (a preset name or dict, as the env's)
+randomises perception and dynamics per episode, and ``procedural_tracks`` adds
+seeded generated tracks (`sim.trackgen`) to the named ones.
 """
 from __future__ import annotations
 
@@ -60,7 +64,10 @@ class ImitationConfig:
     seed: int = 0
     network: str = DEFAULT_NETWORK
     action_space: object = None  # model_metadata path/dict; None = the 10 default actions
-    expert_speed: float = 1.0  # m/s the expert drives (and so labels)
+    expert_speed: float = 1.0  # m/s the default `pass` expert drives (and so labels)
+    expert: str | None = None  # a bot spec such as "racingline@0.9"; None = pass@expert_speed
+    randomize: object = None  # the env's domain randomisation (None, "mild", "strong" or a dict), per episode
+    procedural_tracks: int = 0  # seeded generated tracks added to `tracks` (each in both directions if asked)
     traffic: tuple = ()  # bots in every env (e.g. ("follow@1.0", "lanes@1.0")), started ahead: the expert passes them
     name: str | None = None  # agent name in the metadata (default: the file stem)
     camera: tuple = (120, 160)
@@ -155,6 +162,19 @@ def default_threads() -> int:
     return 1 if busy else cores
 
 
+def imitation_runs(config: ImitationConfig) -> list:
+    """(track, reverse) pairs to drive: the named tracks and `procedural_tracks` generated ones, x directions."""
+    from ..sim.trackgen import generate_track
+
+    directions = (False, True) if config.both_directions else (False,)
+    runs = [(t, r) for t in config.tracks for r in directions]
+    for k in range(int(config.procedural_tracks)):
+        runs += [(generate_track(seed=20_000 + 1000 * config.seed + k, reverse=r), r) for r in directions]
+    if not runs:
+        raise ValueError("tracks: need at least one track")
+    return runs
+
+
 def run_dagger(config: ImitationConfig) -> dict:
     """Train a camera agent by DAgger and write it to `config.out`; returns a summary dict."""
     started = time.perf_counter()
@@ -164,17 +184,15 @@ def run_dagger(config: ImitationConfig) -> dict:
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
     space = load_action_space(config.action_space)
-    expert = Bot(kind="pass", speed=float(config.expert_speed))
+    expert = parse_bot(config.expert) if config.expert else Bot(kind="pass", speed=float(config.expert_speed))
     bots = tuple(parse_bot(b).name for b in config.traffic)  # a clear error on a bad spec, before any env starts
-    if not space.discrete and not space.low[1] <= expert.speed <= space.high[1]:
-        raise ValueError(f"expert_speed {expert.speed} is outside the action space's speed range")
+    if expert.kind != "racingline" and not space.discrete and not space.low[1] <= expert.speed <= space.high[1]:
+        raise ValueError(f"expert speed {expert.speed} is outside the action space's speed range")
 
-    runs = [(t, r) for t in config.tracks for r in ((False, True) if config.both_directions else (False,))]
-    if not runs:
-        raise ValueError("tracks: need at least one track")
+    runs = imitation_runs(config)
     envs = [parallel_env(track=t, reverse=r, num_cars=1, race="time_trial", laps=1000, action_space=space,
                          camera=tuple(config.camera), lidar=config.lidar, max_steps=config.episode_steps,
-                         bots=bots) for t, r in runs]
+                         bots=bots, randomize=config.randomize) for t, r in runs]
     observation_space = envs[0].observation_space("car_0")
     obs_shape = observation_space["camera"].shape if config.lidar else observation_space.shape
     lidar_samples = observation_space["lidar"].shape[0] if config.lidar else 0
@@ -268,7 +286,9 @@ def run_dagger(config: ImitationConfig) -> dict:
     wall = time.perf_counter() - started
     training = {
         "method": "dagger", "expert": expert.name, "traffic": list(bots), "lidar": bool(config.lidar),
-        "tracks": [f"{t}{' (reverse)' if r else ''}" for t, r in runs], "seed": config.seed,
+        "tracks": list(dict.fromkeys(str(t) for t in config.tracks)),
+        "directions": ["forward", "reverse"] if config.both_directions else ["forward"],
+        "procedural_tracks": int(config.procedural_tracks), "randomize": config.randomize, "seed": config.seed,
         "minutes": config.minutes, "iterations": iteration, "samples": data.seen,
         "dataset_size": data.size, "final_loss": round(loss_value, 4), "wall_seconds": round(wall, 1),
     }

@@ -247,7 +247,7 @@ def ppo_update(net, policy: Policy, optimiser, batch: dict, config: TrainConfig,
                 vl = 0.5 * ((value - ret) ** 2).mean()
             ent = policy.entropy(dist).mean()
             loss = pg - config.ent_coef * ent + config.vf_coef * vl
-            if config.expert_coef:  # imitation of the pass driver where it labelled the image
+            if config.expert_coef:  # imitation of the expert where it labelled the image
                 labels = batch["expert"][idx]
                 known = labels >= 0 if space.discrete else ~torch.isnan(labels).any(-1)
                 safe = labels.clamp(min=0) if space.discrete else torch.nan_to_num(labels)
