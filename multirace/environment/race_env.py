@@ -13,7 +13,6 @@ penalties, resets) -> camera images.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
@@ -27,7 +26,7 @@ from ..sensors.camera import CameraSpec, camera_poses, stereo_poses
 from ..sensors.renderers import make_renderer
 from ..sim.car import CarSpec
 from ..sensors.lidar import SECTORS, Lidar, sector_lidar
-from ..sensors.suite import SensorSuite, parse_sensors
+from ..sensors.suite import declared_sensors
 from ..sim.objects import objects_seen
 from .randomize import Randomization, apply_command, apply_image
 from .rewards import load_reward_function
@@ -129,9 +128,7 @@ class RaceEnv(ParallelEnv):
         if len(names) != self.num_cars:
             raise ValueError(f"car_names: expected {self.num_cars} names, got {len(names)}")
         self.car_names = names + [bot.name for bot in self.bots]
-        self.sensors = parse_sensors(sensor) if sensor is not None else SensorSuite()
-        if lidar and self.sensors.lidar is None:
-            self.sensors = dataclasses.replace(self.sensors, lidar="lidar")
+        self.sensors = declared_sensors(sensor, lidar)
         if self.sensors.camera == "stereo" and not self.camera.grayscale:
             raise ValueError("sensor: STEREO_CAMERAS are a pair of grey cameras; use grayscale=True")
         channels = self.sensors.camera_channels or self.camera.channels

@@ -16,9 +16,12 @@ from __future__ import annotations
 
 import dataclasses
 
+from .lidar import SECTORS, LidarSpec
+
 CAMERAS = {"FRONT_FACING_CAMERA": "mono", "observation": "mono", "LEFT_CAMERA": "mono", "STEREO_CAMERAS": "stereo"}
 RANGE_SENSORS = {"LIDAR": "lidar", "SECTOR_LIDAR": "sector"}
 KNOWN = (*CAMERAS, *RANGE_SENSORS)
+RANGE_INPUTS = {"lidar": LidarSpec().samples, "sector": SECTORS}  # values a range sensor gives per step
 
 
 @dataclasses.dataclass(frozen=True)
@@ -41,6 +44,11 @@ class SensorSuite:
         """Channels the camera image must have (2 for stereo; None: 1 or 3, grey or colour)."""
         return 2 if self.camera == "stereo" else None
 
+    @property
+    def range_inputs(self) -> int:
+        """Values the range sensor gives per step: 64 ranges (LIDAR), 8 sectors (SECTOR_LIDAR) or 0 (none)."""
+        return RANGE_INPUTS.get(self.lidar, 0)
+
 
 def parse_sensors(names, where: str = "sensor") -> SensorSuite:
     """The suite a DeepRacer `sensor` list asks for; ValueError naming `where` for anything else."""
@@ -60,6 +68,13 @@ def parse_sensors(names, where: str = "sensor") -> SensorSuite:
     if not cameras:
         raise ValueError(f"{where}: {names!r} has no camera; add FRONT_FACING_CAMERA or STEREO_CAMERAS")
     return SensorSuite(camera=cameras[0], lidar=ranges[0] if ranges else None)
+
+
+def declared_sensors(sensor=None, lidar: bool = False, where: str = "sensor") -> SensorSuite:
+    """The suite of a `sensor` list (None: the single camera); `lidar=True` is the shorthand that adds the
+    64-beam LIDAR to a list that names no range sensor."""
+    suite = parse_sensors(sensor, where) if sensor is not None else SensorSuite()
+    return dataclasses.replace(suite, lidar="lidar") if lidar and suite.lidar is None else suite
 
 
 def race_suite(suites) -> SensorSuite:
