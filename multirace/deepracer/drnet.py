@@ -33,6 +33,7 @@ from ..environment.actions import ActionSpace
 from ..racing.agentfile import (Agent, AgentFileError, parse_metadata, read_agent_bytes, read_payload,
                                 write_agent_file)
 from ..racing.nets import CONTINUOUS_OUTPUTS
+from ..sensors.suite import parse_sensors
 
 LIDAR_SENSORS = ("LIDAR", "SECTOR_LIDAR")
 LOG_STD = -1.0  # the continuous log-std outputs (a frozen policy graph has no log-std)
@@ -131,10 +132,11 @@ def load_graph_agent(path) -> Agent:
     try:
         net = GraphNet(spec, ActionSpace(metadata, f"{path}: metadata"))
         net.load_state_dict(payload.get("state_dict") or {}, strict=True)
+        sensors = parse_sensors(net.sensors, f"{path}: metadata field 'deepracer_graph' inputs")
     except (ValueError, KeyError, TypeError, RuntimeError) as exc:
         raise AgentFileError(f"{path}: metadata field 'deepracer_graph' does not match the weights ({exc})") from None
     net.eval()
-    return Agent(path, net, metadata, net.space, hashlib.sha256(read_agent_bytes(path)).hexdigest())
+    return Agent(path, net, metadata, net.space, hashlib.sha256(read_agent_bytes(path)).hexdigest(), sensors)
 
 
 def spec_from_graph(graph_spec, source: str) -> tuple[dict, dict]:

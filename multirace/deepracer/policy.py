@@ -17,19 +17,10 @@ from ..racing.runner import resolve_agent_path
 from .drnet import load_graph_agent
 
 
-class GraphPolicy(Policy):
-    """The greedy driver of an imported DeepRacer network (`drnet.GraphNet`)."""
-
-    @property
-    def sensor(self) -> list[str]:
-        """DeepRacer's `sensor` list of the model (pass it to the env as `sensor=`)."""
-        return list(self.metadata["sensor"])
-
-
 def load_policy(path) -> Policy:
     """The agent file at `path` (or a shipped agent's name) as a policy whose `command(observation)` gives
     the greedy (steering degrees, speed m/s); AgentFileError if the file is bad."""
     resolved = resolve_agent_path(str(path))
     if "deepracer_graph" in parse_metadata(read_payload(resolved), str(resolved)):
-        return GraphPolicy(load_graph_agent(resolved))
+        return Policy(load_graph_agent(resolved))
     return load_agent_policy(resolved)

@@ -10,10 +10,13 @@ The metadata is DeepRacer's ``model_metadata.json`` (``sensor``,
 ``neural_network``, ``action_space``, ``action_space_type``, ``version``,
 ``training_algorithm``) plus ``name`` (the agent's name), ``image``
 (``{"height", "width", "channels"}`` of the camera it expects) and optional
-``training`` notes. ``sensor`` is ``["FRONT_FACING_CAMERA"]``, or
-``["FRONT_FACING_CAMERA", "LIDAR"]`` for a policy that also reads DeepRacer's
-64-beam LIDAR (see `lidar`). The network is rebuilt from its name (`nets.NETWORKS`),
-so a custom network travels without Python source.
+``training`` notes. ``sensor`` is DeepRacer's list (`sensors.suite`): one
+camera, ``FRONT_FACING_CAMERA`` (1 grey or 3 colour channels) or
+``STEREO_CAMERAS`` (2 channels, [left, right]), and at most one range sensor,
+``LIDAR`` (64 ranges) or ``SECTOR_LIDAR`` (8 binary sectors). In a race an
+agent takes what it reads from the race's observation (`Agent.reads`). The
+network is rebuilt from its name (`nets.NETWORKS`), so a custom network
+travels without Python source.
 
 Loading never unpickles arbitrary objects, and never allocates more than the
 file declares: only a regular file under `MAX_FILE_BYTES` is read (once: the
@@ -53,15 +56,13 @@ import numpy as np
 import torch
 
 from ..environment.actions import ActionSpace, ActionSpaceError
-from ..sensors.lidar import SENSOR_NAME as LIDAR, LidarSpec
-from ..sensors.suite import SensorSuite
+from ..sensors.lidar import LidarSpec, sector_lidar
+from ..sensors.suite import RANGE_INPUTS, SensorSuite, declared_sensors, parse_sensors
 from .nets import NETWORKS, CameraNet, num_outputs_for, parameter_count
 from .entrant import Controller, Forfeit
 
 FORMAT = "multirace-agent"
 FORMAT_VERSION = 1
-CAMERA = "FRONT_FACING_CAMERA"
-SENSORS = (CAMERA, LIDAR)
 DEFAULT_STEP_BUDGET = 1.0 / 15  # seconds: one 15 Hz frame (DeepRacer's control rate)
 WARMUP_STEPS = 2  # first steps of a race not held to the time budget (allocator / cache warm-up)
 
@@ -71,12 +72,13 @@ class AgentFileError(ValueError):
 
 
 def make_metadata(action_space, network: str, name: str, image_shape=(120, 160, 1), version: str = "5",
-                  training_algorithm: str = "dagger", lidar: bool = False, **extra) -> dict:
-    """A model_metadata dict for an agent file (`lidar`: the policy also reads the LIDAR)."""
+                  training_algorithm: str = "dagger", lidar: bool = False, sensor=None, **extra) -> dict:
+    """A model_metadata dict for an agent file: `sensor` is DeepRacer's list (default the single camera;
+    `lidar=True` adds the LIDAR, as the env's shorthand)."""
     height, width, channels = (int(v) for v in image_shape)
     metadata = {
         "name": str(name),
-        "sensor": [CAMERA, LIDAR] if lidar else [CAMERA],
+        "sensor": declared_sensors(sensor, lidar).names,
         "image": {"height": height, "width": width, "channels": channels},
         "neural_network": network,
         "training_algorithm": training_algorithm,
@@ -99,19 +101,32 @@ def save_agent(path, net: CameraNet, metadata: dict) -> Path:
     metadata.setdefault("neural_network", net.network)
     h, w, c = net.image_shape
     metadata.setdefault("image", {"height": h, "width": w, "channels": c})
-    metadata.setdefault("sensor", [CAMERA, LIDAR] if net.lidar_samples else [CAMERA])
+    try:
+        reads = net_sensors(net)
+    except ValueError as exc:
+        raise AgentFileError(f"{path}: {exc}") from None
+    metadata.setdefault("sensor", reads.names)
     metadata.setdefault("version", "5")
-    _, space, network, image_shape = check_metadata(metadata, str(path))
+    _, space, network, image_shape, sensors = check_metadata(metadata, str(path))
     if network != net.network or tuple(image_shape) != tuple(net.image_shape):
         raise AgentFileError(f"{path}: metadata says {network} on {image_shape} images but the net is "
                              f"{net.network} on {net.image_shape}")
-    if lidar_samples(metadata) != net.lidar_samples:
-        raise AgentFileError(f"{path}: metadata field 'sensor' {metadata['sensor']!r} does not match the net "
-                             f"({net.lidar_samples} LIDAR inputs)")
+    if sensors != reads:
+        raise AgentFileError(f"{path}: metadata field 'sensor' {metadata['sensor']!r} does not match the net, "
+                             f"which reads {reads.names}")
     if num_outputs_for(space) != net.num_outputs:
         raise AgentFileError(f"{path}: the net has {net.num_outputs} outputs but the action space needs "
                              f"{num_outputs_for(space)}")
     return write_agent_file(path, metadata, net)
+
+
+def net_sensors(net: CameraNet) -> SensorSuite:
+    """The sensors a net reads: a stereo pair on 2-channel images; LIDAR (64 inputs) or SECTOR_LIDAR (8)."""
+    kinds = {inputs: kind for kind, inputs in RANGE_INPUTS.items()}
+    if net.lidar_samples and net.lidar_samples not in kinds:
+        raise ValueError(f"the net reads {net.lidar_samples} range inputs; DeepRacer's LIDAR gives "
+                         f"{RANGE_INPUTS['lidar']}, its SECTOR_LIDAR {RANGE_INPUTS['sector']}")
+    return SensorSuite("stereo" if net.image_shape[2] == 2 else "mono", kinds.get(net.lidar_samples))
 
 
 def write_agent_file(path, metadata: dict, net) -> Path:
@@ -315,19 +330,19 @@ def parse_metadata(payload: dict, source: str) -> dict:
     return metadata
 
 
-def check_metadata(metadata: dict, source: str):
-    """Validate a model_metadata dict; returns (metadata, ActionSpace, network name, image shape)."""
-    sensor = metadata.get("sensor")
-    if sensor is None:
+def metadata_sensors(metadata: dict, source: str) -> SensorSuite:
+    """The sensors a model_metadata declares (field ``sensor``); AgentFileError naming the file and field."""
+    if metadata.get("sensor") is None:
         raise AgentFileError(f"{source}: metadata field 'sensor' is missing")
-    if isinstance(sensor, str):
-        sensor = [sensor]
-    if not isinstance(sensor, list) or not sensor or any(s not in SENSORS for s in sensor):
-        raise AgentFileError(f"{source}: metadata field 'sensor' is {metadata.get('sensor')!r}; "
-                             f"supported: {list(SENSORS)}")
-    if CAMERA not in sensor:
-        raise AgentFileError(f"{source}: metadata field 'sensor' is {metadata.get('sensor')!r}; "
-                             f"every agent drives from its {CAMERA!r}")
+    try:
+        return parse_sensors(metadata["sensor"], f"{source}: metadata field 'sensor'")
+    except ValueError as exc:
+        raise AgentFileError(str(exc)) from None
+
+
+def check_metadata(metadata: dict, source: str):
+    """Validate a model_metadata dict; returns (metadata, ActionSpace, network name, image shape, SensorSuite)."""
+    sensors = metadata_sensors(metadata, source)
     image = metadata.get("image")
     if not isinstance(image, dict):
         raise AgentFileError(f"{source}: metadata field 'image' is missing or not "
@@ -337,9 +352,14 @@ def check_metadata(metadata: dict, source: str):
     except (KeyError, TypeError, ValueError):
         raise AgentFileError(f"{source}: metadata field 'image' needs integer 'height', 'width' and "
                              f"'channels', got {image!r}") from None
-    if not (32 <= shape[0] <= 1080 and 32 <= shape[1] <= 1920 and shape[2] in (1, 3)):
+    if not (32 <= shape[0] <= 1080 and 32 <= shape[1] <= 1920 and shape[2] in (1, 2, 3)):
         raise AgentFileError(f"{source}: metadata field 'image' {image!r} out of range "
-                             "(32-1080 x 32-1920 pixels, 1 or 3 channels)")
+                             "(32-1080 x 32-1920 pixels, 1 to 3 channels)")
+    if (shape[2] == 2) != (sensors.camera == "stereo"):
+        reads = ("STEREO_CAMERAS, a grey pair of 2 channels [left, right]" if sensors.camera == "stereo" else
+                 "a single camera of 1 (grey) or 3 (colour) channels; a 2-channel pair is STEREO_CAMERAS")
+        raise AgentFileError(f"{source}: metadata field 'image' has {shape[2]} channel(s) but field 'sensor' "
+                             f"{metadata['sensor']!r} declares {reads}")
     network = metadata.get("neural_network")
     if network not in NETWORKS:
         raise AgentFileError(f"{source}: metadata field 'neural_network' is {network!r}; known networks: "
@@ -351,20 +371,16 @@ def check_metadata(metadata: dict, source: str):
     name = metadata.get("name")
     if name is not None and (not isinstance(name, str) or not name.strip()):
         raise AgentFileError(f"{source}: metadata field 'name' must be a non-empty string")
-    return metadata, space, network, shape
-
-
-def lidar_samples(metadata: dict) -> int:
-    """How many LIDAR ranges the agent of a (checked) model_metadata reads: 0 without a LIDAR."""
-    sensor = metadata.get("sensor")
-    return LidarSpec().samples if LIDAR in ([sensor] if isinstance(sensor, str) else sensor) else 0
+    return metadata, space, network, shape, sensors
 
 
 class Agent:
-    """A loaded, validated agent: net (eval mode), metadata, action space."""
+    """A loaded, validated agent: net (eval mode), metadata, action space, the sensors it reads."""
 
-    def __init__(self, path: Path, net: CameraNet, metadata: dict, space: ActionSpace, sha256: str):
+    def __init__(self, path: Path, net: CameraNet, metadata: dict, space: ActionSpace, sha256: str,
+                 sensors: SensorSuite):
         self.path, self.net, self.metadata, self.action_space, self.sha256 = path, net, metadata, space, sha256
+        self.sensors = sensors
         self.name = metadata.get("name") or path.stem
 
     @property
@@ -375,8 +391,33 @@ class Agent:
     def lidar_samples(self) -> int:
         return self.net.lidar_samples
 
+    def reads(self, observation):
+        """What the agent reads of a race env's observation (see `race_suite`): a single-camera agent takes
+        the left image of a stereo pair, a SECTOR_LIDAR agent reduces a 64-beam scan to its sectors.
+        ValueError if the observation does not match its model_metadata."""
+        scan = None
+        if isinstance(observation, dict):
+            observation, scan = observation.get("camera"), observation.get("lidar")
+        image = np.asarray(observation)
+        height, width, channels = self.image_shape
+        if channels == 1 and image.shape == (height, width, 2):  # a stereo pair: its left camera
+            image = image[:, :, :1]
+        if image.shape != (height, width, channels) or image.dtype != np.uint8:
+            raise ValueError(f"observation {image.shape} {image.dtype} does not match the {height}x{width}x{channels} "
+                             f"uint8 images the agent reads (field 'image' of its model_metadata)")
+        if not self.lidar_samples:
+            return image
+        scan = np.asarray(scan if scan is not None else [], np.float32)
+        if self.sensors.lidar == "sector" and scan.shape == (RANGE_INPUTS["lidar"],):
+            scan = sector_lidar(scan)
+        if scan.shape != (self.lidar_samples,):
+            raise ValueError(f"LIDAR observation of shape {scan.shape} does not match the agent's "
+                             f"{self.lidar_samples} inputs (sensor {self.sensors.names} in its model_metadata)")
+        return {"camera": image, "lidar": scan}
+
     def outputs(self, observation) -> np.ndarray:
-        """The net's raw output row for one uint8 (H, W, C) image (LIDAR agents: the env's dict)."""
+        """The net's raw output row for one uint8 (H, W, C) image (agents with a range sensor: the
+        {"camera", "lidar"} dict that `reads` gives)."""
         with torch.no_grad():
             if self.lidar_samples:
                 out = self.net({"camera": torch.from_numpy(np.ascontiguousarray(observation["camera"])),
@@ -413,7 +454,7 @@ def _load_agent(path: Path, step_budget: float | None, smoke_runs: int) -> Agent
     data = read_agent_bytes(path)
     payload = payload_from_bytes(data, path)
     source = str(path)
-    metadata, space, network, shape = check_metadata(parse_metadata(payload, source), source)
+    metadata, space, network, shape, sensors = check_metadata(parse_metadata(payload, source), source)
     state = payload.get("state_dict")
     if not isinstance(state, dict) or not all(isinstance(k, str) and isinstance(v, torch.Tensor)
                                               for k, v in state.items()):
@@ -427,11 +468,11 @@ def _load_agent(path: Path, step_budget: float | None, smoke_runs: int) -> Agent
     try:
         with torch.device("meta"):  # sized before anything is allocated
             planned = parameter_count(CameraNet(network, shape, expected, value_head=value_head,
-                                                lidar_samples=lidar_samples(metadata)))
+                                                lidar_samples=sensors.range_inputs))
         if planned > MAX_PARAMETERS:
             raise AgentFileError(f"{source}: the {network} network on {shape[0]}x{shape[1]}x{shape[2]} images "
                                  f"has {planned:,} parameters, over the limit of {MAX_PARAMETERS:,}")
-        net = CameraNet(network, shape, expected, value_head=value_head, lidar_samples=lidar_samples(metadata))
+        net = CameraNet(network, shape, expected, value_head=value_head, lidar_samples=sensors.range_inputs)
     except AgentFileError:
         raise
     except ValueError as exc:
@@ -440,25 +481,25 @@ def _load_agent(path: Path, step_budget: float | None, smoke_runs: int) -> Agent
         net.load_state_dict(state, strict=True)
     except RuntimeError as exc:
         lines = [line.strip() for line in str(exc).splitlines() if line.strip()][1:4]
-        with_lidar = f" and {lidar_samples(metadata)} LIDAR ranges" if lidar_samples(metadata) else ""
+        kind = {"lidar": "LIDAR ranges", "sector": "SECTOR_LIDAR sectors"}.get(sensors.lidar)
+        with_lidar = f" and {sensors.range_inputs} {kind} (metadata field 'sensor')" if kind else ""
         raise AgentFileError(f"{source}: weights do not match the {network} architecture for "
                              f"{shape[0]}x{shape[1]}x{shape[2]} images{with_lidar}: {' '.join(lines)}") from None
     net.eval()
-    agent = Agent(path, net, metadata, space, hashlib.sha256(data).hexdigest())
+    agent = Agent(path, net, metadata, space, hashlib.sha256(data).hexdigest(), sensors)
     smoke_test(agent, step_budget, smoke_runs)
     return agent
 
 
 def smoke_test(agent: Agent, step_budget: float | None, runs: int = 5) -> None:
-    """One inference on a blank image (and an empty LIDAR scan): right shape, finite, and within budget.
+    """One inference on a blank image (and a LIDAR scan without echoes): right shape, finite, within budget.
 
     Timed in CPU time on one torch thread (as `AgentController` runs, see `inference_clock`); up to
     `runs` tries, the fastest counts.
     """
     source = str(agent.path)
-    blank = np.zeros(agent.image_shape, dtype=np.uint8)
-    if agent.lidar_samples:
-        blank = {"camera": blank, "lidar": np.full(agent.lidar_samples, LidarSpec().max_range, np.float32)}
+    blank = agent.reads({"camera": np.zeros(agent.image_shape, np.uint8),
+                         "lidar": np.full(LidarSpec().samples, LidarSpec().max_range, np.float32)})
     fastest = math.inf
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -546,7 +587,7 @@ def inference_clock():
 
 # --------------------------------------------------------------- controller
 class AgentController(Controller):
-    """Drives a car with an agent file's policy, from the camera alone.
+    """Drives a car with an agent file's policy, from the sensors its metadata declares.
 
     A file that exists but is bad does not stop the race: the load error is
     kept and the agent forfeits with that reason on its first step. Each step's
@@ -590,7 +631,7 @@ class AgentController(Controller):
     @property
     def sensors(self) -> SensorSuite:
         """What the agent reads (a bad file reads the camera alone, until it forfeits)."""
-        return SensorSuite() if self.agent is None else SensorSuite("mono", "lidar" if self.agent.lidar_samples else None)
+        return SensorSuite() if self.agent is None else self.agent.sensors
 
     def reset(self, env, car: int) -> None:
         super().reset(env, car)
@@ -601,7 +642,10 @@ class AgentController(Controller):
         if self.agent is None:
             raise Forfeit(f"bad agent file: {self.error}")
         self.steps += 1
-        obs = self._checked_observation(observation)
+        try:
+            obs = self.agent.reads(observation)
+        except ValueError as exc:
+            raise Forfeit(str(exc)) from None
         clock = inference_clock()
         start = clock()
         try:
@@ -623,20 +667,3 @@ class AgentController(Controller):
         except Exception as exc:
             raise Forfeit(f"could not turn output into a command ({type(exc).__name__}: {exc})") from None
         return float(steer), float(speed)
-
-    def _checked_observation(self, observation):
-        """The part of the env's observation this agent reads, checked against its model_metadata."""
-        scan = None
-        if isinstance(observation, dict):
-            observation, scan = observation.get("camera"), observation.get("lidar")
-        image = np.asarray(observation)
-        if image.shape != tuple(self.agent.image_shape) or image.dtype != np.uint8:
-            raise Forfeit(f"observation {image.shape} {image.dtype} does not match the agent's model_metadata "
-                          f"image {tuple(self.agent.image_shape)} uint8")
-        if not self.agent.lidar_samples:
-            return image
-        scan = np.asarray(scan if scan is not None else [], np.float32)
-        if scan.shape != (self.agent.lidar_samples,):
-            raise Forfeit(f"LIDAR observation of shape {scan.shape} does not match the agent's "
-                          f"{self.agent.lidar_samples} ranges (sensor {LIDAR!r} in its model_metadata)")
-        return {"camera": image, "lidar": scan}

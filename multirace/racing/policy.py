@@ -10,8 +10,6 @@ mean of a continuous one) as DeepRacer's (steering degrees, speed m/s).
 """
 from __future__ import annotations
 
-import numpy as np
-
 from .agentfile import load_agent as load_agent_file
 from .runner import resolve_agent_path
 
@@ -28,15 +26,12 @@ class Policy:
     @property
     def sensor(self) -> list[str]:
         """DeepRacer's `sensor` list of the agent (pass it to the env as `sensor=`)."""
-        return ["FRONT_FACING_CAMERA", "LIDAR"] if self.agent.lidar_samples else ["FRONT_FACING_CAMERA"]
+        return self.agent.sensors.names
 
     def command(self, observation) -> tuple[float, float]:
-        """(steering degrees, speed m/s) for one observation: a uint8 (H, W, C) image, or the env's
-        {"camera", "lidar"} dict for an agent that reads the LIDAR."""
-        image = observation["camera"] if isinstance(observation, dict) else observation
-        if np.shape(image) != self.image_shape:
-            raise ValueError(f"observation of shape {np.shape(image)}; {self.name} reads {self.image_shape} images")
-        output = self.agent.outputs(observation if self.agent.lidar_samples else np.asarray(image, np.uint8))
+        """(steering degrees, speed m/s) for one env observation: a uint8 (H, W, C) image, or the env's
+        {"camera", "lidar"} dict with a range sensor (what the agent reads of it: `Agent.reads`)."""
+        output = self.agent.outputs(self.agent.reads(observation))
         steer, speed = self.agent.action_space.command(self.agent.decide(output[0]))
         return float(steer), float(speed)
 

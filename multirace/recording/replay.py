@@ -204,10 +204,11 @@ class ReplayRecorder:
             if take_image and agent in observations:
                 image = observations[agent]
                 if isinstance(image, dict):  # a LIDAR env: {"camera", "lidar"}
-                    self._log_lidar_echoes(env, i, image["lidar"])
+                    if env.sensors.lidar == "lidar":  # (SECTOR_LIDAR's 8 sectors have no echo points)
+                        self._log_lidar_echoes(env, i, image["lidar"])
                     image = image["camera"]
                 image = np.asarray(image)
-                if image.ndim == 3 and image.shape[2] == 1:
+                if image.ndim == 3 and image.shape[2] in (1, 2):  # grey (a stereo pair: its left camera)
                     image = image[..., 0]
                 elif image.ndim == 3:
                     image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)

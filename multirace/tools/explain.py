@@ -283,9 +283,9 @@ def explain(agent_file, track: str = "reinvent_base", steps: int = DEFAULT_STEPS
     shares), "status"} and, with `keep_frames`, "images", "heats", "labels" (lists, one per frame).
     """
     agent = load_agent(agent_file, step_budget=None)
-    if agent.lidar_samples:
-        raise ValueError(f"{agent_file}: explain computes Grad-CAM of camera-only agents; this agent "
-                         "also reads the LIDAR (sensor LIDAR in its model_metadata)")
+    if agent.sensors.names != ["FRONT_FACING_CAMERA"]:
+        raise ValueError(f"{agent_file}: explain computes Grad-CAM of single-camera agents; this agent reads "
+                         f"{agent.sensors.names} (sensor in its model_metadata)")
     height, width, channels = agent.image_shape
     config = RaceConfig(track=track, reverse=reverse, race="time_trial", laps=1, seed=seed, max_steps=int(steps),
                         camera=(height, width), grayscale=channels == 1)

@@ -23,7 +23,7 @@ from torch import nn
 from torch.distributions import Categorical, Normal
 
 from ..environment.actions import load_action_space
-from ..racing.agentfile import lidar_samples, read_payload, parse_metadata
+from ..racing.agentfile import metadata_sensors, read_payload, parse_metadata
 from ..racing.nets import CameraNet, add_lidar_inputs, build_net
 from .config import TrainConfig
 from .envs import INFO_KEYS, TrainEnv, env_settings
@@ -86,7 +86,7 @@ def init_settings(path) -> dict:
     image = metadata["image"]
     settings = {"network": metadata["neural_network"], "action_space": {k: metadata[k] for k in
                 ("action_space", "action_space_type")}, "camera": (image["height"], image["width"])}
-    if lidar_samples(metadata):  # a camera-only file leaves lidar as configured (it can start a LIDAR net)
+    if metadata_sensors(metadata, str(path)).lidar == "lidar":  # a camera-only file leaves lidar as configured
         settings["lidar"] = True
     return settings
 
