@@ -174,6 +174,7 @@ def cmd_imitate(args) -> int:
 
     from .environment.bots import parse_bot
     from .racing.nets import NETWORKS
+    from .sensors.suite import parse_sensors
     from .train.imitate import DEFAULT_TRACKS, ImitationConfig, run_dagger
     from .train.splits import expand_tracks
 
@@ -204,12 +205,16 @@ def cmd_imitate(args) -> int:
     traffic = tuple(b.strip() for b in (args.traffic or "").split(",") if b.strip())
     if traffic:
         command += ["--traffic", ",".join(traffic)]
+    if args.sensor:
+        parse_sensors(args.sensor, "--sensor")
+        command += ["--sensor", *args.sensor]
     if args.lidar:
         command += ["--lidar"]
     config = ImitationConfig(out=args.out, tracks=tuple(args.tracks), both_directions=not args.one_direction,
                              minutes=args.minutes, seed=args.seed, network=args.network,
                              action_space=args.action_space, expert_speed=args.speed, traffic=traffic,
                              name=args.name, threads=args.threads, lidar=args.lidar, expert=args.expert,
+                             sensor=tuple(args.sensor or ImitationConfig.sensor),
                              randomize=args.randomize, procedural_tracks=args.procedural_tracks,
                              max_samples=args.max_samples,
                              command=shlex.join(command))
@@ -321,8 +326,13 @@ def build_parser() -> argparse.ArgumentParser:
     imitate.add_argument("--max-samples", type=int, default=40000, metavar="N",
                          help="dataset cap; beyond it new samples replace random old ones (default 40000; "
                               "each 120x160 sample is 19 kB)")
+    imitate.add_argument("--sensor", nargs="+", default=None, metavar="NAME",
+                         help="DeepRacer's sensor list the agent reads: FRONT_FACING_CAMERA (default) or "
+                              "STEREO_CAMERAS, and optionally LIDAR or SECTOR_LIDAR "
+                              "(e.g. --sensor FRONT_FACING_CAMERA SECTOR_LIDAR)")
     imitate.add_argument("--lidar", action="store_true",
-                         help="the agent also reads DeepRacer's 64-beam LIDAR (sensor FRONT_FACING_CAMERA + LIDAR)")
+                         help="the agent also reads DeepRacer's 64-beam LIDAR (shorthand for --sensor "
+                              "FRONT_FACING_CAMERA LIDAR)")
     imitate.add_argument("--name", default=None, help="agent name in the metadata (default: file stem)")
     imitate.add_argument("--threads", type=int, default=None,
                          help="torch threads (default: all cores on an idle machine, 1 on a busy one)")

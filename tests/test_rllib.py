@@ -19,12 +19,14 @@ def test_missing_ray_names_the_install_command(monkeypatch, tmp_path, capsys):
 
 
 @pytest.mark.rllib
-def test_lidar_under_rllib_is_refused_before_ray_starts(tmp_path, capsys):
+@pytest.mark.parametrize("setting, refused", [("lidar=true", "lidar=true"),
+                                              ('sensor=["STEREO_CAMERAS"]', "sensor=['STEREO_CAMERAS']")])
+def test_other_sensors_under_rllib_are_refused_before_ray_starts(tmp_path, capsys, setting, refused):
     pytest.importorskip("ray.rllib")
-    code = main(["train", "--engine", "rllib", "--set", "lidar=true", "--out", str(tmp_path / "a.pt"),
+    code = main(["train", "--engine", "rllib", "--set", setting, "--out", str(tmp_path / "a.pt"),
                  "--minutes", "0.01"])
     assert code != 0
-    assert "lidar=true is a local-engine option" in capsys.readouterr().err
+    assert f"{refused} is a local-engine option" in capsys.readouterr().err
     assert not (tmp_path / "a.pt").exists()
 
 @pytest.mark.rllib

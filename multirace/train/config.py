@@ -26,6 +26,7 @@ import json
 
 from ..racing.nets import SHALLOW, TINY
 from ..resources import agents_dir
+from ..sensors.suite import SensorSuite, declared_sensors
 
 SHIPPED_AGENTS = agents_dir()
 
@@ -42,7 +43,8 @@ class TrainConfig:
     reward: str = "progress"  # "progress" (built-in shaped), "centre" (DeepRacer default) or a reward .py file
     camera: tuple = (120, 160)  # camera (height, width), grayscale as DeepRacer
     network: str = TINY  # nets.NETWORKS name: MULTIRACE_TINY_CNN, MULTIRACE_SMALL_CNN or DEEP_CONVOLUTIONAL_NETWORK_SHALLOW
-    lidar: bool = False  # also read DeepRacer's 64-beam LIDAR (sensor FRONT_FACING_CAMERA + LIDAR): sees cars alongside and too close for the camera
+    sensor: tuple = ("FRONT_FACING_CAMERA",)  # DeepRacer's sensor list the cars read, e.g. ["STEREO_CAMERAS"] or ["FRONT_FACING_CAMERA", "SECTOR_LIDAR"] (see multirace.sensors.suite)
+    lidar: bool = False  # shorthand: add DeepRacer's 64-beam LIDAR to `sensor` (FRONT_FACING_CAMERA + LIDAR): sees cars alongside and too close for the camera
     # ---- environments
     num_envs: int = 2  # worker processes (one env each); 2 uses both cores of this machine
     cars_per_env: int = 4  # learning cars per env, all driven by the shared policy (self-play)
@@ -101,12 +103,19 @@ class TrainConfig:
     nature: bool = False  # adversarial per-episode perturbations from an uncertainty set (Zhang et al. 2020)
     nature_temperature: float = 1.0  # softmax temperature of nature's choice (lower = more adversarial)
 
+    def __post_init__(self):
+        self.sensors()  # an unknown sensor list is refused before anything starts
+
     def to_dict(self) -> dict:
         return json.loads(json.dumps(dataclasses.asdict(self), default=str))
 
     @property
     def batch_size(self) -> int:
         return self.num_envs * self.cars_per_env * self.rollout_steps
+
+    def sensors(self) -> SensorSuite:
+        """The sensors the cars read: `sensor`, with the LIDAR that `lidar` adds."""
+        return declared_sensors(self.sensor, self.lidar)
 
     def directions(self) -> tuple:
         if self.reverse not in ("no", "yes", "both"):

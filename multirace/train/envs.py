@@ -46,7 +46,7 @@ INFO_KEYS = ("train_done", "time_limit", "ep_return", "ep_length", "ep_laps", "e
 def env_settings(config) -> dict:
     """The `TrainEnv` keyword arguments a `TrainConfig` sets (everything but the runs, shared state and worker)."""
     return {"num_cars": config.cars_per_env, "bots": tuple(config.bots), "action_space": config.action_space,
-            "reward": config.reward, "camera": tuple(config.camera), "lidar": bool(config.lidar),
+            "reward": config.reward, "camera": tuple(config.camera), "sensor": config.sensors().names,
             "episode_steps": config.episode_steps,
             "terminate_off_track": bool(config.terminate_off_track), "off_track_penalty": config.off_track_penalty,
             "progress_weight": config.progress_weight, "centre_weight": config.centre_weight,
@@ -61,7 +61,7 @@ class TrainEnv:
     """See the module docstring. All arguments are plain data so the env pickles to worker processes."""
 
     def __init__(self, runs, num_cars=4, bots=(), action_space=None, reward="progress", camera=(120, 160),
-                 lidar=False, episode_steps=1500, terminate_off_track=True, off_track_penalty=1.0, progress_weight=1.0,
+                 sensor=None, episode_steps=1500, terminate_off_track=True, off_track_penalty=1.0, progress_weight=1.0,
                  centre_weight=0.1, randomize=None, shared=None, worker=0, collision_penalty=0.0,
                  terminate_collision=False, proximity_penalty=0.0, proximity_gap=1.0, proximity_side_room=0.1,
                  bots_ahead=0.0, bots_ahead_spread=0.0, expert_labels=False, expert=""):
@@ -71,7 +71,7 @@ class TrainEnv:
         self.action_space = action_space
         self.reward = reward
         self.camera = tuple(camera)
-        self.lidar = bool(lidar)
+        self.sensor = sensor  # DeepRacer's sensor list (None: the single camera)
         self.episode_steps = int(episode_steps)
         self.terminate_off_track = bool(terminate_off_track)
         self.off_track_penalty = float(off_track_penalty)
@@ -109,7 +109,7 @@ class TrainEnv:
             reward = None if self.reward in ("progress", "centre", None) else self.reward
             self._envs[k] = RaceEnv(track=track, reverse=reverse, num_cars=self.num_cars, race="time_trial",
                                     laps=100000, bots=self.bots, action_space=self.action_space,
-                                    reward_function=reward, camera=self.camera, lidar=self.lidar,
+                                    reward_function=reward, camera=self.camera, sensor=self.sensor,
                                     max_steps=self.episode_steps)
         return self._envs[k]
 

@@ -26,7 +26,9 @@ the env adds DeepRacer's steering and speed noise to every command. With
 ``traffic`` (bot specs such as ``follow@1.0``), every env also has those
 bots, started at random gaps ahead of the learner each episode, so the
 dataset holds passes: the learner sees the cars in its camera and the
-expert's labels steer round them. With ``lidar`` the learner also reads
+expert's labels steer round them. ``sensor`` is DeepRacer's sensor list the
+learner reads (``STEREO_CAMERAS``, ``SECTOR_LIDAR``...; see `sensors.suite`).
+With ``lidar`` (its shorthand) the learner also reads
 DeepRacer's LIDAR (`lidar`), which sees the cars alongside and right ahead
 that the camera cannot. ``randomize`` (a preset name or dict, as the env's)
 randomises perception and dynamics per episode, and ``procedural_tracks`` adds
@@ -71,6 +73,7 @@ class ImitationConfig:
     traffic: tuple = ()  # bots in every env (e.g. ("follow@1.0", "lanes@1.0")), started ahead: the expert passes them
     name: str | None = None  # agent name in the metadata (default: the file stem)
     camera: tuple = (120, 160)
+    sensor: tuple = ("FRONT_FACING_CAMERA",)  # DeepRacer's sensor list the learner reads, e.g. ("STEREO_CAMERAS",)
     lidar: bool = False  # the learner also reads the 64-beam LIDAR (sensor FRONT_FACING_CAMERA + LIDAR)
     episode_steps: int = 900  # steps before an env is reset to the start grid (60 s at 15 Hz)
     rollout_steps: int = 1600  # samples gathered per DAgger iteration, over all envs
@@ -191,11 +194,11 @@ def run_dagger(config: ImitationConfig) -> dict:
 
     runs = imitation_runs(config)
     envs = [parallel_env(track=t, reverse=r, num_cars=1, race="time_trial", laps=1000, action_space=space,
-                         camera=tuple(config.camera), lidar=config.lidar, max_steps=config.episode_steps,
-                         bots=bots, randomize=config.randomize) for t, r in runs]
-    observation_space = envs[0].observation_space("car_0")
-    obs_shape = observation_space["camera"].shape if config.lidar else observation_space.shape
-    lidar_samples = observation_space["lidar"].shape[0] if config.lidar else 0
+                         camera=tuple(config.camera), sensor=config.sensor, lidar=config.lidar,
+                         max_steps=config.episode_steps, bots=bots, randomize=config.randomize) for t, r in runs]
+    observation_space, sensors = envs[0].observation_space("car_0"), envs[0].sensors
+    obs_shape = observation_space["camera"].shape if sensors.lidar else observation_space.shape
+    lidar_samples = sensors.range_inputs
     net = build_net(config.network, obs_shape, space, lidar_samples=lidar_samples)
     optimiser = torch.optim.Adam(net.parameters(), lr=config.lr)
     loss_fn = _make_loss(space)
@@ -294,6 +297,6 @@ def run_dagger(config: ImitationConfig) -> dict:
     }
     if config.command:
         training["command"] = config.command
-    metadata = make_metadata(space, config.network, name, obs_shape, lidar=config.lidar, training=training)
+    metadata = make_metadata(space, config.network, name, obs_shape, sensor=sensors.names, training=training)
     save_agent(out, net, metadata)
     return {"out": str(out), **training, "history": history}

@@ -81,13 +81,15 @@ def load_init_agent(path, net) -> None:
 
 
 def init_settings(path) -> dict:
-    """The network, image and action space an --init agent file was built with (and the LIDAR, if it reads one)."""
+    """The network, image and action space an --init agent file was built with, and its sensors unless it reads
+    the single camera alone (such a file leaves them as configured: it can start a LIDAR net)."""
     metadata = parse_metadata(read_payload(path), str(path))
     image = metadata["image"]
     settings = {"network": metadata["neural_network"], "action_space": {k: metadata[k] for k in
                 ("action_space", "action_space_type")}, "camera": (image["height"], image["width"])}
-    if metadata_sensors(metadata, str(path)).lidar == "lidar":  # a camera-only file leaves lidar as configured
-        settings["lidar"] = True
+    sensors = metadata_sensors(metadata, str(path))
+    if sensors.camera == "stereo" or sensors.lidar:
+        settings["sensor"] = sensors.names
     return settings
 
 
@@ -293,8 +295,8 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
     E, A, T = config.num_envs, config.cars_per_env, config.rollout_steps
     N = E * A
     obs, reset_infos = vec.reset(seeds=[config.seed * 100_000 + e for e in range(E)])
-    obs_shape = (obs["camera"] if config.lidar else obs).shape[2:]
-    R = obs["lidar"].shape[-1] if config.lidar else 0  # LIDAR ranges per car
+    obs_shape = (obs["camera"] if isinstance(obs, dict) else obs).shape[2:]
+    R = obs["lidar"].shape[-1] if isinstance(obs, dict) else 0  # LIDAR ranges (or sectors) per car
 
     # --- 3. the net (policy + value head), optimiser, reward scale, opponent pool, rollout storage
     net = build_net(config.network, obs_shape, space, value_head=True, lidar_samples=R)

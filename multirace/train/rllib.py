@@ -325,12 +325,14 @@ def train_rllib(config, out, envs=None, address=None, log=print) -> int:
     from ..environment.actions import load_action_space
     from ..racing.agentfile import make_metadata, save_agent
     from ..racing.nets import CameraNet, num_outputs_for
+    from ..sensors.suite import SensorSuite
     from .ppo import check_reward_file, training_runs
 
-    if config.lidar:
-        raise ValueError("--engine rllib: lidar=true is a local-engine option for now: with camera + LIDAR dict "
-                         "observations RLlib's PettingZoo wrapper loses the per-car episode ids' observations "
-                         "(car_0.1, ...; seen with ray 2.60)")
+    if config.sensors() != SensorSuite():
+        what = "lidar=true" if config.lidar else f"sensor={config.sensors().names}"
+        raise ValueError(f"--engine rllib: {what} is a local-engine option for now: the RLlib module reads the "
+                         "single camera (and with camera + LIDAR dict observations RLlib's PettingZoo wrapper "
+                         "loses the per-car episode ids' observations: car_0.1, ...; seen with ray 2.60)")
     if config.opponent_pool or config.nature or config.curriculum:
         log("note: --engine rllib ignores the opponent pool, nature adversary and curriculum "
             "(env randomisation and procedural tracks are kept)")

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..racing.agentfile import make_metadata, save_agent
+from ..racing.agentfile import make_metadata, net_sensors, save_agent
 from .config import TrainConfig
 
 
@@ -56,13 +56,13 @@ class TrainingRun:
 
     # ------------------------------------------------------- resume, checkpoints
     def load_checkpoint(self, path) -> dict | None:
-        """A checkpoint to resume from (its network, action space, camera and LIDAR settings win)."""
+        """A checkpoint to resume from (its network, action space, camera and sensor settings win)."""
         if not path:
             return None
         checkpoint = torch.load(path, map_location="cpu", weights_only=True)
         saved = json.loads(checkpoint["config"])
-        for key in ("network", "action_space", "camera", "lidar"):
-            value = saved.get(key, getattr(self.config, key))  # checkpoints from before the LIDAR lack "lidar"
+        for key in ("network", "action_space", "camera", "sensor", "lidar"):
+            value = saved.get(key, getattr(self.config, key))  # older checkpoints lack "sensor" (and "lidar")
             setattr(self.config, key, tuple(value) if key == "camera" else value)
         return checkpoint
 
@@ -236,7 +236,7 @@ def save_agent_file(path, net, space, config: TrainConfig, obs_shape, training: 
     """The agent file of a PPO net (its value head is not saved)."""
     name = Path(path).stem
     metadata = make_metadata(space, net.network, name, obs_shape, training_algorithm="clipped_ppo",
-                             lidar=net.lidar is not None, training=training)
+                             sensor=net_sensors(net).names, training=training)
     return save_agent(path, net, metadata)
 
 
