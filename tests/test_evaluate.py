@@ -29,3 +29,21 @@ def test_evaluate_labels_trained_tracks_and_writes_its_png_next_to_the_json(tmp_
     assert not (agents_dir() / "dagger_small.eval.png").exists()
     # the held-out figures leave out the track it trained on
     assert report["summary"]["held_out_completion"] == rows["Mexico_track"]["completion"]
+
+
+def test_held_out_rows_carry_the_racing_line_reference_and_clean_runs_both_ways(tmp_path):
+    out = tmp_path / "r.json"
+    assert main(["evaluate", str(AGENT), "--quick", "--tracks", "Mexico_track", "--laps", "1", "--directions",
+                 "both", "--randomize", "mild", "--json", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert report["randomize"] == "mild" and report["directions"] == "both"
+    rows = report["held_out"]
+    assert sorted(r["reverse"] for r in rows) == [False, True]
+    for row in rows:  # a 1 m/s imitation agent against the racing line's ~6 s lap
+        assert 5.0 < row["reference_lap"] < 7.0
+        assert row["lap_ratio"] == row["best_lap"] / row["reference_lap"] and row["lap_ratio"] > 2.5
+        assert row["clean"] == (row["laps"] == 1 and row["off_tracks"] == 0)
+    summary = report["summary"]
+    assert summary["held_out_runs"] == 2
+    assert summary["held_out_clean_share"] == sum(r["clean"] for r in rows) / 2
+    assert summary["held_out_clean_within_1_25_share"] == 0.0

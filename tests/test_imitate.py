@@ -72,3 +72,15 @@ def test_cli_imitate(tmp_path, capsys):
     info = json.loads(capsys.readouterr().out)
     assert info["valid"]
     assert info["metadata"]["training"]["command"].startswith("multirace imitate --out")
+
+
+def test_dagger_of_the_racing_line_on_generated_tracks_under_randomisation(tmp_path):
+    summary = _tiny(tmp_path, "racer", expert="racingline@0.9", randomize="mild", procedural_tracks=1,
+                    action_space={**CONTINUOUS, "action_space": {**CONTINUOUS["action_space"],
+                                                                 "speed": {"low": 0.5, "high": 4.0}}})
+    training = load_agent(summary["out"]).metadata["training"]
+    assert training["expert"] == "bot:racingline@0.9" and training["randomize"] == "mild"
+    assert training["procedural_tracks"] == 1 and training["tracks"] == ["Oval_track"]
+    with pytest.raises(ValueError, match="racingline"):
+        _tiny(tmp_path, "bad", expert="racingline@fast")
+    assert not (tmp_path / "bad.pt").exists()

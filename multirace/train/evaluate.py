@@ -154,8 +154,8 @@ def summarise(report: dict) -> dict:
         "held_out_runs": len(held),
         "held_out_completion": _mean([r["completion"] for r in held]),
         "held_out_clean_share": _mean([float(r["clean"]) for r in held]),
-        "held_out_lap_ratio": _mean([r["lap_ratio"] for r in held]),
-        "held_out_clean_within_1_25_share": _mean([float(r["clean"] and r["lap_ratio"] is not None
+        "held_out_lap_ratio": _mean([r.get("lap_ratio") for r in held]),
+        "held_out_clean_within_1_25_share": _mean([float(r["clean"] and r.get("lap_ratio") is not None
                                                          and r["lap_ratio"] <= GOOD_LAP_RATIO) for r in held]),
         "held_out_tracks_completed": sorted({r["track"] for r in held if r["laps"] >= 1}),
         "held_out_best_lap": _mean([r["best_lap"] for r in held]),
