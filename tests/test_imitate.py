@@ -84,3 +84,16 @@ def test_dagger_of_the_racing_line_on_generated_tracks_under_randomisation(tmp_p
     with pytest.raises(ValueError, match="racingline"):
         _tiny(tmp_path, "bad", expert="racingline@fast")
     assert not (tmp_path / "bad.pt").exists()
+
+
+def test_dagger_from_an_agent_file_keeps_its_net_and_its_lineage(tmp_path):
+    from multirace.train.evaluate import trained_tracks
+
+    first = _tiny(tmp_path, "first", tracks=("Mexico_track",), action_space=CONTINUOUS)["out"]
+    second = _tiny(tmp_path, "second", init=first, lidar=True, traffic=("follow@1.0",))["out"]
+    agent = load_agent(second)
+    assert agent.metadata["action_space_type"] == "continuous"  # the init file's space, not the default
+    assert agent.metadata["sensor"] == ["FRONT_FACING_CAMERA", "LIDAR"]
+    init = agent.metadata["training"]["init"]
+    assert init["file"] == "first.pt" and init["training"]["tracks"] == ["Mexico_track"]
+    assert trained_tracks(second) == {"Oval_track", "Mexico_track"}

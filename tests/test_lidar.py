@@ -159,6 +159,7 @@ def test_training_with_lidar_from_a_camera_agent_writes_a_lidar_agent_that_races
     assert summary["agent_steps"] > 0
     agent = load_agent(out, step_budget=None)
     assert agent.lidar_samples == 64 and agent.metadata["sensor"][-1] == "LIDAR"
+    assert agent.metadata["training"]["init"]["name"] == "camera_car"  # what it started from travels with it
     result = run_race([AgentController(out, step_budget=0.5)],
                       RaceConfig(track="Oval_track", race="time_trial", laps=1, max_steps=30))
     assert result["cars"][0]["status"] == "not_finished"  # drove to the step limit from camera and LIDAR

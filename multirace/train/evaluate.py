@@ -93,7 +93,11 @@ def trained_tracks(agent_path) -> set:
         meta = parse_metadata(read_payload(agent_path), str(agent_path))
     except Exception:
         return set()
-    return {Path(t).stem for t in (meta.get("training") or {}).get("tracks", [])}
+    seen, training = set(), meta.get("training")
+    while isinstance(training, dict):  # this agent's training, then that of the file it started from, ...
+        seen |= {Path(str(t)).stem for t in training.get("tracks") or []}
+        training = (training.get("init") or {}).get("training") if isinstance(training.get("init"), dict) else None
+    return seen
 
 
 def held_out_tracks(seen: set, quick: bool = False) -> list[str]:

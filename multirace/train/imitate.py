@@ -32,7 +32,9 @@ With ``lidar`` (its shorthand) the learner also reads
 DeepRacer's LIDAR (`lidar`), which sees the cars alongside and right ahead
 that the camera cannot. ``randomize`` (a preset name or dict, as the env's)
 randomises perception and dynamics per episode, and ``procedural_tracks`` adds
-seeded generated tracks (`sim.trackgen`) to the named ones.
+seeded generated tracks (`sim.trackgen`) to the named ones. ``init`` starts the
+learner from an agent file (a camera agent can start a LIDAR learner: its
+LIDAR inputs start at zero weight), so a second stage can add traffic.
 """
 from __future__ import annotations
 
@@ -51,6 +53,7 @@ from ..racing.agentfile import make_metadata, save_agent
 from ..environment.bots import Bot, parse_bot
 from ..environment.race_env import parallel_env
 from ..racing.nets import DEFAULT_NETWORK, build_net
+from .warmstart import init_lineage, init_settings, load_init_agent
 
 DEFAULT_TRACKS = ("reinvent_base", "reInvent2019_track", "Oval_track", "Bowtie_track")
 
@@ -70,6 +73,7 @@ class ImitationConfig:
     expert: str | None = None  # a bot spec such as "racingline@0.9"; None = pass@expert_speed
     randomize: object = None  # the env's domain randomisation (None, "mild", "strong" or a dict), per episode
     procedural_tracks: int = 0  # seeded generated tracks added to `tracks` (each in both directions if asked)
+    init: str | None = None  # start from this agent file's weights (its network, image size and action space)
     traffic: tuple = ()  # bots in every env (e.g. ("follow@1.0", "lanes@1.0")), started ahead: the expert passes them
     name: str | None = None  # agent name in the metadata (default: the file stem)
     camera: tuple = (120, 160)
@@ -182,6 +186,10 @@ def run_dagger(config: ImitationConfig) -> dict:
     """Train a camera agent by DAgger and write it to `config.out`; returns a summary dict."""
     started = time.perf_counter()
     budget = max(1.0, 60.0 * float(config.minutes))
+    if config.init:  # the learner is the init file's net: its network, image size, action space (and sensors)
+        settings = init_settings(config.init)
+        config = dataclasses.replace(config, network=settings["network"], action_space=settings["action_space"],
+                                     camera=settings["camera"], sensor=settings.get("sensor", config.sensor))
     threads = config.threads or default_threads()
     torch.set_num_threads(int(threads))
     torch.manual_seed(config.seed)
@@ -200,6 +208,8 @@ def run_dagger(config: ImitationConfig) -> dict:
     obs_shape = observation_space["camera"].shape if sensors.lidar else observation_space.shape
     lidar_samples = sensors.range_inputs
     net = build_net(config.network, obs_shape, space, lidar_samples=lidar_samples)
+    if config.init:
+        load_init_agent(config.init, net)
     optimiser = torch.optim.Adam(net.parameters(), lr=config.lr)
     loss_fn = _make_loss(space)
     label_shape, label_dtype = ((), np.int64) if space.discrete else ((2,), np.float32)
@@ -292,6 +302,7 @@ def run_dagger(config: ImitationConfig) -> dict:
         "tracks": list(dict.fromkeys(str(t) for t in config.tracks)),
         "directions": ["forward", "reverse"] if config.both_directions else ["forward"],
         "procedural_tracks": int(config.procedural_tracks), "randomize": config.randomize, "seed": config.seed,
+        "init": init_lineage(config.init) if config.init else None,
         "minutes": config.minutes, "iterations": iteration, "samples": data.seen,
         "dataset_size": data.size, "final_loss": round(loss_value, 4), "wall_seconds": round(wall, 1),
     }

@@ -23,13 +23,13 @@ from torch import nn
 from torch.distributions import Categorical, Normal
 
 from ..environment.actions import load_action_space
-from ..racing.agentfile import metadata_sensors, read_payload, parse_metadata
-from ..racing.nets import CameraNet, add_lidar_inputs, build_net
+from ..racing.nets import build_net
 from .config import TrainConfig
 from .envs import INFO_KEYS, TrainEnv, env_settings
 from .robust import RobustKnobs
 from .rollout import Rollout, expert_actions, finished_episodes
 from .run import TrainingRun
+from .warmstart import init_lineage, init_settings, load_init_agent
 
 
 # ------------------------------------------------------------------ policy
@@ -61,36 +61,6 @@ def init_continuous_head(net, space) -> None:
         net.head.weight.mul_(0.01)
         net.head.bias.copy_(torch.tensor([*((low + high) / 2), *np.log(np.maximum((high - low) / 4, 1e-3))],
                                          dtype=torch.float32))
-
-
-def load_init_agent(path, net) -> None:
-    """Initialise the policy from an agent file (e.g. a DAgger imitation agent); the value head stays new.
-
-    A camera-only agent can start a LIDAR net: its LIDAR inputs start with zero weight (`add_lidar_inputs`).
-    """
-    payload = read_payload(path)
-    state = {k: v for k, v in payload["state_dict"].items() if not k.startswith("value_head.")}
-    if net.lidar is not None and not any(k.startswith("lidar.") for k in state):
-        camera_only = CameraNet(net.network, net.image_shape, net.num_outputs, value_head=True)
-        load_init_agent(path, camera_only)
-        net.load_state_dict(add_lidar_inputs(camera_only, net.lidar_samples).state_dict())
-        return
-    missing, unexpected = net.load_state_dict(state, strict=False)
-    if unexpected or any(not k.startswith("value_head.") for k in missing):
-        raise ValueError(f"--init {path}: weights do not match the network ({missing or unexpected})")
-
-
-def init_settings(path) -> dict:
-    """The network, image and action space an --init agent file was built with, and its sensors unless it reads
-    the single camera alone (such a file leaves them as configured: it can start a LIDAR net)."""
-    metadata = parse_metadata(read_payload(path), str(path))
-    image = metadata["image"]
-    settings = {"network": metadata["neural_network"], "action_space": {k: metadata[k] for k in
-                ("action_space", "action_space_type")}, "camera": (image["height"], image["width"])}
-    sensors = metadata_sensors(metadata, str(path))
-    if sensors.camera == "stereo" or sensors.lidar:
-        settings["sensor"] = sensors.names
-    return settings
 
 
 class RewardScale:
@@ -281,6 +251,7 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
     run = TrainingRun(config, out, command, log)
     checkpoint = run.load_checkpoint(resume)
     if init:
+        run.lineage = init_lineage(init)
         for key, value in init_settings(init).items():
             setattr(config, key, value)
     torch.set_num_threads(int(config.threads))

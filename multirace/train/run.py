@@ -29,6 +29,7 @@ class TrainingRun:
         self.agent_steps, self.iteration, self.spent = 0, 0, 0.0
         self.history: list = []
         self.evals: list = []
+        self.lineage: dict | None = None  # what the policy started from (`warmstart.init_lineage`), if anything
         self.first_success = self.first_clean = None  # elapsed seconds at the first evaluation finishing every lap
         self.best = None  # (score, weights, evaluation) of the best evaluated policy so far
         self.sample_time = self.update_time = 0.0
@@ -105,6 +106,8 @@ class TrainingRun:
                     "robust": bool(config.robust)}
         if self.command:
             training["command"] = self.command
+        if self.lineage:
+            training["init"] = self.lineage
         if note:
             training.update(note)
         net.eval()

@@ -1,0 +1,47 @@
+"""Starting a net from an agent file (`--init`): the settings the file was built with, and its weights."""
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+from ..racing.agentfile import metadata_sensors, parse_metadata, read_payload
+from ..racing.nets import CameraNet, add_lidar_inputs
+
+
+def load_init_agent(path, net) -> None:
+    """Initialise the policy from an agent file (e.g. a DAgger imitation agent); the value head stays new.
+
+    A camera-only agent can start a LIDAR net: its LIDAR inputs start with zero weight (`add_lidar_inputs`).
+    """
+    payload = read_payload(path)
+    state = {k: v for k, v in payload["state_dict"].items() if not k.startswith("value_head.")}
+    if net.lidar is not None and not any(k.startswith("lidar.") for k in state):
+        camera_only = CameraNet(net.network, net.image_shape, net.num_outputs, value_head=net.has_value)
+        load_init_agent(path, camera_only)
+        net.load_state_dict(add_lidar_inputs(camera_only, net.lidar_samples).state_dict())
+        return
+    missing, unexpected = net.load_state_dict(state, strict=False)
+    if unexpected or any(not k.startswith("value_head.") for k in missing):
+        raise ValueError(f"--init {path}: weights do not match the network ({missing or unexpected})")
+
+
+def init_settings(path) -> dict:
+    """The network, image and action space an --init agent file was built with, and its sensors unless it reads
+    the single camera alone (such a file leaves them as configured: it can start a LIDAR net)."""
+    metadata = parse_metadata(read_payload(path), str(path))
+    image = metadata["image"]
+    settings = {"network": metadata["neural_network"], "action_space": {k: metadata[k] for k in
+                ("action_space", "action_space_type")}, "camera": (image["height"], image["width"])}
+    sensors = metadata_sensors(metadata, str(path))
+    if sensors.camera == "stereo" or sensors.lidar:
+        settings["sensor"] = sensors.names
+    return settings
+
+
+def init_lineage(path) -> dict:
+    """What an agent started from, for its training notes: the init file's name, hash and own training notes
+    (so the tracks it learnt on stay known to `multirace evaluate`)."""
+    payload = read_payload(path)
+    metadata = parse_metadata(payload, str(path))
+    return {"file": Path(path).name, "sha256": hashlib.sha256(Path(path).read_bytes()).hexdigest(),
+            "name": metadata.get("name"), "training": metadata.get("training")}
