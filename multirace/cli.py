@@ -194,6 +194,8 @@ def cmd_imitate(args) -> int:
             command += [option, value]
     if args.procedural_tracks:
         command += ["--procedural-tracks", str(args.procedural_tracks)]
+    if args.init:
+        command += ["--init", args.init]
     if args.max_samples != ImitationConfig.max_samples:
         command += ["--max-samples", str(args.max_samples)]
     if args.action_space:
@@ -216,7 +218,7 @@ def cmd_imitate(args) -> int:
                              name=args.name, threads=args.threads, lidar=args.lidar, expert=args.expert,
                              sensor=tuple(args.sensor or ImitationConfig.sensor),
                              randomize=args.randomize, procedural_tracks=args.procedural_tracks,
-                             max_samples=args.max_samples,
+                             max_samples=args.max_samples, init=args.init,
                              command=shlex.join(command))
     summary = run_dagger(config)
     print(f"wrote {summary['out']}: {summary['iterations']} DAgger iterations, {summary['samples']} samples, "
@@ -323,6 +325,8 @@ def build_parser() -> argparse.ArgumentParser:
     imitate.add_argument("--traffic", default=None, metavar="BOTS",
                          help="bots in every env, comma-separated (e.g. follow@1.0,lanes@1.0): the expert "
                               "passes them wide, so the agent learns to overtake")
+    imitate.add_argument("--init", default=None, metavar="AGENT.pt",
+                         help="start from this agent file's net (its network, image size, action space)")
     imitate.add_argument("--max-samples", type=int, default=40000, metavar="N",
                          help="dataset cap; beyond it new samples replace random old ones (default 40000; "
                               "each 120x160 sample is 19 kB)")
