@@ -87,3 +87,18 @@ cars = 2
 laps = 1
 trials = 1
 """
+
+
+def seeded_lidar_agent(path, seed=0):
+    """A camera + LIDAR agent file with seeded random weights (the 14 actions of agents/action_space_fast.json)."""
+    import torch
+
+    from multirace.environment.actions import load_action_space
+    from multirace.racing.agentfile import make_metadata, save_agent
+    from multirace.racing.nets import DEFAULT_NETWORK, build_net
+    from multirace.resources import agents_dir
+
+    space = load_action_space(str(agents_dir() / "action_space_fast.json"))
+    torch.manual_seed(seed)
+    net = build_net(DEFAULT_NETWORK, (120, 160, 1), space, lidar_samples=64)
+    return save_agent(path, net, make_metadata(space, DEFAULT_NETWORK, "lidar_car", lidar=True))

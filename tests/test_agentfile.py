@@ -20,7 +20,7 @@ from multirace.cli import main as cli_main
 from multirace.racing.nets import NETWORKS, SHALLOW, SMALL, TINY, CameraNet, build_net
 from multirace.racing.entrant import Forfeit
 from multirace.racing.runner import RaceConfig, make_controller, run_race
-from helpers import overflow_on_camera_images
+from helpers import overflow_on_camera_images, seeded_lidar_agent
 
 REPO = Path(__file__).resolve().parents[1]
 SHIPPED = sorted((REPO / "agents").glob("*.pt"))
@@ -292,7 +292,7 @@ def test_shipped_agent_laps_reinvent_base(path):
     assert car["laps"] == 1 and car["resets"] <= 3, car
 
 
-def test_load_agent_gives_a_policy_that_drives_from_one_observation():
+def test_load_agent_gives_a_policy_that_drives_from_one_observation(tmp_path):
     policy = multirace.load_agent("dagger_fast")  # a shipped agent, by name
     env = multirace.parallel_env(num_cars=1, sensor=policy.sensor)
     observations, _ = env.reset(seed=0)
@@ -301,7 +301,7 @@ def test_load_agent_gives_a_policy_that_drives_from_one_observation():
     assert (steer, speed) in [tuple(a) for a in AgentController(policy.agent.path).agent.action_space.actions]
     with pytest.raises(ValueError, match="reads"):
         policy.command(np.zeros((60, 80, 1), np.uint8))
-    lidar = multirace.load_agent("selfplay_lidar")
+    lidar = multirace.load_agent(seeded_lidar_agent(tmp_path / "lidar.pt"))
     env = multirace.parallel_env(num_cars=1, sensor=lidar.sensor)
     observations, _ = env.reset(seed=0)
     assert -30.0 <= lidar.command(observations["car_0"])[0] <= 30.0

@@ -20,6 +20,8 @@ from multirace.racing.agentfile import load_agent, make_metadata, save_agent
 from multirace.deepracer.drnet import GraphNet
 from multirace.racing.nets import SHALLOW, TINY, CameraNet, build_net
 
+from helpers import seeded_lidar_agent
+
 ov = pytest.importorskip("openvino")
 FIXTURES = Path("/work/shared/deepracer-model")
 needs_fixtures = pytest.mark.skipif(not FIXTURES.exists(), reason="the DeepRacer model fixtures are not here")
@@ -68,8 +70,10 @@ def test_archive_is_what_the_car_loads(tmp_path):
         export_agent("dagger_fast", tmp_path / "model.zip")
 
 
-@pytest.mark.parametrize("agent", ["dagger_fast", "selfplay_lidar"])
+@pytest.mark.parametrize("agent", ["dagger_fast", "lidar"])
 def test_openvino_runs_the_graph_like_the_torch_policy(tmp_path, frames, agent):
+    if agent == "lidar":  # a camera + LIDAR agent
+        agent = str(seeded_lidar_agent(tmp_path / "lidar.pt"))
     policy = multirace.load_agent(agent)
     folder = unpack(export_agent(agent, tmp_path / "model.tar.gz"), tmp_path / "car")
     inputs = {input_name("FRONT_FACING_CAMERA"): [1, 120, 160, 1]}
@@ -132,8 +136,10 @@ def test_shallow_export_converts_like_the_cars_real_model(tmp_path):
     assert "main_level/agent/main/online/network_1/ppo_head_0/policy" in names  # the car's output name is ours
 
 
-@pytest.mark.parametrize("agent", ["dagger_fast", "selfplay_lidar"])
+@pytest.mark.parametrize("agent", ["dagger_fast", "lidar"])
 def test_import_round_trips_an_exported_archive(tmp_path, frames, agent):
+    if agent == "lidar":
+        agent = str(seeded_lidar_agent(tmp_path / "lidar.pt"))
     archive = export_agent(agent, tmp_path / "model.tar.gz")
     assert cli_main(["agent", "import", str(archive), "--out", str(tmp_path / "back.pt")]) == 0
     before, after = multirace.load_agent(agent), multirace.load_agent(tmp_path / "back.pt")

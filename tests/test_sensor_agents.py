@@ -16,6 +16,7 @@ from multirace.racing.agentfile import AgentFileError, load_agent, make_metadata
 from multirace.racing.nets import TINY, build_net
 from multirace.racing.runner import RaceConfig, make_controller, resolve_agent_path, run_race
 from multirace.sensors.lidar import sector_lidar
+from helpers import seeded_lidar_agent
 from test_export import openvino_policy, unpack
 
 STEREO = ["STEREO_CAMERAS"]
@@ -49,6 +50,12 @@ def trained(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
+def lidar_path(tmp_path_factory):
+    """A camera + LIDAR agent file (seeded random weights)."""
+    return seeded_lidar_agent(tmp_path_factory.mktemp("lidar") / "lidar.pt")
+
+
+@pytest.fixture(scope="module")
 def stereo_lidar_frames():
     """Observations of a race env that gives a stereo pair and the full LIDAR scan, a bot close ahead."""
     env = multirace.parallel_env(num_cars=1, race="head_to_head", bots=("follow@0.3",), obstacles=0,
@@ -75,10 +82,10 @@ def test_imitate_and_train_write_agents_that_declare_their_sensors(imitated, tra
     assert command.endswith("--sensor " + " ".join(SENSORS[kind]))
 
 
-def test_each_agent_takes_what_it_reads_from_the_race_observation(imitated, stereo_lidar_frames):
+def test_each_agent_takes_what_it_reads_from_the_race_observation(imitated, stereo_lidar_frames, lidar_path):
     obs = stereo_lidar_frames[0]
     mono = load_agent(resolve_agent_path("dagger_small"), step_budget=None)
-    lidar = load_agent(resolve_agent_path("selfplay_lidar"), step_budget=None)
+    lidar = load_agent(lidar_path, step_budget=None)
     stereo, sector = (load_agent(imitated[k], step_budget=None) for k in ("stereo", "sector"))
     left = obs["camera"][:, :, :1]
     assert np.array_equal(mono.reads(obs), left)
@@ -86,16 +93,16 @@ def test_each_agent_takes_what_it_reads_from_the_race_observation(imitated, ster
     assert np.array_equal(lidar.reads(obs)["camera"], left) and np.array_equal(lidar.reads(obs)["lidar"], obs["lidar"])
     assert np.array_equal(sector.reads(obs)["lidar"], sector_lidar(obs["lidar"]))
     assert sector.reads(obs)["lidar"].max() == 1.0  # the bot ahead is within half a metre of a sector
-    for path in (imitated["stereo"], imitated["sector"], "dagger_small", "selfplay_lidar"):
+    for path in (imitated["stereo"], imitated["sector"], "dagger_small", str(lidar_path)):
         steer, speed = multirace.load_agent(path).command(obs)
         assert -30 <= steer <= 30 and 0.1 <= speed <= 4.0
     with pytest.raises(ValueError, match="LIDAR observation"):
         sector.reads(obs["camera"])  # no scan at all
 
 
-def test_they_race_camera_and_lidar_agents_and_nobody_forfeits(imitated, trained, tmp_path, capsys):
+def test_they_race_camera_and_lidar_agents_and_nobody_forfeits(imitated, trained, lidar_path, tmp_path, capsys):
     entrants = [make_controller(str(imitated["stereo"])), make_controller(str(imitated["sector"])),
-                make_controller("dagger_small"), make_controller("selfplay_lidar")]
+                make_controller("dagger_small"), make_controller(str(lidar_path))]
     result = run_race(entrants, RaceConfig(race="head_to_head", laps=1, max_steps=30, seed=1))
     assert [c["status"] for c in result["cars"]] == ["not_finished"] * 4, result["cars"]
     # on the command line, with a replay: no full-LIDAR entrant, so the race scans the 8 sectors
