@@ -18,8 +18,7 @@ def test_quick_split_never_holds_out_a_track_the_agent_trained_on():
 
 def test_evaluate_labels_trained_tracks_and_writes_its_png_next_to_the_json(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    out = tmp_path / "report" / "r.json"
-    out.parent.mkdir()
+    out = tmp_path / "report" / "r.json"  # a folder that does not exist yet is made
     assert main(["evaluate", str(AGENT), "--quick", "--tracks", "Oval_track,Mexico_track", "--laps", "1",
                  "--json", str(out)]) == 0
     report = json.loads(out.read_text())

@@ -264,8 +264,10 @@ def run_evaluation(args) -> int:
     print_report(reports, console)
     png = Path(args.png) if args.png else (Path(args.json).with_suffix(".png") if args.json
                                            else Path.cwd() / (Path(args.agents[0]).stem + ".eval.png"))
+    if args.json:  # the report first: a plot that fails must not lose it
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(reports if len(reports) > 1 else reports[0], indent=1))
+    png.parent.mkdir(parents=True, exist_ok=True)
     plot_report(reports, png)
     console.print(f"wrote {png}")
-    if args.json:
-        Path(args.json).write_text(json.dumps(reports if len(reports) > 1 else reports[0], indent=1))
     return 0
