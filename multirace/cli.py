@@ -207,6 +207,8 @@ def cmd_imitate(args) -> int:
     traffic = tuple(b.strip() for b in (args.traffic or "").split(",") if b.strip())
     if traffic:
         command += ["--traffic", ",".join(traffic)]
+    if args.traffic_share != 1.0:
+        command += ["--traffic-share", f"{args.traffic_share:g}"]
     if args.sensor:
         parse_sensors(args.sensor, "--sensor")
         command += ["--sensor", *args.sensor]
@@ -218,7 +220,7 @@ def cmd_imitate(args) -> int:
                              name=args.name, threads=args.threads, lidar=args.lidar, expert=args.expert,
                              sensor=tuple(args.sensor or ImitationConfig.sensor),
                              randomize=args.randomize, procedural_tracks=args.procedural_tracks,
-                             max_samples=args.max_samples, init=args.init,
+                             max_samples=args.max_samples, init=args.init, traffic_share=args.traffic_share,
                              command=shlex.join(command))
     summary = run_dagger(config)
     print(f"wrote {summary['out']}: {summary['iterations']} DAgger iterations, {summary['samples']} samples, "
@@ -334,6 +336,8 @@ def build_parser() -> argparse.ArgumentParser:
                          help="DeepRacer's sensor list the agent reads: FRONT_FACING_CAMERA (default) or "
                               "STEREO_CAMERAS, and optionally LIDAR or SECTOR_LIDAR "
                               "(e.g. --sensor FRONT_FACING_CAMERA SECTOR_LIDAR)")
+    imitate.add_argument("--traffic-share", type=float, default=1.0, metavar="F",
+                         help="share of the envs that hold the --traffic bots (default 1; the rest drive alone)")
     imitate.add_argument("--lidar", action="store_true",
                          help="the agent also reads DeepRacer's 64-beam LIDAR (shorthand for --sensor "
                               "FRONT_FACING_CAMERA LIDAR)")

@@ -97,3 +97,15 @@ def test_dagger_from_an_agent_file_keeps_its_net_and_its_lineage(tmp_path):
     init = agent.metadata["training"]["init"]
     assert init["file"] == "first.pt" and init["training"]["tracks"] == ["Mexico_track"]
     assert trained_tracks(second) == {"Oval_track", "Mexico_track"}
+
+
+def test_traffic_share_puts_the_bots_in_that_share_of_the_envs_across_both_directions(tmp_path):
+    from multirace.train.imitate import with_traffic
+
+    for share in (0.25, 0.5, 0.75):
+        chosen = [with_traffic(k, share) for k in range(80)]
+        assert abs(sum(chosen) / 80 - share) < 0.05
+        assert any(chosen[0::2]) and any(chosen[1::2])  # forward and reverse runs alike
+    assert all(with_traffic(k, 1.0) for k in range(80)) and not any(with_traffic(k, 0.0) for k in range(80))
+    summary = _tiny(tmp_path, "mixed", traffic=("follow@1.0",), traffic_share=0.5)
+    assert load_agent(summary["out"]).metadata["training"]["traffic_share"] == 0.5

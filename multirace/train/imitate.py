@@ -75,6 +75,7 @@ class ImitationConfig:
     procedural_tracks: int = 0  # seeded generated tracks added to `tracks` (each in both directions if asked)
     init: str | None = None  # start from this agent file's weights (its network, image size and action space)
     traffic: tuple = ()  # bots in every env (e.g. ("follow@1.0", "lanes@1.0")), started ahead: the expert passes them
+    traffic_share: float = 1.0  # share of the envs that hold the traffic (the others: the car alone on the track)
     name: str | None = None  # agent name in the metadata (default: the file stem)
     camera: tuple = (120, 160)
     sensor: tuple = ("FRONT_FACING_CAMERA",)  # DeepRacer's sensor list the learner reads, e.g. ("STEREO_CAMERAS",)
@@ -169,6 +170,12 @@ def default_threads() -> int:
     return 1 if busy else cores
 
 
+def with_traffic(k: int, share: float) -> bool:
+    """Does env k hold the traffic, when `share` of the envs do? (A golden-ratio sequence spreads them over the
+    runs, so neither direction nor any stretch of the track list is left out.)"""
+    return (k * 0.6180339887498949) % 1.0 < share
+
+
 def imitation_runs(config: ImitationConfig) -> list:
     """(track, reverse) pairs to drive: the named tracks and `procedural_tracks` generated ones, x directions."""
     from ..sim.trackgen import generate_track
@@ -203,7 +210,8 @@ def run_dagger(config: ImitationConfig) -> dict:
     runs = imitation_runs(config)
     envs = [parallel_env(track=t, reverse=r, num_cars=1, race="time_trial", laps=1000, action_space=space,
                          camera=tuple(config.camera), sensor=config.sensor, lidar=config.lidar,
-                         max_steps=config.episode_steps, bots=bots, randomize=config.randomize) for t, r in runs]
+                         max_steps=config.episode_steps, bots=bots if with_traffic(k, config.traffic_share) else (),
+                         randomize=config.randomize) for k, (t, r) in enumerate(runs)]
     observation_space, sensors = envs[0].observation_space("car_0"), envs[0].sensors
     obs_shape = observation_space["camera"].shape if sensors.lidar else observation_space.shape
     lidar_samples = sensors.range_inputs
@@ -218,7 +226,7 @@ def run_dagger(config: ImitationConfig) -> dict:
     def reset(k: int, seed: int):
         """Reset env k; traffic starts at random gaps ahead (up to half a lap), so passes come early."""
         obs, _ = envs[k].reset(seed=seed)
-        if bots:
+        if envs[k].bots:
             half = envs[k].track.length / 2
             obs = envs[k].move_cars({1 + b: (rng.uniform(1.5, half), 0.0) for b in range(len(bots))})
         return obs["car_0"]
@@ -298,7 +306,8 @@ def run_dagger(config: ImitationConfig) -> dict:
     net.eval()
     wall = time.perf_counter() - started
     training = {
-        "method": "dagger", "expert": expert.name, "traffic": list(bots), "lidar": bool(config.lidar),
+        "method": "dagger", "expert": expert.name, "traffic": list(bots), "traffic_share": config.traffic_share,
+        "lidar": bool(config.lidar),
         "tracks": list(dict.fromkeys(str(t) for t in config.tracks)),
         "directions": ["forward", "reverse"] if config.both_directions else ["forward"],
         "procedural_tracks": int(config.procedural_tracks), "randomize": config.randomize, "seed": config.seed,
