@@ -2,6 +2,7 @@
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -39,3 +40,13 @@ def test_race_command_prints_a_table_and_writes_the_record(tmp_path):
 def test_bad_arguments_get_a_clear_error_and_exit_2(args, message, capsys):
     assert main(args) == 2
     assert message in capsys.readouterr().err
+
+
+def test_a_shipped_agent_by_name_is_not_shadowed_by_a_folder_of_that_name(tmp_path, monkeypatch):
+    from multirace.racing.runner import resolve_agent_path
+    from multirace.resources import agents_dir
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "racer").mkdir()  # e.g. a training run's output folder
+    assert resolve_agent_path("racer") == agents_dir() / "racer.pt"
+    assert resolve_agent_path("mine") == Path("mine")  # no shipped agent of that name: the path as given

@@ -31,8 +31,8 @@ def resolve_agent_path(spec: str) -> Path:
     """The agent file `spec` names: a path, or else the name of an agent shipped with multirace."""
     path = Path(spec)
     shipped = agents_dir() / f"{spec}.pt"
-    if not path.exists() and path.name == spec and shipped.exists():
-        return shipped
+    if not path.is_file() and path.name == spec and shipped.exists():  # a bare name: a folder of that name does not
+        return shipped                                                 # shadow the shipped agent
     return path
 
 
