@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from multirace.environment.actions import load_action_space
 from multirace.racing.agentfile import AgentController, load_agent
 from multirace.racing.runner import RaceConfig, run_race
 from multirace.train.config import PRESETS, TrainConfig, describe, make_config
@@ -55,9 +56,37 @@ def test_resume_continues_from_the_checkpoint(trained, tmp_path):
 
     out, summary = trained
     config = make_config("tiny", tracks=("Oval_track",), minutes=0.05, seed=1, progress=False)
+    config.deepracer_log = False
     resumed = train(config, tmp_path / "resumed.pt", resume=out.parent / (out.stem + ".ckpt") / "checkpoint.pt")
+    assert not (tmp_path / "resumed.deepracer").exists()
     assert resumed["agent_steps"] > summary["agent_steps"]
     assert resumed["iterations"] > summary["iterations"]
+
+
+def test_training_writes_a_folder_deepracer_utils_reads_as_deepracer_for_cloud_output(trained):
+    """out.deepracer/: the agent's action space, the config's PPO settings under DeepRacer's names, one
+    sim-trace per PPO iteration with a row per learning car per step, the exact action breakdown, and a
+    training-metrics entry per finished learner episode."""
+    logs = pytest.importorskip("deepracer.logs")
+    out, summary = trained
+    folder = out.with_name(out.stem + ".deepracer")
+    metadata = load_agent(out, step_budget=None).metadata
+    space = load_action_space(metadata)
+    reader = logs.DeepRacerLog(str(folder))
+    assert reader.fh.type.name == "DRFC_MODEL_SINGLE_WORKERS"  # not UNKNOWN_FOLDER
+    reader.load_training_trace()
+    df = reader.dataframe()
+    assert sorted(df["iteration"].unique()) == list(range(summary["iterations"]))
+    assert len(df) == summary["agent_steps"]
+    hyperparameters = reader.hyperparameters()
+    assert (hyperparameters["lr"], hyperparameters["batch_size"], hyperparameters["num_epochs"],
+            hyperparameters["discount_factor"]) == (1e-3, 128, 4, 0.95)
+    assert reader.action_space() == metadata["action_space"]
+    chosen = sorted(set(zip(df["action"], df["steering_angle"], df["speed"])))
+    assert len(chosen) > 1 and all(space.actions[a] == (steer, speed) for a, steer, speed in chosen)
+    assert len(logs.ActionBreakdownUtils.determine_action_names(df)) == len(chosen)
+    metrics = logs.TrainingMetrics(None, fname=str(folder / "metrics" / "TrainingMetrics.json"))
+    assert len(metrics.getTraining()) == sum(h["episodes"] for h in summary["history"]) > 0
 
 
 def test_config_presets_and_docs():

@@ -10,8 +10,9 @@ from pathlib import Path
 def add_train_parser(sub) -> None:
     p = sub.add_parser("train", help="train a camera agent with PPO self-play (shared parameters)",
                        description="PPO with shared parameters from the camera: every car is the learner. "
-                                   "Writes FILE.pt (agent file), FILE.png (learning curve), FILE.train.json "
-                                   "and FILE.ckpt/ (checkpoint, snapshots).")
+                                   "Writes FILE.pt (agent file), FILE.png (learning curve), FILE.train.json, "
+                                   "FILE.ckpt/ (checkpoint, snapshots) and FILE.deepracer/ (DeepRacer-for-Cloud "
+                                   "training folder).")
     p.add_argument("--track", default="reinvent_base",
                    help="track(s), comma-separated (bundled names or .npy paths; train-split: every bundled "
                         "track outside the held-out split; default reinvent_base)")

@@ -94,6 +94,7 @@ class TrainConfig:
     keep_best: bool = True  # write the best-evaluated policy (laps, then off-tracks, then time) as the agent file
     stop_on_success: bool = False  # end training at the first evaluation that finishes every lap with no off-track
     progress: bool = True  # show a progress bar
+    deepracer_log: bool = True  # write FILE.deepracer/, a DeepRacer-for-Cloud training folder: training-simtrace/N-iteration.csv (a row per learning car per step), model/model_metadata.json, ip/hyperparameters.json, metrics/TrainingMetrics.json (the ppo engine; the rllib engine writes none)
     # ---- robust options (multirace.train.selfplay / nature)
     robust: bool = False  # shorthand: curriculum randomisation, opponent pool, nature adversary, procedural tracks
     curriculum: bool = False  # ramp domain randomisation from none to `randomize` over the first half

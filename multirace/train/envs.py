@@ -29,6 +29,8 @@ adds what training needs on top of the race env:
   observation, for the learner's auxiliary imitation loss (`expert_coef`);
 - per-car episode statistics in the infos (return, length, laps driven,
   collisions caused);
+- optionally (`deepracer_log`), the few DeepRacer params of each car's
+  sim-trace row, for the learner's DeepRacer-for-Cloud training folder;
 - robust options read per episode from shared memory the learner writes:
   a domain-randomisation scale (curriculum) and nature's perturbation weights.
 """
@@ -38,9 +40,21 @@ import math
 
 import numpy as np
 
+from ..recording.simtrace import closest_waypoint
+
 BOT_SPACING = 2.0  # metres between bots started ahead of the learning cars (bots_ahead)
 INFO_KEYS = ("train_done", "time_limit", "ep_return", "ep_length", "ep_laps", "ep_caused", "off_track", "collisions",
-             "caused", "perturbation", "expert_action")
+             "caused", "perturbation", "expert_action", "deepracer")
+# the reward params (and race keys) of a sim-trace row (`recording.simtrace.simtrace_row`)
+SIMTRACE_KEYS = ("steps", "x", "y", "heading", "steering_angle", "speed", "all_wheels_on_track", "progress",
+                 "track_length", "sim_time", "status", "events", "penalty_time")
+
+
+def simtrace_params(info: dict) -> dict:
+    """The few params of a car's info that its sim-trace row needs, small enough to send every step."""
+    params = {key: info[key] for key in SIMTRACE_KEYS if key in info}
+    params["closest_waypoint"] = closest_waypoint(info)  # so the row needs no waypoint list
+    return params
 
 
 def env_settings(config) -> dict:
@@ -54,7 +68,7 @@ def env_settings(config) -> dict:
             "terminate_collision": config.terminate_collision, "proximity_penalty": config.proximity_penalty,
             "proximity_gap": config.proximity_gap, "proximity_side_room": config.proximity_side_room,
             "bots_ahead": config.bots_ahead, "bots_ahead_spread": config.bots_ahead_spread,
-            "expert_labels": config.expert_coef > 0, "expert": config.expert}
+            "expert_labels": config.expert_coef > 0, "expert": config.expert, "deepracer_log": config.deepracer_log}
 
 
 class TrainEnv:
@@ -64,7 +78,7 @@ class TrainEnv:
                  sensor=None, episode_steps=1500, terminate_off_track=True, off_track_penalty=1.0, progress_weight=1.0,
                  centre_weight=0.1, randomize=None, shared=None, worker=0, collision_penalty=0.0,
                  terminate_collision=False, proximity_penalty=0.0, proximity_gap=1.0, proximity_side_room=0.1,
-                 bots_ahead=0.0, bots_ahead_spread=0.0, expert_labels=False, expert=""):
+                 bots_ahead=0.0, bots_ahead_spread=0.0, expert_labels=False, expert="", deepracer_log=False):
         self.runs = list(runs)  # [(track name/path or Track rows, reverse)]
         self.num_cars = int(num_cars)
         self.bots = tuple(bots)
@@ -85,6 +99,7 @@ class TrainEnv:
         self.expert_labels = bool(expert_labels)
         self.expert = str(expert or "")  # the labelling driver's bot spec; "" = bot:pass at the space's top speed
         self._expert = None  # that driver (built on first use)
+        self.deepracer_log = bool(deepracer_log)  # each step's info carries the car's sim-trace params
         self.progress_weight = float(progress_weight)
         self.centre_weight = float(centre_weight)
         self.randomize = randomize
@@ -260,6 +275,8 @@ class TrainEnv:
             out_infos[agent] = self._small(info, done, episode, caused, time_limit=truncated and not terminal)
             if self.expert_labels:
                 out_infos[agent]["expert_action"] = self._expert_action(i, known=not truncated)
+            if self.deepracer_log:
+                out_infos[agent]["deepracer"] = simtrace_params(info)
         if truncated:
             self.agents = []
         return obs, out_rewards, terms, truncs, out_infos

@@ -9,8 +9,9 @@ whole batch of cars at once on one torch thread, then does the PPO updates on
     multirace train --track reinvent_base --minutes 10 --out agent.pt
 
 writes `agent.pt` (an agent file `multirace race` and the league accept),
-`agent.png` (learning curve), `agent.train.json` (history, evaluations) and
-`agent.ckpt/` (a resumable checkpoint and periodic agent snapshots).
+`agent.png` (learning curve), `agent.train.json` (history, evaluations),
+`agent.ckpt/` (a resumable checkpoint and periodic agent snapshots) and `agent.deepracer/` (a
+DeepRacer-for-Cloud training folder: sim-traces, model metadata, hyperparameters, training metrics).
 """
 from __future__ import annotations
 
@@ -137,10 +138,11 @@ def make_vector_env(config: TrainConfig, shared=None, cars=None, bots=None):
 
 # ------------------------------------------------------------------ the rollout
 def collect_rollout(vec, net, policy: Policy, rollout: Rollout, robust: RobustKnobs, learner_mask,
-                    reward_scale, config: TrainConfig):
+                    reward_scale, config: TrainConfig, deepracer=None):
     """T steps of every env into `rollout`, inference batched over all cars (the pool's opponents drive
-    theirs). Returns the value of the last observations, the env's own reward summed over the rollout
-    (`rollout.rew` may be scaled and bootstrapped) and the training episodes that ended."""
+    theirs), each learning car's steps logged to the `deepracer` folder if given. Returns the value of the
+    last observations, the env's own reward summed over the rollout (`rollout.rew` may be scaled and
+    bootstrapped) and the training episodes that ended."""
     E, A = config.num_envs, config.cars_per_env
     N = E * A
     net.eval()
@@ -158,6 +160,8 @@ def collect_rollout(vec, net, policy: Policy, rollout: Rollout, robust: RobustKn
         actions = robust.override(action.numpy().reshape(E, A, *rollout.act_shape), rollout.next_obs, learner_mask)
         rollout.learn[t] = learner_mask.reshape(N)
         rollout.next_obs, reward, env_done, _, infos = vec.step(actions)
+        if deepracer is not None:
+            deepracer.write_step(infos, actions, reward, learner_mask)
         if config.expert_coef:
             rollout.next_expert = expert_actions(infos, policy.discrete)
         done = np.array([[infos[e][a]["train_done"] for a in range(A)] for e in range(E)]).reshape(N)
@@ -281,6 +285,7 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
     robust.start_pool(space, obs_shape, rng, R)
     rollout = Rollout(T, N, obs_shape, R, space)
     rollout.start(obs, expert_actions(reset_infos, space.discrete))
+    deepracer = run.deepracer_folder(net, space, obs_shape)  # out.deepracer/ (deepracer_log), else None
 
     try:
         start_iteration = run.iteration
@@ -290,8 +295,10 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
 
             # --- 4. rollout: T steps of every env, batched inference over all cars
             t0 = time.perf_counter()
+            if deepracer is not None:
+                deepracer.start_iteration(run.iteration)
             next_value, env_reward, episodes = collect_rollout(vec, net, policy, rollout, robust, learner_mask,
-                                                               reward_scale, config)
+                                                               reward_scale, config, deepracer)
             samples = int(rollout.learn.sum())
             run.agent_steps += samples
             run.sample_time += time.perf_counter() - t0
@@ -320,6 +327,8 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
                          "(for example a reward function that raised or returned a bad value)") from None
     finally:
         run.stop_progress()
+        if deepracer is not None:
+            deepracer.close()
         vec.close()
 
     # --- 7. outputs: agent file (the best evaluated policy), checkpoint, curve, history

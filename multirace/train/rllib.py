@@ -139,7 +139,7 @@ def env_config_for(config, runs) -> dict:
     """The env_config of every env runner's `TrainEnv`: the training runs and the config's env settings."""
     from .envs import env_settings
 
-    return {"runs": runs, **env_settings(config)}
+    return {"runs": runs, **env_settings(config), "deepracer_log": False}  # this engine writes no DeepRacer folder
 
 
 # --------------------------------------------------------------- the module

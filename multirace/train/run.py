@@ -2,7 +2,8 @@
 periodic evaluations and the best policy so far, the history and progress bar, and the outputs.
 
 A run writes `out` (the agent file), `out.png` (learning curve), `out.train.json` (history, evaluations)
-and `out.ckpt/` (a resumable checkpoint and agent snapshots: latest, first_success, first_clean, final).
+and `out.ckpt/` (a resumable checkpoint and agent snapshots: latest, first_success, first_clean, final),
+and with `deepracer_log` `out.deepracer/`, a DeepRacer-for-Cloud training folder (`DeepRacerFolder`).
 """
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..deepracer.logs import TrainingLog
 from ..racing.agentfile import make_metadata, net_sensors, save_agent
 from .config import TrainConfig
 
@@ -113,6 +115,14 @@ class TrainingRun:
         net.eval()
         return save_agent_file(path, net, space, config, obs_shape, training)
 
+    def deepracer_folder(self, net, space, obs_shape) -> DeepRacerFolder | None:
+        """`out.deepracer/`, the run's DeepRacer-for-Cloud training folder (None without `deepracer_log`)."""
+        if not self.config.deepracer_log:
+            return None
+        metadata = make_metadata(space, net.network, self.out.stem, obs_shape, training_algorithm="clipped_ppo",
+                                 sensor=net_sensors(net).names)
+        return DeepRacerFolder(self.out.with_name(self.out.stem + ".deepracer"), metadata, self.config)
+
     # ------------------------------------------------------------ history
     def record(self, episodes: list, stats: dict, env_reward: float, samples: int, iteration_seconds: float,
                extra: dict) -> dict:
@@ -211,6 +221,40 @@ class TrainingRun:
         summary["evals"] = self.evals
         summary["history"] = history
         return summary
+
+
+def deepracer_hyperparameters(config: TrainConfig) -> dict:
+    """The config's PPO settings under DeepRacer's hyperparameter names (the rest keep DeepRacer's defaults)."""
+    return {"batch_size": config.minibatch_size, "num_epochs": config.epochs, "lr": config.lr,
+            "discount_factor": config.gamma, "beta_entropy": config.ent_coef, "loss_type": "mean squared error"}
+
+
+class DeepRacerFolder:
+    """The DeepRacer-for-Cloud training folder of a PPO run (`deepracer.logs.TrainingLog`): one sim-trace
+    row per learning car per step, one file per PPO iteration, episode numbers unique in the run."""
+
+    def __init__(self, folder, metadata: dict, config: TrainConfig):
+        self.log = TrainingLog(folder, metadata, deepracer_hyperparameters(config))
+        cars = config.num_envs * config.cars_per_env
+        self.episodes = np.arange(cars).reshape(config.num_envs, config.cars_per_env)  # each car's episode now
+        self.next_episode = cars
+
+    def start_iteration(self, iteration: int) -> None:
+        self.log.start_iteration(iteration)
+
+    def write_step(self, infos, actions, rewards, learner_mask) -> None:
+        """One step of every env: a row per learning car (`infos` from `TrainEnv` with `deepracer_log`)."""
+        for e, env_infos in enumerate(infos):
+            for a, info in enumerate(env_infos):
+                if learner_mask[e, a]:
+                    self.log.write_step(info["deepracer"], reward=float(rewards[e, a]),
+                                        episode=int(self.episodes[e, a]), action=actions[e, a],
+                                        done=bool(info["train_done"]))
+                if info["train_done"]:
+                    self.episodes[e, a], self.next_episode = self.next_episode, self.next_episode + 1
+
+    def close(self) -> None:
+        self.log.close()
 
 
 def evaluate_time_trial(agent_path, track: str, laps: int = 3, seed: int = 0, reverse: bool = False,
