@@ -119,7 +119,8 @@ class TrainingLog:
 
     `action` is what the policy gave the env (a discrete index, or [steer, speed]); the row holds
     the commanded steer and throttle, and the index for a discrete space. When a car's episode ends
-    (`done`, default: the info's status is not racing) its TrainingMetrics entry is added.
+    (`done`, default: the info's status is not racing) its TrainingMetrics entry is added; the metrics
+    file is written at every new iteration and at `close`.
     """
 
     def __init__(self, folder, metadata: dict, hyperparameters: dict | None = None):
@@ -134,9 +135,11 @@ class TrainingLog:
         self._trials = 0
 
     def start_iteration(self, iteration: int) -> None:
-        """Begin `training-simtrace/{iteration}-iteration.csv` (closing the previous one)."""
+        """Begin `training-simtrace/{iteration}-iteration.csv` (closing the previous one, whose ended episodes
+        go into the metrics file: rewriting it at every episode's end would cost a run quadratic time)."""
         if self.writer is not None:
             self.writer.close()
+            self.write_metrics()
         self.iteration = int(iteration)
         self._trials = 0
         self.writer = SimTraceWriter(self.folder / "training-simtrace" / f"{self.iteration}-iteration.csv")
@@ -171,7 +174,6 @@ class TrainingLog:
             "completion_percentage": 100 if status == "lap_complete" else int(float(info["progress"])),
             "episode_status": STATUS_LABELS.get(status, "In progress"),
         })
-        self.write_metrics()
 
     def write_metrics(self) -> Path:
         """(Re)write metrics/TrainingMetrics.json with the episodes ended so far."""
