@@ -325,8 +325,8 @@ def build_parser() -> argparse.ArgumentParser:
     imitate.add_argument("--randomize", default=None, choices=("mild", "strong"),
                          help="domain randomisation of every episode (default: none)")
     imitate.add_argument("--traffic", default=None, metavar="BOTS",
-                         help="bots in every env, comma-separated (e.g. follow@1.0,lanes@1.0): the expert "
-                              "passes them wide, so the agent learns to overtake")
+                         help="bots in the envs (all, or --traffic-share of them), comma-separated (e.g. "
+                              "follow@1.0,lanes@1.0), started ahead of the learner")
     imitate.add_argument("--init", default=None, metavar="AGENT.pt",
                          help="start from this agent file's net (its network, image size, action space)")
     imitate.add_argument("--max-samples", type=int, default=40000, metavar="N",

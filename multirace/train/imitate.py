@@ -74,7 +74,7 @@ class ImitationConfig:
     randomize: object = None  # the env's domain randomisation (None, "mild", "strong" or a dict), per episode
     procedural_tracks: int = 0  # seeded generated tracks added to `tracks` (each in both directions if asked)
     init: str | None = None  # start from this agent file's weights (its network, image size and action space)
-    traffic: tuple = ()  # bots in every env (e.g. ("follow@1.0", "lanes@1.0")), started ahead: the expert passes them
+    traffic: tuple = ()  # bots in the envs (e.g. ("follow@1.0", "lanes@1.0")), started ahead of the learner
     traffic_share: float = 1.0  # share of the envs that hold the traffic (the others: the car alone on the track)
     name: str | None = None  # agent name in the metadata (default: the file stem)
     camera: tuple = (120, 160)
