@@ -8,7 +8,7 @@ from __future__ import annotations
 import importlib
 
 _PUBLIC = {  # public name: module (and the module's own name for it, where they differ)
-    "load_agent": ("multirace.deepracer.policy", "load_policy"),
+    "load_agent": ("multirace.racing.policy", "load_policy"),
     "RaceEnv": "multirace.environment.race_env",
     "env": "multirace.environment.race_env",
     "parallel_env": "multirace.environment.race_env",

@@ -19,6 +19,7 @@ from multirace.racing.agentfile import (AgentController, AgentFileError, inspect
 from multirace.cli import main as cli_main
 from multirace.racing.nets import NETWORKS, SHALLOW, SMALL, TINY, CameraNet, build_net
 from multirace.racing.entrant import Forfeit
+from multirace.racing.graphnet import GraphNet
 from multirace.racing.runner import RaceConfig, make_controller, run_race
 from helpers import overflow_on_camera_images, seeded_lidar_agent
 
@@ -305,3 +306,34 @@ def test_load_agent_gives_a_policy_that_drives_from_one_observation(tmp_path):
     env = multirace.parallel_env(num_cars=1, sensor=lidar.sensor)
     observations, _ = env.reset(seed=0)
     assert -30.0 <= lidar.command(observations["car_0"])[0] <= 30.0
+
+
+GRAPH_SPEC = {"inputs": {"FRONT_FACING_CAMERA": {"shape": [120, 160, 1], "layers": [
+    {"type": "scale", "scale": 1 / 255, "shift": 0.0}, {"type": "pool", "k": 8}, {"type": "flatten"},
+    {"type": "dense", "in": 300, "out": 10}]}}, "layers": [], "output": "softmax"}
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda m: m, None),
+    (lambda m: {**m, "deepracer_graph": {"inputs": {}}}, "'deepracer_graph' is not a network spec"),
+    (lambda m: {**m, "deepracer_graph": {**GRAPH_SPEC, "layers": [{"type": "dense", "in": 10, "out": 10**8}]}},
+     "over the limit"),
+    (lambda m: {**m, "image": {"height": 60, "width": 80, "channels": 1}}, "'deepracer_graph' reads"),
+    (lambda m: {**m, "sensor": ["FRONT_FACING_CAMERA", "LIDAR"]}, "'deepracer_graph' has inputs"),
+])
+def test_imported_deepracer_layers_load_or_name_the_field(tmp_path, change, message):
+    """An agent file holding DeepRacer's own layers (metadata field 'deepracer_graph', as `agent import` writes
+    for 5-layer, deep and SAC networks) loads as a GraphNet; a spec that does not fit is refused by field,
+    a huge one before anything is allocated."""
+    torch.manual_seed(0)
+    net = GraphNet(GRAPH_SPEC, SPACE)
+    metadata = {**make_metadata(SPACE, "DEEP_CONVOLUTIONAL_NETWORK", "imported"), "deepracer_graph": GRAPH_SPEC}
+    path = _payload(tmp_path / "graph.pt", change(metadata), net.state_dict())
+    if message is None:
+        agent = load_agent(path)
+        assert isinstance(agent.net, GraphNet)
+        assert agent.decide(agent.outputs(np.zeros((120, 160, 1), np.uint8))) in range(10)
+        return
+    with pytest.raises(AgentFileError, match=message) as err:
+        load_agent(path)
+    assert str(path) in str(err.value)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import sqlite3
 import tarfile
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -17,7 +18,7 @@ from multirace.deepracer.importer import ModelImportError, import_model
 from multirace.deepracer.tfgraph import DT_FLOAT, DT_INT32, GraphBuilder
 from multirace.environment.actions import load_action_space
 from multirace.racing.agentfile import load_agent, make_metadata, save_agent
-from multirace.deepracer.drnet import GraphNet
+from multirace.racing.graphnet import GraphNet
 from multirace.racing.nets import SHALLOW, TINY, CameraNet, build_net
 
 from helpers import seeded_lidar_agent
@@ -444,3 +445,65 @@ def test_imported_deepracer_networks_go_back_to_the_car(tmp_path, frames, kind):
         else:
             np.testing.assert_allclose(car, torch.softmax(torch.from_numpy(mine), 0).numpy(), atol=1e-5)
         np.testing.assert_allclose(back.command(observation), policy.command(observation), atol=1e-4)
+
+
+LEAGUE_TOML = """
+[league]
+name = "imported"
+seeds = [1]
+bots = ["bot:follow@1.0"]
+step_budget = 0.5
+match_timeout = 120
+replays = false
+
+[[tracks]]
+name = "reinvent_base"
+
+[time_trial]
+format = "reset_rule"
+laps = 1
+max_steps = 60
+
+[head_to_head]
+cars = 2
+laps = 1
+max_steps = 60
+"""
+
+
+def test_imported_deepracer_networks_race_and_league(tmp_path):
+    """A 5-layer discrete model and a SAC camera+LIDAR model, imported as DeepRacer layers (not multirace
+    networks), race against each other and a bot without forfeiting, and play their league matches."""
+    five = {"action_space": [{"steering_angle": s, "speed": 1.5} for s in (-30, -15, 0, 15, 30)],
+            "sensor": ["FRONT_FACING_CAMERA"], "neural_network": "DEEP_CONVOLUTIONAL_NETWORK"}
+    sac = {**CONTINUOUS, "sensor": ["FRONT_FACING_CAMERA", "LIDAR"], "training_algorithm": "sac"}
+    graphs = {"five": (five, deepracer_graph(np.random.default_rng(1), convs=FIVE_LAYER_CONVS, embedder_dense=(64,),
+                                             outputs=5, camera="FRONT_FACING_CAMERA")),
+              "sac": (sac, deepracer_graph(np.random.default_rng(3), convs=SHALLOW_CONVS, head_hidden=(256,), outputs=2,
+                                           discrete=False, algorithm="sac", camera="FRONT_FACING_CAMERA", lidar=64))}
+    for name, (metadata, graph) in graphs.items():
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "model.pb").write_bytes(graph)
+        (tmp_path / name / "model_metadata.json").write_text(json.dumps(metadata))
+        import_model(tmp_path / name / "model.pb", tmp_path / f"{name}.pt")
+        assert isinstance(load_agent(tmp_path / f"{name}.pt").net, GraphNet)  # the race loader builds it
+
+    result = tmp_path / "race.json"
+    assert cli_main(["race", str(tmp_path / "five.pt"), str(tmp_path / "sac.pt"), "bot:follow@1.0", "--laps", "1",
+                     "--max-steps", "45", "--json", str(result)]) == 0
+    cars = {car["name"]: car for car in json.loads(result.read_text())["cars"]}
+    assert set(cars) == {"five", "sac", "bot:follow@1.0"}
+    for name in ("five", "sac"):
+        assert cars[name]["status"] != "forfeit" and cars[name]["progress"] > 0, cars[name]
+
+    from multirace.league.submissions import init_league, submit
+    from multirace.league.runner import run_league
+    folder = tmp_path / "league"
+    init_league(folder)
+    (folder / "league.toml").write_text(LEAGUE_TOML)
+    submit(folder, tmp_path / "five.pt", "five")
+    stats = run_league(folder, workers=1, progress=False)
+    assert stats["ran"] == 3 and stats["failed"] == 0  # 2 time trials and the heat
+    with sqlite3.connect(folder / "results.sqlite") as conn:
+        rows = conn.execute("SELECT status, result FROM results").fetchall()
+    assert all(status == "ok" for status, _ in rows) and "forfeit" not in json.dumps([r for _, r in rows])

@@ -19,7 +19,7 @@ Layers are named as DeepRacer's networks name them (``Conv2d_0``,
 ``middleware_fc_embedder/Dense_0``, ``ppo_head_0/policy_fc``), convolutions are
 VALID NHWC with HWIO kernels, and the flatten is NHWC's, so the graph computes
 exactly what the torch policy computes. An imported DeepRacer network that
-multirace runs as a `drnet.GraphNet` (5-layer, deep, SAC, stereo) exports from
+multirace runs as a `graphnet.GraphNet` (5-layer, deep, SAC, stereo) exports from
 its layers the same way (`graph_net_graph`).
 """
 from __future__ import annotations
@@ -32,10 +32,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..racing.agentfile import load_agent, parse_metadata, read_payload
+from ..racing.agentfile import load_agent
+from ..racing.graphnet import GRAPH_FIELD, GraphNet
 from ..racing.nets import AveragePool, CameraNet
 from ..racing.runner import resolve_agent_path
-from .drnet import load_graph_agent
 from .tfgraph import DT_FLOAT, DT_INT32, GraphBuilder
 
 CAMERA_SIZE = (120, 160)  # (height, width) the car's inference feeds
@@ -139,7 +139,7 @@ def policy_graph(net: CameraNet, space, lidar_sensor: str = "LIDAR") -> bytes:
 
 
 def graph_net_graph(net) -> bytes:
-    """The frozen GraphDef bytes of an imported DeepRacer network (`drnet.GraphNet`), under PPO's names.
+    """The frozen GraphDef bytes of an imported DeepRacer network (`graphnet.GraphNet`), under PPO's names.
 
     A SAC policy's mean goes through ``tanh`` inside the graph, so that its output is a PPO head's
     ``[-1, 1]`` (what DeepRacer's simulator drove it with), which every car maps the same way.
@@ -225,15 +225,15 @@ def export_agent(path, out) -> Path:
     path, out = resolve_agent_path(str(path)), Path(out)
     if not out.name.endswith(".tar.gz"):
         raise ExportError(f"{out}: the car accepts only archives named *.tar.gz")
-    graph_net = "deepracer_graph" in parse_metadata(read_payload(path), str(path))
-    agent = load_graph_agent(path) if graph_net else load_agent(path, step_budget=None)
+    agent = load_agent(path, step_budget=None)
+    graph_net = isinstance(agent.net, GraphNet)
     height, width, channels = agent.image_shape
     if (height, width) != CAMERA_SIZE or channels not in (1, 2):
         raise ExportError(f"{path}: the agent reads {height}x{width}x{channels} images; the car feeds "
                           f"{CAMERA_SIZE[0]}x{CAMERA_SIZE[1]} grey images (1 channel, 2 for stereo)")
     if graph_net:
         graph = graph_net_graph(agent.net)
-        metadata = {k: v for k, v in agent.metadata.items() if k != "deepracer_graph"}
+        metadata = {k: v for k, v in agent.metadata.items() if k != GRAPH_FIELD}
         metadata = car_metadata(metadata, agent.action_space, channels, False)
         metadata["sensor"] = list(agent.net.sensors)
     else:

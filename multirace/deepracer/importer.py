@@ -20,10 +20,10 @@ A graph whose layers are one of multirace's networks (`nets.NETWORKS`: DeepRacer
 shallow network, multirace's small and tiny CNNs; camera, or camera plus a
 64-64 LIDAR branch) with a PPO head becomes a `CameraNet` agent file that every
 multirace command loads. Other DeepRacer networks (5-layer, deep, SAC heads,
-stereo cameras, DeepRacer's 256-256 LIDAR embedder) become a `drnet.GraphNet`
-agent file (its layers in the metadata field ``deepracer_graph``), which
-`multirace.load_agent` runs; the agent-file loader (races, leagues) does not
-build it yet.
+stereo cameras, DeepRacer's 256-256 LIDAR embedder) become a
+`racing.graphnet.GraphNet` agent file (its layers in the metadata field
+``deepracer_graph``, `drnet`), which races, leagues, `multirace.load_agent`
+and export load like any other; only training cannot start from one.
 """
 from __future__ import annotations
 
@@ -37,8 +37,10 @@ import torch
 
 from ..environment.actions import ActionSpace, ActionSpaceError
 from ..racing.agentfile import make_metadata, save_agent
+from ..racing.graphnet import GraphNet
 from ..racing.nets import NETWORKS, AveragePool, CameraNet, num_outputs_for
 from ..sensors.lidar import LidarSpec
+from .drnet import save_graph_agent, spec_from_graph
 from .tfgraph import GraphError, parse_graph
 
 MAX_ARCHIVE_BYTES = 512 * 2**20  # unpacked members of a car archive read at most
@@ -462,9 +464,7 @@ def import_model(path, out, name: str | None = None) -> Path:
 
 
 def _import_graph_net(spec, space, metadata, source, out, name, notes, reason) -> Path:
-    """A DeepRacer network that no multirace network matches, as a `drnet.GraphNet` agent file."""
-    from .drnet import GraphNet, save_graph_agent, spec_from_graph
-
+    """A DeepRacer network that no multirace network matches, as a `graphnet.GraphNet` agent file."""
     try:
         layers, state = spec_from_graph(spec, source)
         net = GraphNet(layers, space)

@@ -58,6 +58,7 @@ import torch
 from ..environment.actions import ActionSpace, ActionSpaceError
 from ..sensors.lidar import LidarSpec, sector_lidar
 from ..sensors.suite import RANGE_INPUTS, SensorSuite, declared_sensors, parse_sensors
+from .graphnet import GRAPH_FIELD, GraphNet
 from .nets import NETWORKS, CameraNet, num_outputs_for, parameter_count
 from .entrant import Controller, Forfeit
 
@@ -361,7 +362,10 @@ def check_metadata(metadata: dict, source: str):
         raise AgentFileError(f"{source}: metadata field 'image' has {shape[2]} channel(s) but field 'sensor' "
                              f"{metadata['sensor']!r} declares {reads}")
     network = metadata.get("neural_network")
-    if network not in NETWORKS:
+    if GRAPH_FIELD in metadata:  # an imported DeepRacer network (`graphnet`): any name DeepRacer gave it
+        if not isinstance(network, str) or not network:
+            raise AgentFileError(f"{source}: metadata field 'neural_network' must name the imported network")
+    elif network not in NETWORKS:
         raise AgentFileError(f"{source}: metadata field 'neural_network' is {network!r}; known networks: "
                              f"{', '.join(NETWORKS)}")
     try:
@@ -459,24 +463,7 @@ def _load_agent(path: Path, step_budget: float | None, smoke_runs: int) -> Agent
     if not isinstance(state, dict) or not all(isinstance(k, str) and isinstance(v, torch.Tensor)
                                               for k, v in state.items()):
         raise AgentFileError(f"{source}: field 'state_dict' must map parameter names to tensors")
-    value_head = any(k.startswith("value_head.") for k in state)
-    head = state.get("head.weight")
-    expected = num_outputs_for(space)
-    if isinstance(head, torch.Tensor) and head.dim() == 2 and head.shape[0] != expected:
-        raise AgentFileError(f"{source}: output shape: the net outputs {head.shape[0]} values but the "
-                             f"{space.kind} action space needs {expected}")
-    try:
-        with torch.device("meta"):  # sized before anything is allocated
-            planned = parameter_count(CameraNet(network, shape, expected, value_head=value_head,
-                                                lidar_samples=sensors.range_inputs))
-        if planned > MAX_PARAMETERS:
-            raise AgentFileError(f"{source}: the {network} network on {shape[0]}x{shape[1]}x{shape[2]} images "
-                                 f"has {planned:,} parameters, over the limit of {MAX_PARAMETERS:,}")
-        net = CameraNet(network, shape, expected, value_head=value_head, lidar_samples=sensors.range_inputs)
-    except AgentFileError:
-        raise
-    except ValueError as exc:
-        raise AgentFileError(f"{source}: metadata field 'image': {exc}") from None
+    net = _build_net(metadata, space, network, shape, sensors, state, source)
     try:
         net.load_state_dict(state, strict=True)
     except RuntimeError as exc:
@@ -489,6 +476,51 @@ def _load_agent(path: Path, step_budget: float | None, smoke_runs: int) -> Agent
     agent = Agent(path, net, metadata, space, hashlib.sha256(data).hexdigest(), sensors)
     smoke_test(agent, step_budget, smoke_runs)
     return agent
+
+
+def _build_net(metadata: dict, space: ActionSpace, network: str, shape: tuple, sensors: SensorSuite, state: dict,
+               source: str):
+    """The untrained net the metadata describes (a `CameraNet`, or a `GraphNet` with ``deepracer_graph``), sized
+    on torch's meta device first (`MAX_PARAMETERS`); AgentFileError naming the field that does not fit."""
+    expected = num_outputs_for(space)
+    head = state.get("head.weight")
+    if isinstance(head, torch.Tensor) and head.dim() == 2 and head.shape[0] != expected:
+        raise AgentFileError(f"{source}: output shape: the net outputs {head.shape[0]} values but the "
+                             f"{space.kind} action space needs {expected}")
+    value_head = any(k.startswith("value_head.") for k in state)
+
+    def make():
+        if GRAPH_FIELD in metadata:
+            return _graph_net(metadata, space, shape, sensors, source)
+        return CameraNet(network, shape, expected, value_head=value_head, lidar_samples=sensors.range_inputs)
+
+    try:
+        with torch.device("meta"):  # sized before anything is allocated
+            planned = parameter_count(make())
+        if planned > MAX_PARAMETERS:
+            raise AgentFileError(f"{source}: the {network} network on {shape[0]}x{shape[1]}x{shape[2]} images "
+                                 f"has {planned:,} parameters, over the limit of {MAX_PARAMETERS:,}")
+        return make()
+    except AgentFileError:
+        raise
+    except ValueError as exc:
+        raise AgentFileError(f"{source}: metadata field 'image': {exc}") from None
+
+
+def _graph_net(metadata: dict, space: ActionSpace, shape: tuple, sensors: SensorSuite, source: str) -> GraphNet:
+    """A `GraphNet` from metadata field ``deepracer_graph``, checked against fields 'image' and 'sensor'."""
+    spec = metadata[GRAPH_FIELD]
+    try:
+        net = GraphNet(spec, space)
+    except (ValueError, KeyError, IndexError, TypeError, AttributeError) as exc:
+        raise AgentFileError(f"{source}: metadata field '{GRAPH_FIELD}' is not a network spec ({exc})") from None
+    if tuple(net.image_shape) != tuple(shape):
+        raise AgentFileError(f"{source}: metadata field '{GRAPH_FIELD}' reads {net.image_shape} images but field "
+                             f"'image' says {shape}")
+    if sorted(net.sensors) != sorted(sensors.names) or net.lidar_samples != sensors.range_inputs:
+        raise AgentFileError(f"{source}: metadata field '{GRAPH_FIELD}' has inputs {net.sensors} "
+                             f"({net.lidar_samples} ranges) but field 'sensor' declares {sensors.names}")
+    return net
 
 
 def smoke_test(agent: Agent, step_budget: float | None, runs: int = 5) -> None:

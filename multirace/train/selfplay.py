@@ -105,7 +105,7 @@ class OpponentPool:
                 continue
             cars = np.nonzero(~mask[e])[0]
             x = torch.from_numpy(np.ascontiguousarray(images[e, cars]))
-            if opponent.net.lidar is not None:
+            if opponent.net.lidar_samples:
                 x = {"camera": x, "lidar": torch.from_numpy(np.ascontiguousarray(obs["lidar"][e, cars]))}
             with torch.no_grad():
                 out = opponent.net(x).numpy()
