@@ -83,6 +83,7 @@ class TrainConfig:
     value_warmup: int = 0  # with --init: first iterations train only the (new) value head, policy frozen
     # ---- budget, logging, outputs
     minutes: float = 10.0  # wall-clock budget, including evaluations and checkpoints
+    max_iterations: int = 0  # > 0: stop after this many PPO iterations too (a budget machine load cannot change)
     seed: int = 0  # seeds torch, the envs and sampling
     threads: int = 1  # torch threads of the learner while sampling (the workers need the cores then)
     update_threads: int = 2  # torch threads of the PPO update (the workers wait then; 2 is ~1.25x faster here)

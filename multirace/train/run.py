@@ -50,11 +50,16 @@ class TrainingRun:
         return time.perf_counter() - self.started
 
     def fraction(self) -> float:
-        """How much of the time budget is spent, 0-1."""
-        return min(1.0, self.elapsed() / self.budget)
+        """How much of the budget (time, or iterations if `max_iterations` ends the run first) is spent, 0-1."""
+        spent = self.elapsed() / self.budget
+        if self.config.max_iterations > 0:
+            spent = max(spent, self.iteration / self.config.max_iterations)
+        return min(1.0, spent)
 
     def keep_going(self, start_iteration: int) -> bool:
-        """Another iteration? At least one per run, then until the budget is spent."""
+        """Another iteration? At least one per run, then until the time budget or `max_iterations` is spent."""
+        if self.config.max_iterations > 0 and self.iteration >= self.config.max_iterations:
+            return False
         return self.iteration == start_iteration or self.elapsed() < self.budget
 
     # ------------------------------------------------------- resume, checkpoints
