@@ -6,7 +6,7 @@ an imported model of that kind becomes a `GraphNet`: per-sensor embedders
 (input scaling, VALID NHWC convolutions, ReLU, NHWC flatten, dense layers),
 concatenated in sorted sensor order, then the dense layers after them and the
 policy output. It keeps multirace's conventions (`nets` module docstring):
-it takes uint8 (H, W, C) images (``{"camera", "lidar"}`` dicts with a LIDAR)
+it takes uint8 images as `nets.channels_first` does (``{"camera", "lidar"}`` dicts with a LIDAR)
 and gives action logits (discrete) or ``[mean steer deg, mean speed m/s,
 log-std, log-std]`` (continuous; a PPO head's ``[-1, 1]`` output mapped
 linearly onto the action space, a SAC head's mean through ``tanh`` first, as
@@ -32,7 +32,7 @@ from torch import nn
 from ..environment.actions import ActionSpace
 from ..racing.agentfile import (Agent, AgentFileError, parse_metadata, read_agent_bytes, read_payload,
                                 write_agent_file)
-from ..racing.nets import CONTINUOUS_OUTPUTS
+from ..racing.nets import CONTINUOUS_OUTPUTS, channels_first
 from ..sensors.suite import parse_sensors
 
 LIDAR_SENSORS = ("LIDAR", "SECTOR_LIDAR")
@@ -98,10 +98,8 @@ class GraphNet(nn.Module):
         ranges = None
         if isinstance(obs, dict):
             obs, ranges = obs["camera"], torch.as_tensor(obs["lidar"], dtype=torch.float32)
-        x = torch.as_tensor(obs)
-        if x.dim() == 3:
-            x = x.unsqueeze(0)
-        features = {self.camera: self.embedders[self.camera](x.permute(0, 3, 1, 2).float())}
+        x = channels_first(obs, self.image_shape)
+        features = {self.camera: self.embedders[self.camera](x.float())}
         if self.lidar_sensor:
             if ranges is None:
                 raise ValueError("this net needs {'camera': images, 'lidar': ranges} observations")
