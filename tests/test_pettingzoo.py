@@ -1,8 +1,11 @@
 """PettingZoo's own conformance tests, beyond the API and seed tests in test_env_api.py."""
+from pathlib import Path
+
 import numpy as np
 from PIL import Image
 from pettingzoo.test import max_cycles_test, render_test
 from pettingzoo.test.save_obs_test import check_save_obs
+from pettingzoo.test.save_obs_test import test_save_obs as pettingzoo_save_obs_test
 from pettingzoo.utils import save_observation
 
 import multirace
@@ -41,7 +44,7 @@ def test_max_cycles_and_max_steps_are_one_limit():
         raise AssertionError("conflicting step limits were accepted")
 
 
-def test_default_grey_observations_save_with_pettingzoos_save_observation(tmp_path):
+def test_default_grey_observations_save_with_pettingzoos_save_observation(tmp_path, monkeypatch):
     env = small_env()
     env.reset(seed=0)
     assert env.observation_space("car_0").shape == (120, 160)  # one grey channel: (H, W), as PIL takes it
@@ -53,6 +56,9 @@ def test_default_grey_observations_save_with_pettingzoos_save_observation(tmp_pa
     for path in saved:
         image = np.asarray(Image.open(path))
         assert image.shape == (120, 160) and image.std() > 5  # the camera's view of the track
+    monkeypatch.chdir(tmp_path)  # PettingZoo's whole save test writes to ./saved_observations
+    pettingzoo_save_obs_test(env)
+    assert len(list(Path("saved_observations").glob("*/car_*.png"))) == 2
     env.close()
 
 
