@@ -1,6 +1,8 @@
 """Shared helpers for the multirace tests (import as `from helpers import ...`)."""
 from __future__ import annotations
 
+import numpy as np
+
 from multirace.environment.bots import PurePursuit
 from multirace.racing.entrant import COMMAND_SPACE, BotController
 
@@ -22,6 +24,11 @@ def drive_expert(env, speed=1.0, steps=None, lateral=0.0):
         history.append(infos["car_0"])
         count += 1
     return history
+
+
+def car_input(image):
+    """A camera observation as the car's network input: float32 [1, H, W, C] of raw 0-255 pixels (grey: C = 1)."""
+    return np.atleast_3d(image)[None].astype(np.float32)
 
 
 CONTINUOUS = COMMAND_SPACE  # the full continuous range of DeepRacer commands

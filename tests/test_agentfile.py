@@ -17,7 +17,7 @@ from multirace.environment.actions import load_action_space
 from multirace.racing.agentfile import (AgentController, AgentFileError, inspect_agent, load_agent, make_metadata,
                                  save_agent)
 from multirace.cli import main as cli_main
-from multirace.racing.nets import NETWORKS, SHALLOW, SMALL, TINY, CameraNet, build_net
+from multirace.racing.nets import NETWORKS, SHALLOW, SMALL, TINY, CameraNet, build_net, channels_first
 from multirace.racing.entrant import Forfeit
 from multirace.racing.graphnet import GraphNet
 from multirace.racing.runner import RaceConfig, make_controller, run_race
@@ -58,12 +58,12 @@ def test_round_trip(tmp_path):
     assert agent.metadata["image"] == {"height": 120, "width": 160, "channels": 1}
     assert agent.metadata["training"] == {"method": "test"}
     assert agent.net.has_value
-    image = np.random.default_rng(0).integers(0, 256, (120, 160, 1), dtype=np.uint8)
+    image = np.random.default_rng(0).integers(0, 256, (120, 160), dtype=np.uint8)  # a grey frame, as the env's
     net.eval()
     with torch.no_grad():
         expected = net(torch.from_numpy(image)).numpy()
         value = net.value(torch.from_numpy(image[None]))
-    assert np.allclose(agent.outputs(image), expected)
+    assert np.allclose(agent.outputs(agent.reads(image)), expected)
     assert value.shape == (1,)
     info = inspect_agent(path)
     assert info["valid"] and info["parameters"] == sum(p.numel() for p in net.parameters())
@@ -71,9 +71,36 @@ def test_round_trip(tmp_path):
     assert path.stat().st_size < 2_000_000
 
 
+def test_grey_agents_read_frames_with_or_without_the_channel_axis(good):
+    agent = load_agent(good)
+    frame = np.random.default_rng(2).integers(0, 256, (120, 160), dtype=np.uint8)
+    pair = np.stack([frame, 255 - frame], axis=2)  # a stereo pair: the agent reads its left camera
+    for observation in (frame, frame[:, :, None], pair):
+        seen = agent.reads(observation)
+        assert seen.shape == (120, 160) and np.array_equal(seen, frame)
+    assert np.array_equal(agent.outputs(frame), agent.outputs(frame[:, :, None]))
+    assert multirace.load_agent(good).command(frame[:, :, None]) == multirace.load_agent(good).command(frame)
+    with pytest.raises(ValueError, match="120x160x1"):
+        agent.reads(frame[:, :100])
+
+
+def test_channels_first_takes_single_images_and_batches_with_or_without_the_grey_axis():
+    frames = torch.randint(0, 256, (2, 120, 160), dtype=torch.uint8)
+    for images in (frames, frames[..., None]):
+        assert torch.equal(channels_first(images, (120, 160, 1)), frames[:, None])
+        assert torch.equal(channels_first(images[0], (120, 160, 1)), frames[:1, None])
+    colour = torch.randint(0, 256, (2, 120, 160, 3), dtype=torch.uint8)
+    assert torch.equal(channels_first(colour, (120, 160, 3)), colour.permute(0, 3, 1, 2))
+    assert torch.equal(channels_first(colour[1], (120, 160, 3)), colour[1:].permute(0, 3, 1, 2))
+    for wrong, shape in ((frames, (120, 160, 3)), (frames[:, None], (120, 160, 1)), (colour, (120, 160, 1))):
+        with pytest.raises(ValueError, match="the net reads"):
+            channels_first(wrong, shape)
+
+
 def test_networks_and_continuous_outputs():
     for network in NETWORKS:
         net = CameraNet(network, (120, 160, 1), 4)
+        assert net(torch.zeros(2, 120, 160, dtype=torch.uint8)).shape == (2, 4)
         assert net(torch.zeros(2, 120, 160, 1, dtype=torch.uint8)).shape == (2, 4)
     shallow = CameraNet(SHALLOW, (120, 160, 1), 10)
     assert [m.kernel_size for m in shallow.conv if isinstance(m, torch.nn.Conv2d)] == [(8, 8), (4, 4), (3, 3)]
@@ -103,7 +130,7 @@ def test_continuous_agent_acts(tmp_path):
     path = save_agent(tmp_path / "c.pt", net, make_metadata(space, SMALL, "cont"))
     controller = AgentController(path)
     assert controller.agent is not None, controller.error
-    steer, speed = controller.act(np.zeros((120, 160, 1), np.uint8), {})
+    steer, speed = controller.act(np.zeros((120, 160), np.uint8), {})
     assert -30 <= steer <= 30 and 1 <= speed <= 2
 
 

@@ -20,8 +20,8 @@ OTHER_COLOURS = np.array([TEST_PALETTE.floor, TEST_PALETTE.sky], float)
 def test_on_a_straight_the_road_is_in_the_lower_middle_and_borders_are_bright(renderer):
     env = multirace.parallel_env(num_cars=1, renderer=renderer)
     obs, _ = env.reset(seed=0)  # reinvent_base starts on a straight, on the centre line
-    image = obs["car_0"][:, :, 0].astype(float)
-    assert image.shape == (120, 160)
+    image = obs["car_0"].astype(float)
+    assert image.shape == (120, 160)  # one grey channel
     road = env.texture.palette.road
     road_gray = 0.299 * road[0] + 0.587 * road[1] + 0.114 * road[2]
     lower_middle = image[80:, 40:120]

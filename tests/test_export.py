@@ -21,7 +21,7 @@ from multirace.racing.agentfile import load_agent, make_metadata, save_agent
 from multirace.racing.graphnet import GraphNet
 from multirace.racing.nets import SHALLOW, TINY, CameraNet, build_net
 
-from helpers import seeded_lidar_agent
+from helpers import car_input, seeded_lidar_agent
 
 ov = pytest.importorskip("openvino")
 FIXTURES = Path("/work/shared/deepracer-model")
@@ -88,7 +88,7 @@ def test_openvino_runs_the_graph_like_the_torch_policy(tmp_path, frames, agent):
     assert sorted(i.get_any_name() for i in plain.inputs) == sorted(n + ":0" for n in inputs)
     for obs in frames:
         image = obs["camera"]
-        feed = {input_name("FRONT_FACING_CAMERA") + ":0": image[None].astype(np.float32)}  # raw 0-255 pixels
+        feed = {input_name("FRONT_FACING_CAMERA") + ":0": car_input(image)}  # raw 0-255 pixels
         torch_obs = image
         if policy.agent.lidar_samples:
             feed[input_name("LIDAR") + ":0"] = obs["lidar"][None].astype(np.float32)
@@ -114,7 +114,7 @@ def test_continuous_shallow_head_gives_the_cars_minus_one_to_one(tmp_path, frame
     _, compiled = openvino_policy(folder / "agent" / "model.pb", {input_name("FRONT_FACING_CAMERA"): [1, 120, 160, 1]})
     agent = load_agent(path, step_budget=None)
     for obs in frames[:3]:
-        v = compiled(obs["camera"][None].astype(np.float32))[0][0]
+        v = compiled(car_input(obs["camera"]))[0][0]
         mean = agent.outputs(obs["camera"])[0][:2]
         # the car maps v linearly onto low..high: steering 30 v, speed 2 + v
         np.testing.assert_allclose([30 * v[0], 2 + v[1]], mean, atol=1e-4)
@@ -271,7 +271,7 @@ def import_and_compare(tmp_path, frames, graph: bytes, metadata: dict, feeds, ex
 
 def camera_feed(obs):
     return {"main_level/agent/main/online/network_0/observation/observation:0":
-            obs["camera"][None].astype(np.float32)}, obs["camera"]
+            car_input(obs["camera"])}, obs["camera"]
 
 
 def softmax_of(car, mine):
@@ -297,7 +297,7 @@ def test_import_a_deepracer_five_layer_discrete_model(tmp_path, frames):
                             camera="FRONT_FACING_CAMERA")
 
     def feed(obs):
-        return {input_name("FRONT_FACING_CAMERA") + ":0": obs["camera"][None].astype(np.float32)}, obs["camera"]
+        return {input_name("FRONT_FACING_CAMERA") + ":0": car_input(obs["camera"])}, obs["camera"]
 
     policy = import_and_compare(tmp_path, frames, graph, metadata, feed, softmax_of)
     assert isinstance(policy.agent.net, GraphNet) and policy.metadata["neural_network"] == "DEEP_CONVOLUTIONAL_NETWORK"
@@ -310,7 +310,7 @@ def test_import_a_deepracer_deep_continuous_ppo_model(tmp_path, frames):
                             middleware=(256, 128), outputs=2, discrete=False, camera="FRONT_FACING_CAMERA")
 
     def feed(obs):
-        return {input_name("FRONT_FACING_CAMERA") + ":0": obs["camera"][None].astype(np.float32)}, obs["camera"]
+        return {input_name("FRONT_FACING_CAMERA") + ":0": car_input(obs["camera"])}, obs["camera"]
 
     # the car's linear map of [-1, 1] onto steering -30..30 and speed 1..3
     import_and_compare(tmp_path, frames, graph, metadata, feed, lambda car, mine: [30 * car[0], 2 + car[1]])
@@ -325,7 +325,7 @@ def test_import_a_deepracer_sac_camera_lidar_model(tmp_path, frames):
     root = "main_level/agent/policy/online/network_0"
 
     def feed(obs):
-        return ({f"{root}/FRONT_FACING_CAMERA/FRONT_FACING_CAMERA:0": obs["camera"][None].astype(np.float32),
+        return ({f"{root}/FRONT_FACING_CAMERA/FRONT_FACING_CAMERA:0": car_input(obs["camera"]),
                  f"{root}/LIDAR/LIDAR:0": obs["lidar"][None].astype(np.float32)}, obs)
 
     # SAC's policy output is the pre-tanh mean; DeepRacer's simulator squashes it with tanh
@@ -387,7 +387,7 @@ def test_import_a_training_checkpoint_folder(tmp_path, frames):
     net1 = "main_level/agent/main/online/network_1"
 
     def reference(image):  # TF's NHWC graph, step by step, from the variables by name
-        x = torch.from_numpy(image[None].astype(np.float32) / 255).permute(0, 3, 1, 2)
+        x = torch.from_numpy(car_input(image) / 255).permute(0, 3, 1, 2)
         for k, stride in ((0, 4), (2, 2), (4, 1)):
             scope = f"{net1}/FRONT_FACING_CAMERA/Conv2d_{k}"
             x = torch.relu(torch.nn.functional.conv2d(
@@ -434,7 +434,7 @@ def test_imported_deepracer_networks_go_back_to_the_car(tmp_path, frames, kind):
     back = multirace.load_agent(tmp_path / "back.pt")
     for obs in frames:
         lidar = kind == "sac_lidar"
-        feed = {input_name("FRONT_FACING_CAMERA") + ":0": obs["camera"][None].astype(np.float32)}
+        feed = {input_name("FRONT_FACING_CAMERA") + ":0": car_input(obs["camera"])}
         if lidar:
             feed[input_name("LIDAR") + ":0"] = obs["lidar"][None].astype(np.float32)
         observation = obs if lidar else obs["camera"]

@@ -39,6 +39,7 @@ def test_observations_are_camera_and_lidar_dicts_with_deepracer_ranges():
     obs, _ = env.reset(seed=0)
     space = env.observation_space("car_0")
     assert set(space.spaces) == {"camera", "lidar"} and space["lidar"].shape == (64,)
+    assert space["camera"].shape == (120, 160)  # the grey image as without a LIDAR: (H, W)
     for agent in env.possible_agents:
         assert space.contains(obs[agent])
     obs, *_ = env.step({a: 0 for a in env.agents})

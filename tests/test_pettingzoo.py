@@ -1,8 +1,12 @@
 """PettingZoo's own conformance tests, beyond the API and seed tests in test_env_api.py."""
+from pathlib import Path
+
 import numpy as np
 from PIL import Image
 from pettingzoo.test import max_cycles_test, render_test
 from pettingzoo.test.save_obs_test import check_save_obs
+from pettingzoo.test.save_obs_test import test_save_obs as pettingzoo_save_obs_test
+from pettingzoo.utils import save_observation
 
 import multirace
 from multirace import multirace_v0
@@ -40,16 +44,21 @@ def test_max_cycles_and_max_steps_are_one_limit():
         raise AssertionError("conflicting step limits were accepted")
 
 
-def test_observations_pass_pettingzoos_save_check_and_save_as_png(tmp_path):
-    # PettingZoo's save_observation hands (H, W, 1) arrays to PIL, which refuses one-channel 3-D arrays,
-    # so the image is written here from the same observation, squeezed, after PettingZoo's own check.
+def test_default_grey_observations_save_with_pettingzoos_save_observation(tmp_path, monkeypatch):
     env = small_env()
     env.reset(seed=0)
-    check_save_obs(env)  # Box 0-255, (H, W, 1): saveable as an image
+    assert env.observation_space("car_0").shape == (120, 160)  # one grey channel: (H, W), as PIL takes it
+    check_save_obs(env)
     for agent in env.agents:
-        Image.fromarray(env.observe(agent)[:, :, 0]).save(tmp_path / f"{agent}.png")
-    image = np.asarray(Image.open(tmp_path / "car_0.png"))
-    assert image.shape == (120, 160) and image.std() > 5  # the camera's view of the track
+        save_observation(env=env, agent=agent, all_agents=False, save_dir=str(tmp_path))
+    saved = sorted(tmp_path.glob("*/*.png"))
+    assert [path.name for path in saved] == ["car_0.png", "car_1.png"]
+    for path in saved:
+        image = np.asarray(Image.open(path))
+        assert image.shape == (120, 160) and image.std() > 5  # the camera's view of the track
+    monkeypatch.chdir(tmp_path)  # PettingZoo's whole save test writes to ./saved_observations
+    pettingzoo_save_obs_test(env)
+    assert len(list(Path("saved_observations").glob("*/car_*.png"))) == 2
     env.close()
 
 

@@ -16,7 +16,7 @@ from multirace.racing.agentfile import AgentFileError, load_agent, make_metadata
 from multirace.racing.nets import TINY, build_net
 from multirace.racing.runner import RaceConfig, make_controller, resolve_agent_path, run_race
 from multirace.sensors.lidar import sector_lidar
-from helpers import seeded_lidar_agent
+from helpers import car_input, seeded_lidar_agent
 from test_export import openvino_policy, unpack
 
 STEREO = ["STEREO_CAMERAS"]
@@ -87,7 +87,7 @@ def test_each_agent_takes_what_it_reads_from_the_race_observation(imitated, ster
     mono = load_agent(resolve_agent_path("dagger_small"), step_budget=None)
     lidar = load_agent(lidar_path, step_budget=None)
     stereo, sector = (load_agent(imitated[k], step_budget=None) for k in ("stereo", "sector"))
-    left = obs["camera"][:, :, :1]
+    left = obs["camera"][:, :, 0]  # a single-camera agent reads the left camera, as the env gives one: (H, W)
     assert np.array_equal(mono.reads(obs), left)
     assert np.array_equal(stereo.reads(obs), obs["camera"])
     assert np.array_equal(lidar.reads(obs)["camera"], left) and np.array_equal(lidar.reads(obs)["lidar"], obs["lidar"])
@@ -130,9 +130,9 @@ def test_export_runs_in_openvino_like_the_torch_policy(imitated, stereo_lidar_fr
     for obs in stereo_lidar_frames:
         seen = agent.reads(obs)
         if kind == "stereo":
-            feed = {input_name("STEREO_CAMERAS") + ":0": seen[None].astype(np.float32)}  # raw 0-255 pixels
+            feed = {input_name("STEREO_CAMERAS") + ":0": car_input(seen)}  # raw 0-255 pixels
         else:
-            feed = {input_name("FRONT_FACING_CAMERA") + ":0": seen["camera"][None].astype(np.float32),
+            feed = {input_name("FRONT_FACING_CAMERA") + ":0": car_input(seen["camera"]),
                     input_name("SECTOR_LIDAR") + ":0": seen["lidar"][None]}
         expected = torch.softmax(torch.from_numpy(agent.outputs(seen)[0]), 0).numpy()
         np.testing.assert_allclose(compiled(feed)[0][0], expected, atol=1e-5)

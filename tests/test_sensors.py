@@ -50,7 +50,7 @@ def test_stereo_pair_sees_a_car_ahead_with_disparity():
     left, right = image[:, :, 0].astype(int), image[:, :, 1].astype(int)
     assert np.abs(left - right).mean() > 1.0  # two viewpoints, not one image twice
     mono = multirace.parallel_env(num_cars=1, race="head_to_head", bots=("follow@0.1",), obstacles=0)
-    single = mono.reset(seed=0)[0]["car_0"][:, :, 0].astype(int)
+    single = mono.reset(seed=0)[0]["car_0"].astype(int)
     # the centre camera sits between the two: its image lies between theirs
     assert np.abs(single - left).mean() < np.abs(right - left).mean()
     # horizontal disparity: the best shift of the left image onto the right one is to the left (positive)

@@ -36,7 +36,7 @@ def test_saved_track_loads_and_reverse(tmp_path):
 def test_env_runs_on_a_generated_track():
     env = multirace.parallel_env(track=generate_track(5), num_cars=2, race="time_trial", laps=1, max_steps=40)
     obs, infos = env.reset(seed=0)
-    assert obs["car_0"].shape == (120, 160, 1)
+    assert obs["car_0"].shape == (120, 160)
     steps = 0
     while env.agents:
         obs, rewards, terms, truncs, infos = env.step({a: 2 for a in env.agents})  # straight, 0.5 m/s

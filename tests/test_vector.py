@@ -14,7 +14,7 @@ def test_vector_env_matches_the_env_and_auto_resets():
         obs, infos = vec.reset(seeds=[5, 6])
         env = make()
         expected, _ = env.reset(seed=5)
-        assert obs.shape == (2, 2, 120, 160, 1) and obs.dtype == np.uint8
+        assert obs.shape == (2, 2, 120, 160) and obs.dtype == np.uint8
         assert np.array_equal(obs[0, 1], expected["car_1"]) and set(infos[0][0]) == {"progress", "status"}
         dones = 0
         for k in range(40):

@@ -22,7 +22,7 @@ from pettingzoo.utils import OrderEnforcingWrapper, parallel_to_aec
 
 from .actions import load_action_space
 from .bots import parse_bot
-from ..sensors.camera import CameraSpec, camera_poses, stereo_poses
+from ..sensors.camera import CameraSpec, camera_poses, observation_shape, stereo_poses
 from ..sensors.renderers import make_renderer
 from ..sim.car import CarSpec
 from ..sensors.lidar import SECTORS, Lidar, sector_lidar
@@ -71,11 +71,12 @@ class RaceEnv(ParallelEnv):
     default; "kinematic": the grip-less bicycle of earlier versions).
 
     `sensor` is DeepRacer's model_metadata sensor list (default
-    ``["FRONT_FACING_CAMERA"]``; see `sensors.suite`): ``STEREO_CAMERAS`` gives
-    (H, W, 2) grey images [left, right]; ``LIDAR`` (or ``lidar=True``) or
-    ``SECTOR_LIDAR`` make each observation a dict ``{"camera": image, "lidar":
-    64 float32 ranges}`` or ``{"camera": image, "lidar": 8 binary sectors}``.
-    Otherwise observations are camera images, uint8 (H, W, C).
+    ``["FRONT_FACING_CAMERA"]``; see `sensors.suite`). Camera images are uint8
+    (H, W) grey (the default), (H, W, 3) colour with ``grayscale=False`` or
+    (H, W, 2) grey pairs [left, right] with ``STEREO_CAMERAS``
+    (`camera.observation_shape`). An observation is the image, or with
+    ``LIDAR`` (or ``lidar=True``) or ``SECTOR_LIDAR`` a dict ``{"camera": image,
+    "lidar": 64 float32 ranges}`` or ``{"camera": image, "lidar": 8 binary sectors}``.
     """
 
     metadata = {"name": "multirace_v0", "render_modes": ["human", "rgb_array"], "render_fps": ACTION_HZ,
@@ -132,7 +133,7 @@ class RaceEnv(ParallelEnv):
         if self.sensors.camera == "stereo" and not self.camera.grayscale:
             raise ValueError("sensor: STEREO_CAMERAS are a pair of grey cameras; use grayscale=True")
         channels = self.sensors.camera_channels or self.camera.channels
-        obs_space = spaces.Box(0, 255, (height, width, channels), np.uint8)
+        obs_space = spaces.Box(0, 255, observation_shape((height, width, channels)), np.uint8)
         self.lidar = Lidar(self.car_spec) if self.sensors.lidar else None
         if self.sensors.lidar == "lidar":
             spec = self.lidar.spec
@@ -448,6 +449,8 @@ class RaceEnv(ParallelEnv):
         if self.sensors.camera == "stereo":
             n = self.num_cars
             images = [np.concatenate([left, right], axis=2) for left, right in zip(images[:n], images[n:])]
+        elif self.camera.grayscale:  # one grey channel: (H, W)
+            images = [image[:, :, 0] for image in images]
         if self.lidar is None:
             return dict(zip(self.possible_agents, images))
         scans = self.lidar.scan(self.world, self._camera_cars, self._lidar_rng)

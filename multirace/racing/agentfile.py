@@ -56,6 +56,7 @@ import numpy as np
 import torch
 
 from ..environment.actions import ActionSpace, ActionSpaceError
+from ..sensors.camera import observation_shape
 from ..sensors.lidar import LidarSpec, sector_lidar
 from ..sensors.suite import RANGE_INPUTS, SensorSuite, declared_sensors, parse_sensors
 from .graphnet import GRAPH_FIELD, GraphNet
@@ -396,17 +397,18 @@ class Agent:
         return self.net.lidar_samples
 
     def reads(self, observation):
-        """What the agent reads of a race env's observation (see `race_suite`): a single-camera agent takes
-        the left image of a stereo pair, a SECTOR_LIDAR agent reduces a 64-beam scan to its sectors.
+        """What the agent reads of a race env's observation (see `race_suite`): its camera image as the env
+        gives it (`camera.observation_shape`: (H, W) when grey; (H, W, 1) is taken too), a single-camera
+        agent the left image of a stereo pair; a SECTOR_LIDAR agent reduces a 64-beam scan to its sectors.
         ValueError if the observation does not match its model_metadata."""
         scan = None
         if isinstance(observation, dict):
             observation, scan = observation.get("camera"), observation.get("lidar")
         image = np.asarray(observation)
         height, width, channels = self.image_shape
-        if channels == 1 and image.shape == (height, width, 2):  # a stereo pair: its left camera
-            image = image[:, :, :1]
-        if image.shape != (height, width, channels) or image.dtype != np.uint8:
+        if channels == 1 and image.shape in ((height, width, 1), (height, width, 2)):  # grey, or a stereo pair's left
+            image = image[:, :, 0]
+        if image.shape != observation_shape(self.image_shape) or image.dtype != np.uint8:
             raise ValueError(f"observation {image.shape} {image.dtype} does not match the {height}x{width}x{channels} "
                              f"uint8 images the agent reads (field 'image' of its model_metadata)")
         if not self.lidar_samples:
@@ -420,8 +422,8 @@ class Agent:
         return {"camera": image, "lidar": scan}
 
     def outputs(self, observation) -> np.ndarray:
-        """The net's raw output row for one uint8 (H, W, C) image (agents with a range sensor: the
-        {"camera", "lidar"} dict that `reads` gives)."""
+        """The net's raw output row for one uint8 image as `reads` gives it (agents with a range sensor: the
+        {"camera", "lidar"} dict)."""
         with torch.no_grad():
             if self.lidar_samples:
                 out = self.net({"camera": torch.from_numpy(np.ascontiguousarray(observation["camera"])),
@@ -530,7 +532,7 @@ def smoke_test(agent: Agent, step_budget: float | None, runs: int = 5) -> None:
     `runs` tries, the fastest counts.
     """
     source = str(agent.path)
-    blank = agent.reads({"camera": np.zeros(agent.image_shape, np.uint8),
+    blank = agent.reads({"camera": np.zeros(observation_shape(agent.image_shape), np.uint8),
                          "lidar": np.full(LidarSpec().samples, LidarSpec().max_range, np.float32)})
     fastest = math.inf
     threads = torch.get_num_threads()

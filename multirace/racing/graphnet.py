@@ -6,12 +6,12 @@ networks; an imported model of that kind (`deepracer.importer`) runs as a
 `GraphNet`: per-sensor embedders (input scaling, VALID NHWC convolutions,
 ReLU, NHWC flatten, dense layers), concatenated in sorted sensor order, then
 the dense layers after them and the policy output. It keeps multirace's
-conventions (`nets` module docstring): it takes uint8 (H, W, C) images
-(``{"camera", "lidar"}`` dicts with a LIDAR) and gives action logits
-(discrete) or ``[mean steer deg, mean speed m/s, log-std, log-std]``
-(continuous; a PPO head's ``[-1, 1]`` output mapped linearly onto the action
-space, a SAC head's mean through ``tanh`` first, as DeepRacer's simulator
-does).
+conventions (`nets` module docstring): it takes uint8 images in any layout
+`nets.channels_first` accepts (``{"camera", "lidar"}`` dicts with a LIDAR)
+and gives action logits (discrete) or ``[mean steer deg, mean speed m/s,
+log-std, log-std]`` (continuous; a PPO head's ``[-1, 1]`` output mapped
+linearly onto the action space, a SAC head's mean through ``tanh`` first, as
+DeepRacer's simulator does).
 
 The architecture is a JSON-able `layers` spec (shapes only) that an agent file
 keeps in its metadata under ``deepracer_graph`` (`GRAPH_FIELD`); the weights
@@ -24,7 +24,7 @@ import torch
 from torch import nn
 
 from ..environment.actions import ActionSpace
-from .nets import CONTINUOUS_OUTPUTS
+from .nets import CONTINUOUS_OUTPUTS, channels_first
 
 GRAPH_FIELD = "deepracer_graph"  # the metadata field holding a GraphNet's layer spec
 LIDAR_SENSORS = ("LIDAR", "SECTOR_LIDAR")
@@ -90,10 +90,8 @@ class GraphNet(nn.Module):
         ranges = None
         if isinstance(obs, dict):
             obs, ranges = obs["camera"], torch.as_tensor(obs["lidar"], dtype=torch.float32)
-        x = torch.as_tensor(obs)
-        if x.dim() == 3:
-            x = x.unsqueeze(0)
-        features = {self.camera: self.embedders[self.camera](x.permute(0, 3, 1, 2).float())}
+        x = channels_first(obs, self.image_shape)
+        features = {self.camera: self.embedders[self.camera](x.float())}
         if self.lidar_sensor:
             if ranges is None:
                 raise ValueError("this net needs {'camera': images, 'lidar': ranges} observations")

@@ -1,7 +1,8 @@
 """Camera policy networks, selectable by DeepRacer-style network name.
 
-Every network takes camera images as DeepRacer gives them, uint8 (H, W, C)
-(a batch is (B, H, W, C)), scales them to [0, 1] and outputs one row per image:
+Every network takes camera images as the env gives them, uint8 (H, W) grey or
+(H, W, C) (a batch is (B, H, W) or (B, H, W, C); `channels_first`), scales them
+to [0, 1] and outputs one row per image:
 
 - discrete action space: one logit per action;
 - continuous action space: 4 numbers, ``[mean_steer, mean_speed, log_std_steer,
@@ -99,6 +100,18 @@ def _tiny_trunk(channels: int) -> tuple[nn.Module, int]:
 NETWORKS = {SHALLOW: _shallow_trunk, SMALL: _small_trunk, TINY: _tiny_trunk}
 
 
+def channels_first(images, image_shape) -> torch.Tensor:
+    """uint8 camera images (H, W), (H, W, C), (N, H, W) or (N, H, W, C) as the (N, C, H, W) batch a net
+    of `image_shape` (H, W, C) convolves; (H, W) and (N, H, W) are one grey channel."""
+    x = torch.as_tensor(images)
+    height, width, channels = image_shape
+    grey = channels == 1 and tuple(x.shape[-2:]) == (height, width) and x.dim() in (2, 3)
+    if not grey and (tuple(x.shape[-3:]) != (height, width, channels) or x.dim() not in (3, 4)):
+        raise ValueError(f"images of shape {tuple(x.shape)}: the net reads {height}x{width}x{channels} images")
+    # flattened first, so every layout of the same pixels gets the same strides (and the same convolution)
+    return x.reshape(-1, height * width * channels).view(-1, height, width, channels).permute(0, 3, 1, 2)
+
+
 class CameraNet(nn.Module):
     """A camera CNN: convolutional trunk, one hidden fully connected layer, output (and value) head."""
 
@@ -139,7 +152,7 @@ class CameraNet(nn.Module):
         return self.value_head is not None
 
     def features(self, obs) -> torch.Tensor:
-        """The hidden features of uint8 images (B, H, W, C) or one image (H, W, C).
+        """The hidden features of uint8 images, one or a batch (see `channels_first`).
 
         A LIDAR net takes ``{"camera": images, "lidar": ranges (B, samples) or (samples,)}``.
         """
@@ -147,10 +160,7 @@ class CameraNet(nn.Module):
             if not isinstance(obs, dict):
                 raise ValueError("this net needs {'camera': images, 'lidar': ranges} observations")
             obs, ranges = obs["camera"], torch.as_tensor(obs["lidar"], dtype=torch.float32)
-        x = torch.as_tensor(obs)
-        if x.dim() == 3:
-            x = x.unsqueeze(0)
-        x = self.conv(x.permute(0, 3, 1, 2).float().div_(255.0))
+        x = self.conv(channels_first(obs, self.image_shape).float().div_(255.0))
         if self.lidar is not None:
             x = torch.cat([x, self.lidar(ranges.reshape(x.shape[0], self.lidar_samples))], dim=1)
         return self.fc(x)

@@ -29,7 +29,7 @@ class Policy:
         return self.agent.sensors.names
 
     def command(self, observation) -> tuple[float, float]:
-        """(steering degrees, speed m/s) for one env observation: a uint8 (H, W, C) image, or the env's
+        """(steering degrees, speed m/s) for one env observation: a uint8 image ((H, W) grey), or the env's
         {"camera", "lidar"} dict with a range sensor (what the agent reads of it: `Agent.reads`)."""
         output = self.agent.outputs(self.agent.reads(observation))
         steer, speed = self.agent.action_space.command(self.agent.decide(output[0]))

@@ -208,9 +208,9 @@ class ReplayRecorder:
                         self._log_lidar_echoes(env, i, image["lidar"])
                     image = image["camera"]
                 image = np.asarray(image)
-                if image.ndim == 3 and image.shape[2] in (1, 2):  # grey (a stereo pair: its left camera)
+                if image.ndim == 3 and image.shape[2] == 2:  # a stereo pair: its left camera
                     image = image[..., 0]
-                elif image.ndim == 3:
+                elif image.ndim == 3:  # colour (grey images are (H, W))
                     image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
                 cameras.append((i, image))
             if infos:

@@ -54,6 +54,19 @@ class CameraSpec:
         return np.array([[f, 0.0, self.width / 2], [0.0, f, self.height / 2], [0.0, 0.0, 1.0]])
 
 
+def observation_shape(image_shape) -> tuple[int, ...]:
+    """The env's observation array for camera images of (height, width, channels): (H, W) for one grey
+    channel (an image PIL and PettingZoo save as it is), else (H, W, C)."""
+    height, width, channels = (int(v) for v in image_shape)
+    return (height, width) if channels == 1 else (height, width, channels)
+
+
+def image_shape_of(observation_shape) -> tuple[int, int, int]:
+    """(height, width, channels) of camera observations of `observation_shape`: (H, W) is one grey channel."""
+    shape = tuple(int(v) for v in observation_shape)
+    return (*shape, 1) if len(shape) == 2 else shape
+
+
 @dataclasses.dataclass(frozen=True)
 class CameraPose:
     """Where a camera is and how it is turned (world frame)."""

@@ -93,7 +93,7 @@ def cell_geometry(net: nn.Module, layer: nn.Module):
 
 
 class GradCam:
-    """Grad-CAM of a `nets.CameraNet` on single uint8 (H, W, C) images."""
+    """Grad-CAM of a `nets.CameraNet` on single uint8 camera images, (H, W) grey or (H, W, 3)."""
 
     def __init__(self, net: nn.Module, discrete: bool, target: str = "steer", align: bool = True):
         if target not in ("steer", "speed"):
@@ -150,10 +150,8 @@ class GradCam:
 
 
 def overlay(image: np.ndarray, heat: np.ndarray, alpha: float = HEAT_ALPHA) -> np.ndarray:
-    """The camera image (gray or RGB uint8) blended with the JET colour map of `heat`; uint8 RGB."""
+    """The camera image (uint8 grey (H, W) or RGB (H, W, 3)) blended with the JET colour map of `heat`; uint8 RGB."""
     image = np.asarray(image)
-    if image.ndim == 3 and image.shape[2] == 1:
-        image = image[..., 0]
     rgb = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB) if image.ndim == 2 else image
     colours = cv2.cvtColor(cv2.applyColorMap(np.uint8(np.clip(heat, 0, 1) * 255), cv2.COLORMAP_JET),
                            cv2.COLOR_BGR2RGB)

@@ -53,6 +53,7 @@ from ..racing.agentfile import make_metadata, save_agent
 from ..environment.bots import Bot, parse_bot
 from ..environment.race_env import parallel_env
 from ..racing.nets import DEFAULT_NETWORK, build_net
+from ..sensors.camera import image_shape_of
 from .warmstart import init_lineage, init_settings, load_init_agent
 
 DEFAULT_TRACKS = ("reinvent_base", "reInvent2019_track", "Oval_track", "Bowtie_track")
@@ -98,9 +99,9 @@ class Dataset:
     An observation is an image, or with `lidar_samples` the env's {"camera", "lidar"} dict.
     """
 
-    def __init__(self, capacity: int, image_shape, label_shape, label_dtype, rng: np.random.Generator,
+    def __init__(self, capacity: int, obs_shape, label_shape, label_dtype, rng: np.random.Generator,
                  lidar_samples: int = 0):
-        self.images = np.zeros((capacity, *image_shape), np.uint8)
+        self.images = np.zeros((capacity, *obs_shape), np.uint8)
         self.lidar = np.zeros((capacity, lidar_samples), np.float32) if lidar_samples else None
         self.labels = np.zeros((capacity, *label_shape), label_dtype)
         self.size, self.capacity, self.seen, self.rng = 0, capacity, 0, rng
@@ -214,8 +215,9 @@ def run_dagger(config: ImitationConfig) -> dict:
                          randomize=config.randomize) for k, (t, r) in enumerate(runs)]
     observation_space, sensors = envs[0].observation_space("car_0"), envs[0].sensors
     obs_shape = observation_space["camera"].shape if sensors.lidar else observation_space.shape
+    image_shape = image_shape_of(obs_shape)  # (H, W, C), as the net and its metadata record it
     lidar_samples = sensors.range_inputs
-    net = build_net(config.network, obs_shape, space, lidar_samples=lidar_samples)
+    net = build_net(config.network, image_shape, space, lidar_samples=lidar_samples)
     if config.init:
         load_init_agent(config.init, net)
     optimiser = torch.optim.Adam(net.parameters(), lr=config.lr)
@@ -317,6 +319,6 @@ def run_dagger(config: ImitationConfig) -> dict:
     }
     if config.command:
         training["command"] = config.command
-    metadata = make_metadata(space, config.network, name, obs_shape, sensor=sensors.names, training=training)
+    metadata = make_metadata(space, config.network, name, image_shape, sensor=sensors.names, training=training)
     save_agent(out, net, metadata)
     return {"out": str(out), **training, "history": history}

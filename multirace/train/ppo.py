@@ -25,6 +25,7 @@ from torch.distributions import Categorical, Normal
 
 from ..environment.actions import load_action_space
 from ..racing.nets import build_net
+from ..sensors.camera import image_shape_of
 from .config import TrainConfig
 from .envs import INFO_KEYS, TrainEnv, env_settings
 from .robust import RobustKnobs
@@ -270,11 +271,12 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
     E, A, T = config.num_envs, config.cars_per_env, config.rollout_steps
     N = E * A
     obs, reset_infos = vec.reset(seeds=[config.seed * 100_000 + e for e in range(E)])
-    obs_shape = (obs["camera"] if isinstance(obs, dict) else obs).shape[2:]
+    obs_shape = (obs["camera"] if isinstance(obs, dict) else obs).shape[2:]  # one car's camera image
+    image_shape = image_shape_of(obs_shape)  # (H, W, C), as the net and its metadata record it
     R = obs["lidar"].shape[-1] if isinstance(obs, dict) else 0  # LIDAR ranges (or sectors) per car
 
     # --- 3. the net (policy + value head), optimiser, reward scale, opponent pool, rollout storage
-    net = build_net(config.network, obs_shape, space, value_head=True, lidar_samples=R)
+    net = build_net(config.network, image_shape, space, value_head=True, lidar_samples=R)
     if not space.discrete:
         init_continuous_head(net, space)
     if init:
@@ -282,10 +284,10 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
     optimiser = torch.optim.Adam(net.parameters(), lr=config.lr, eps=1e-5)
     reward_scale = RewardScale(N, config.gamma) if config.norm_reward else None
     run.restore(checkpoint, net, optimiser, reward_scale)
-    robust.start_pool(space, obs_shape, rng, R)
+    robust.start_pool(space, image_shape, rng, R)
     rollout = Rollout(T, N, obs_shape, R, space)
     rollout.start(obs, expert_actions(reset_infos, space.discrete))
-    deepracer = run.deepracer_folder(net, space, obs_shape)  # out.deepracer/ (deepracer_log), else None
+    deepracer = run.deepracer_folder(net, space, image_shape)  # out.deepracer/ (deepracer_log), else None
 
     try:
         start_iteration = run.iteration
@@ -320,7 +322,7 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
             extra = robust.after_iteration(episodes)
             run.record(episodes, stats, env_reward / (T * N), samples, time.perf_counter() - t0, extra)
             robust.snapshot(net, run.elapsed(), run.iteration)
-            if run.checkpoint_and_evaluate(net, optimiser, reward_scale, space, obs_shape):
+            if run.checkpoint_and_evaluate(net, optimiser, reward_scale, space, image_shape):
                 break
     except (EOFError, ConnectionError) as exc:
         raise ValueError(f"an env worker process stopped ({type(exc).__name__}); its error is printed above "
@@ -332,4 +334,4 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
         vec.close()
 
     # --- 7. outputs: agent file (the best evaluated policy), checkpoint, curve, history
-    return run.finish(net, optimiser, reward_scale, space, obs_shape)
+    return run.finish(net, optimiser, reward_scale, space, image_shape)

@@ -164,11 +164,12 @@ def _module_class():
             import torch
 
             from ..racing.nets import CONTINUOUS_OUTPUTS, TINY, CameraNet
+            from ..sensors.camera import image_shape_of
 
             network = (self.model_config or {}).get("network", TINY)
             discrete = isinstance(self.action_space, gym.spaces.Discrete)
             outputs = int(self.action_space.n) if discrete else CONTINUOUS_OUTPUTS
-            self.net = CameraNet(network, tuple(self.observation_space.shape), outputs, value_head=True)
+            self.net = CameraNet(network, image_shape_of(self.observation_space.shape), outputs, value_head=True)
             if not discrete:  # start in the middle of the action box with a quarter-range spread (as ppo.py)
                 low = np.asarray(self.action_space.low, np.float64)
                 high = np.asarray(self.action_space.high, np.float64)
@@ -325,6 +326,7 @@ def train_rllib(config, out, envs=None, address=None, log=print) -> int:
     from ..environment.actions import load_action_space
     from ..racing.agentfile import make_metadata, save_agent
     from ..racing.nets import CameraNet, num_outputs_for
+    from ..sensors.camera import image_shape_of
     from ..sensors.suite import SensorSuite
     from .ppo import check_reward_file, training_runs
 
@@ -370,14 +372,14 @@ def train_rllib(config, out, envs=None, address=None, log=print) -> int:
     log(f"rllib: Ray {ray.__version__} at {address or 'local'}, {num_env_runners} env runner(s) x "
         f"{config.cars_per_env} cars, shared policy '{MODULE_ID}' ({config.network}), set-up {setup_seconds:.1f} s")
 
-    obs_shape = tuple(int(v) for v in algo.get_module(MODULE_ID).observation_space.shape)
+    image_shape = image_shape_of(algo.get_module(MODULE_ID).observation_space.shape)
 
     def write_agent(path, training: dict) -> Path:
         """The learner's current shared-module weights as an agent file."""
         weights = algo.learner_group.get_weights(module_ids=[MODULE_ID])[MODULE_ID]
-        net = CameraNet(config.network, obs_shape, num_outputs_for(space), value_head=True)
+        net = CameraNet(config.network, image_shape, num_outputs_for(space), value_head=True)
         net.load_state_dict(net_state_from_module(weights), strict=True)
-        metadata = make_metadata(space, net.network, Path(path).stem, obs_shape, training_algorithm="clipped_ppo",
+        metadata = make_metadata(space, net.network, Path(path).stem, image_shape, training_algorithm="clipped_ppo",
                                  training={"engine": "rllib", "ray": ray.__version__, **training})
         return save_agent(path, net, metadata)
 

@@ -104,7 +104,7 @@ class TrainingRun:
                    self.ckpt_dir / "checkpoint.tmp")
         (self.ckpt_dir / "checkpoint.tmp").replace(self.ckpt_dir / "checkpoint.pt")
 
-    def snapshot_agent(self, path, net, space, obs_shape, note=None) -> Path:
+    def snapshot_agent(self, path, net, space, image_shape, note=None) -> Path:
         """An agent file of the current weights, with the run's training notes."""
         config = self.config
         training = {"method": "ppo", "agent_steps": self.agent_steps, "iterations": self.iteration,
@@ -118,13 +118,13 @@ class TrainingRun:
         if note:
             training.update(note)
         net.eval()
-        return save_agent_file(path, net, space, config, obs_shape, training)
+        return save_agent_file(path, net, space, config, image_shape, training)
 
-    def deepracer_folder(self, net, space, obs_shape) -> DeepRacerFolder | None:
+    def deepracer_folder(self, net, space, image_shape) -> DeepRacerFolder | None:
         """`out.deepracer/`, the run's DeepRacer-for-Cloud training folder (None without `deepracer_log`)."""
         if not self.config.deepracer_log:
             return None
-        metadata = make_metadata(space, net.network, self.out.stem, obs_shape, training_algorithm="clipped_ppo",
+        metadata = make_metadata(space, net.network, self.out.stem, image_shape, training_algorithm="clipped_ppo",
                                  sensor=net_sensors(net).names)
         return DeepRacerFolder(self.out.with_name(self.out.stem + ".deepracer"), metadata, self.config)
 
@@ -156,7 +156,7 @@ class TrainingRun:
         return row
 
     # ------------------------------------------------------------ evaluations
-    def checkpoint_and_evaluate(self, net, optimiser, reward_scale, space, obs_shape) -> bool:
+    def checkpoint_and_evaluate(self, net, optimiser, reward_scale, space, image_shape) -> bool:
         """Checkpoint and evaluate when due; True when the run should stop (`stop_on_success`)."""
         config = self.config
         if time.perf_counter() - self.last_ckpt >= config.checkpoint_every:
@@ -164,7 +164,7 @@ class TrainingRun:
             self.last_ckpt = time.perf_counter()
         if not config.eval_every or time.perf_counter() - self.last_eval < config.eval_every:
             return False
-        latest = self.snapshot_agent(self.ckpt_dir / "latest.pt", net, space, obs_shape)
+        latest = self.snapshot_agent(self.ckpt_dir / "latest.pt", net, space, image_shape)
         car = evaluate_time_trial(latest, config.eval_track or str(config.tracks[0]), config.eval_laps,
                                   bots=config.eval_bots)
         self.evals.append({"iteration": self.iteration, "agent_steps": self.agent_steps,
@@ -176,10 +176,10 @@ class TrainingRun:
             self.best = (score, {k: v.detach().clone() for k, v in net.state_dict().items()}, self.evals[-1])
         if car["laps"] >= config.eval_laps and self.first_success is None:
             self.first_success = self.evals[-1]["elapsed"]
-            self.snapshot_agent(self.ckpt_dir / "first_success.pt", net, space, obs_shape)
+            self.snapshot_agent(self.ckpt_dir / "first_success.pt", net, space, image_shape)
         if car["laps"] >= config.eval_laps and car["resets"] == 0 and self.first_clean is None:
             self.first_clean = self.evals[-1]["elapsed"]
-            self.snapshot_agent(self.ckpt_dir / "first_clean.pt", net, space, obs_shape)
+            self.snapshot_agent(self.ckpt_dir / "first_clean.pt", net, space, image_shape)
         if self.log and not self.progress:
             self.log(f"eval: {car['laps']}/{config.eval_laps} laps, {car['resets']} resets")
         self.last_eval = time.perf_counter()
@@ -192,7 +192,7 @@ class TrainingRun:
             self.progress.close()
             self.progress = None
 
-    def finish(self, net, optimiser, reward_scale, space, obs_shape) -> dict:
+    def finish(self, net, optimiser, reward_scale, space, image_shape) -> dict:
         """Write the agent file (the best evaluated policy, if it beats the final weights), the checkpoint,
         the learning curve and the history; return the run's summary."""
         config, wall = self.config, self.spent + self.elapsed()
@@ -207,7 +207,7 @@ class TrainingRun:
         note = {"first_success_seconds": self.first_success, "first_clean_seconds": self.first_clean}
         if self.best is not None and config.keep_best:
             # the final weights get one last evaluation; the best evaluated policy is what we ship
-            final = self.snapshot_agent(self.ckpt_dir / "final.pt", net, space, obs_shape)
+            final = self.snapshot_agent(self.ckpt_dir / "final.pt", net, space, image_shape)
             car = evaluate_time_trial(final, config.eval_track or str(config.tracks[0]), config.eval_laps,
                                       bots=config.eval_bots)
             final_eval = {"laps": car["laps"], "target": config.eval_laps, "resets": car["resets"],
@@ -219,7 +219,7 @@ class TrainingRun:
             else:
                 note["selected"] = "final weights"
                 summary["selected_eval"] = final_eval
-        self.snapshot_agent(self.out, net, space, obs_shape, note)
+        self.snapshot_agent(self.out, net, space, image_shape, note)
         plot_history(history, self.evals, self.out.with_suffix(".png"))
         self.out.with_suffix(".train.json").write_text(json.dumps(
             {"summary": summary, "config": config.to_dict(), "history": history, "evals": self.evals}, indent=1))
@@ -284,10 +284,10 @@ def evaluate_time_trial(agent_path, track: str, laps: int = 3, seed: int = 0, re
     return result["cars"][0]
 
 
-def save_agent_file(path, net, space, config: TrainConfig, obs_shape, training: dict) -> Path:
+def save_agent_file(path, net, space, config: TrainConfig, image_shape, training: dict) -> Path:
     """The agent file of a PPO net (its value head is not saved)."""
     name = Path(path).stem
-    metadata = make_metadata(space, net.network, name, obs_shape, training_algorithm="clipped_ppo",
+    metadata = make_metadata(space, net.network, name, image_shape, training_algorithm="clipped_ppo",
                              sensor=net_sensors(net).names, training=training)
     return save_agent(path, net, metadata)
 

@@ -36,9 +36,9 @@ class Opponent:
 class OpponentPool:
     """See the module docstring."""
 
-    def __init__(self, config, space, obs_shape, rng, max_snapshots: int = 8, power: float = 2.0,
+    def __init__(self, config, space, image_shape, rng, max_snapshots: int = 8, power: float = 2.0,
                  shipped_dir=SHIPPED_DIR, lidar_samples: int = 0):
-        self.config, self.space, self.obs_shape, self.rng = config, space, tuple(obs_shape), rng
+        self.config, self.space, self.image_shape, self.rng = config, space, tuple(image_shape), rng
         self.lidar_samples = int(lidar_samples)  # the envs' LIDAR ranges (0: no LIDAR)
         self.max_snapshots, self.power = int(max_snapshots), float(power)
         self.members: list[Opponent] = []
@@ -55,7 +55,7 @@ class OpponentPool:
                 agent = load_agent(path, step_budget=None)
             except (AgentFileError, OSError, ValueError):
                 continue
-            if tuple(agent.image_shape) == self.obs_shape and agent.lidar_samples in (0, self.lidar_samples):
+            if tuple(agent.image_shape) == self.image_shape and agent.lidar_samples in (0, self.lidar_samples):
                 self.members.append(Opponent(agent.name, agent.net, agent.action_space, "shipped"))
 
     # ------------------------------------------------------------ members
