@@ -62,3 +62,19 @@ def test_passing_line_steers_round_a_slower_car_on_the_side_it_is_on():
     assert target == pytest.approx(out_wide.lateral) and speed == 2.0  # clear of it already: holds the line
     target, speed = passing_line(track, spec, out_wide, [], 2.0)  # past it
     assert target == pytest.approx(0.34 - RETURN_STEP, abs=1e-3) and speed == 2.0  # drifts back, does not cut in
+
+
+def test_racing_line_does_not_steer_for_its_line_into_a_car_beside_it():
+    # reInvent 2018's back straight: the line runs 0.13 m left of the centre; a racing-line car held up wide
+    # (0.34 m left) beside a car on the centre line must not steer back to its line through that car's side
+    from multirace.sim.car import CarSpec
+    from multirace.sim.tracks import load_track
+
+    track, spec, bot = load_track("reinvent_base"), CarSpec(), parse_bot("racingline@0.9")
+    x, y, heading = track.point_at(10.73, 0.34)
+    steer_free, _ = bot.command(track, spec, (x, y, heading), 0.0)
+    assert steer_free < -2.0  # nothing beside it: back to the line, to the right
+    steer, speed = bot.command(track, spec, (x, y, heading), 0.0, traffic=[(0.27, -0.3, 1.0)])
+    assert steer >= 0.0 and speed == spec.min_speed  # beside a car: away from it (or straight on), not into it
+    steer, _ = bot.command(track, spec, (x, y, heading), 0.0, traffic=[(0.27, 0.3, 1.0)])  # on the other side
+    assert steer == steer_free

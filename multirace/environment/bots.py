@@ -147,7 +147,8 @@ def passing_line(track: Track, spec: CarSpec, proj, traffic, speed: float) -> tu
 def racing_line_command(track: Track, spec: CarSpec, pose, segment_hint, traffic, scale: float):
     """(steering degrees, speed m/s) of a driver on the racing line at `scale` times its speed profile:
     pure pursuit of a point ahead on the line, and the profile's speed `DRIVE_LEAD` seconds ahead (so
-    it brakes at the braking point, not after it); it keeps the bots' courtesy behind a car."""
+    it brakes at the braking point, not after it); it keeps the bots' courtesy behind a car (one on its way
+    in to the line counts as in its way), and it does not steer for its line through a car beside it."""
     line = plan_racing_line(track, spec)
     x, y, yaw = pose
     proj = track.project(x, y, segment_hint)
@@ -155,6 +156,10 @@ def racing_line_command(track: Track, spec: CarSpec, pose, segment_hint, traffic
     here = line.speed[i] * scale
     ahead = int(round((LINE_LOOKAHEAD + LINE_LOOKAHEAD_TIME * here) / line.spacing))
     tx, ty = line.points[(i + ahead) % n]
+    aim = track.project(tx, ty, segment_hint)
+    hold = line_blocked_alongside(track, spec, proj, aim.lateral, traffic)
+    if hold is not None:  # a car beside it on the way to the line: keep clear of it, parallel to the centre line
+        tx, ty, _ = track.point_at(aim.s, hold)
     rear_x = x - spec.wheelbase / 2 * math.cos(yaw)
     rear_y = y - spec.wheelbase / 2 * math.sin(yaw)
     alpha = math.atan2(ty - rear_y, tx - rear_x) - yaw
@@ -162,8 +167,37 @@ def racing_line_command(track: Track, spec: CarSpec, pose, segment_hint, traffic
     steer = max(-spec.max_steer, min(spec.max_steer, steer))
     lead = int(round(here * DRIVE_LEAD / line.spacing))
     speed = scale * float(line.speed[(i + lead) % n])
-    speed = speed_in_traffic(max(spec.min_speed, min(spec.max_speed, speed)), traffic, spec)
+    to_line = aim.lateral - proj.lateral if hold is None else 0.0
+    speed = speed_in_traffic(max(spec.min_speed, min(spec.max_speed, speed)),
+                             [(along, path_offset(lateral, to_line), other) for along, lateral, other in traffic], spec)
     return math.degrees(steer), speed
+
+
+def path_offset(lateral: float, to_line: float) -> float:
+    """Sideways distance from a car `lateral` off this one to the path from this car to a point `to_line` off
+    it (0 where the car is on that path): a car beside the racing line's way in is in the way too."""
+    low, high = min(0.0, to_line), max(0.0, to_line)
+    return lateral - low if lateral < low else (lateral - high if lateral > high else 0.0)
+
+
+def line_blocked_alongside(track: Track, spec: CarSpec, proj, line_lateral: float, traffic) -> float | None:
+    """The lateral offset a racing-line driver at `proj` should hold instead of steering for its line at
+    `line_lateral`, or None if its way there is clear. A car beside it (overlapping it along the track) on the
+    side the line is, nearer than the line plus a car's width and `PASS_GAP`, would be hit from the side, and
+    slowing does not help with a car beside rather than ahead: the driver keeps `PASS_GAP` of side room to it
+    (within `ROAD_MARGIN` of the road's edge) until it has passed or been passed."""
+    clear = spec.width + PASS_GAP
+    toward = line_lateral - proj.lateral
+    hold = None
+    for along, other, _ in traffic:
+        if abs(track.wrap_ds(along)) < spec.length + PASS_BEHIND / 2 and other * toward > 0 \
+                and abs(other) < abs(toward) + clear:
+            keep = proj.lateral + other - math.copysign(clear, other)
+            if hold is None or abs(keep - line_lateral) > abs(hold - line_lateral):
+                hold = keep  # the car that keeps it furthest from its line
+    if hold is None:
+        return None
+    return min(max(hold, -(proj.right_width - ROAD_MARGIN)), proj.left_width - ROAD_MARGIN)
 
 
 LINE_LOOKAHEAD = 0.3  # m, plus LINE_LOOKAHEAD_TIME seconds of travel: where a racing-line driver aims
