@@ -156,10 +156,14 @@ def racing_line_command(track: Track, spec: CarSpec, pose, segment_hint, traffic
     here = line.speed[i] * scale
     ahead = int(round((LINE_LOOKAHEAD + LINE_LOOKAHEAD_TIME * here) / line.spacing))
     tx, ty = line.points[(i + ahead) % n]
-    aim = track.project(tx, ty, segment_hint)
-    hold = line_blocked_alongside(track, spec, proj, aim.lateral, traffic)
-    if hold is not None:  # a car beside it on the way to the line: keep clear of it, parallel to the centre line
-        tx, ty, _ = track.point_at(aim.s, hold)
+    to_line = 0.0  # how far across its way in to the line runs (a car there is in its way)
+    if traffic:
+        aim = track.project(tx, ty, segment_hint)
+        hold = line_blocked_alongside(track, spec, proj, aim.lateral, traffic)
+        if hold is None:
+            to_line = aim.lateral - proj.lateral
+        else:  # a car beside it on the way to the line: keep clear of it, parallel to the centre line
+            tx, ty, _ = track.point_at(aim.s, hold)
     rear_x = x - spec.wheelbase / 2 * math.cos(yaw)
     rear_y = y - spec.wheelbase / 2 * math.sin(yaw)
     alpha = math.atan2(ty - rear_y, tx - rear_x) - yaw
@@ -167,7 +171,6 @@ def racing_line_command(track: Track, spec: CarSpec, pose, segment_hint, traffic
     steer = max(-spec.max_steer, min(spec.max_steer, steer))
     lead = int(round(here * DRIVE_LEAD / line.spacing))
     speed = scale * float(line.speed[(i + lead) % n])
-    to_line = aim.lateral - proj.lateral if hold is None else 0.0
     speed = speed_in_traffic(max(spec.min_speed, min(spec.max_speed, speed)),
                              [(along, path_offset(lateral, to_line), other) for along, lateral, other in traffic], spec)
     return math.degrees(steer), speed
