@@ -46,3 +46,39 @@ def test_held_out_rows_carry_the_racing_line_reference_and_clean_runs_both_ways(
     assert summary["held_out_runs"] == 2
     assert summary["held_out_clean_share"] == sum(r["clean"] for r in rows) / 2
     assert summary["held_out_clean_within_1_25_share"] == 0.0
+
+
+def test_heats_report_places_and_collisions_caused_per_lap_of_every_entrant(tmp_path):
+    out = tmp_path / "heats.json"
+    assert main(["evaluate", str(AGENT), "--parts", "heats", "--heats", "1", "--heat-tracks", "Mexico_track",
+                 "--field", "bot:follow@1.0,dagger_fast", "--json", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert report["held_out"] == [] and report["perturbations"] == [] and report["traffic"] == []
+    (heat,) = report["heats"]
+    assert heat["track"] == "Mexico_track" and heat["seed"] == 1 and heat["laps"] == 3
+    assert [c["entrant"] for c in heat["cars"]] == ["dagger_small", "bot:follow@1.0", "dagger_fast"]
+    assert sorted(c["position"] for c in heat["cars"]) == [1, 2, 3]
+    figures = report["summary"]["heats"]["Mexico_track"]
+    assert figures == report["summary"]["heats"]["all"]
+    for car in heat["cars"]:
+        entrant = figures[car["entrant"]]
+        assert entrant["first"] == (car["position"] == 1) and entrant["collisions_caused"] == car["collisions_caused"]
+        assert entrant["caused_per_lap"] == car["collisions_caused"] / max(car["laps_driven"], 0.25)
+    assert (tmp_path / "heats.png").exists()
+
+
+def test_the_default_heat_field_is_the_other_shipped_agents_and_bot_follow(tmp_path):
+    from multirace.resources import list_agents
+    from multirace.train.heats import default_field
+
+    copy = tmp_path / "mine.pt"
+    copy.write_bytes(AGENT.read_bytes())  # a copy of a shipped file is not raced against itself
+    field = default_field(copy)
+    assert field == [n for n in list_agents() if n != "dagger_small"] + ["bot:follow@1.0"]
+
+
+def test_evaluate_refuses_an_unknown_part_and_negative_heats(capsys):
+    assert main(["evaluate", str(AGENT), "--parts", "held-out,laps"]) == 2
+    assert "--parts: laps is not a part" in capsys.readouterr().err
+    assert main(["evaluate", str(AGENT), "--heats", "-1"]) == 2
+    assert "--heats: -1" in capsys.readouterr().err

@@ -99,6 +99,17 @@ def test_dagger_from_an_agent_file_keeps_its_net_and_its_lineage(tmp_path):
     assert trained_tracks(second) == {"Oval_track", "Mexico_track"}
 
 
+def test_dagger_from_an_agent_file_takes_a_new_action_space_its_net_fits(tmp_path):
+    first = _tiny(tmp_path, "first", action_space=CONTINUOUS)["out"]
+    crawl = {**CONTINUOUS, "action_space": {**CONTINUOUS["action_space"], "speed": {"low": 0.1, "high": 1.5}}}
+    second = _tiny(tmp_path, "second", init=first, action_space=crawl)["out"]
+    assert load_agent(second).metadata["action_space"]["speed"] == {"low": 0.1, "high": 1.5}
+    with pytest.raises(ValueError, match="--action-space: does not fit the net of --init .*first.pt"):
+        _tiny(tmp_path, "third", init=first, action_space={"action_space": [
+            {"steering_angle": 0.0, "speed": 1.0}], "action_space_type": "discrete"})
+    assert not (tmp_path / "third.pt").exists()
+
+
 def test_traffic_share_puts_the_bots_in_that_share_of_the_envs_across_both_directions(tmp_path):
     from multirace.train.imitate import with_traffic
 

@@ -6,6 +6,8 @@ import shlex
 import sys
 from pathlib import Path
 
+PARTS = ("held-out", "perturbations", "traffic", "heats")  # the parts of `multirace evaluate`'s report
+
 
 def add_train_parser(sub) -> None:
     p = sub.add_parser("train", help="train a camera agent with PPO self-play (shared parameters)",
@@ -129,10 +131,28 @@ def add_evaluate_parser(sub) -> None:
     p.add_argument("--seeds", type=int, default=1, help="seeds per cell (default 1)")
     p.add_argument("--quick", action="store_true",
                    help="fewer perturbations, and 3 tracks of the declared held-out split the agent did not train on")
+    p.add_argument("--heats", type=int, default=0, metavar="N",
+                   help="also run N head-to-head heats (seeds 1..N, 3 laps) per heat track against the field and "
+                        "report first places and collisions caused per lap (default 0: none)")
+    p.add_argument("--heat-tracks", default=None, metavar="TRACKS",
+                   help="comma-separated heat tracks (default: reinvent_base and the first held-out track the "
+                        "agent did not train on)")
+    p.add_argument("--field", default=None, metavar="ENTRANTS",
+                   help="comma-separated heat opponents: agent files, shipped agents' names or bot specs (default: "
+                        "the other shipped agents and bot:follow@1.0)")
+    p.add_argument("--parts", default=",".join(PARTS), metavar="PARTS",
+                   help=f"comma-separated parts of the report to run (default: all of {','.join(PARTS)}; heats "
+                        "need --heats)")
     p.set_defaults(func=cmd_evaluate)
 
 
 def cmd_evaluate(args) -> int:
+    parts = [p.strip() for p in args.parts.split(",") if p.strip()]
+    unknown = [p for p in parts if p not in PARTS]
+    if unknown or not parts:
+        raise ValueError(f"--parts: {', '.join(unknown) or 'nothing'} is not a part; choose from {', '.join(PARTS)}")
+    if args.heats < 0:
+        raise ValueError(f"--heats: {args.heats}; give 0 or more heats")
     from .evaluate import run_evaluation
 
     return run_evaluation(args)

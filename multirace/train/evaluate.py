@@ -1,6 +1,6 @@
 """`multirace evaluate`: a robustness report of agent files.
 
-Three parts, each a list of rows (one race per row and seed):
+Four parts, each a list of rows (one race per row and seed); `parts` picks some:
 
 1. held-out tracks: a time trial on every track of the declared held-out
    split (`splits.HELD_OUT_TRACKS`) that the agent did not train on (its
@@ -16,7 +16,10 @@ Three parts, each a list of rows (one race per row and seed):
    adversary's uncertainty set (action noise, grip, motor, steering bias,
    camera pose, lighting, sensor noise, shadows);
 3. traffic: a head-to-head race on the reference track against two scripted
-   bots (``follow@0.8``, ``lanes@1.0``).
+   bots (``follow@0.8``, ``lanes@1.0``);
+4. heats (with ``heats`` > 0): head-to-head heats against the other shipped
+   agents and `bot:follow@1.0` (`heats.py`): first places and collisions
+   caused per lap of every entrant.
 
 Per row: lap completion (laps finished / laps asked), whether the run was
 clean (every lap finished, no off-track), best lap, off-tracks per lap driven,
@@ -36,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from ..sim.tracks import list_tracks
+from .heats import run_heats, summarise_heats
 from .nature import UNCERTAINTY_SET
 from .splits import HELD_OUT_TRACKS
 
@@ -107,16 +111,20 @@ def held_out_tracks(seen: set, quick: bool = False) -> list[str]:
 
 
 def evaluate_agent(agent_path, tracks=None, grid=None, laps=2, seeds=1, reference=None, progress=None,
-                   quick=False, directions="forward", randomize=None) -> dict:
-    """The full report for one agent file (see the module docstring)."""
+                   quick=False, directions="forward", randomize=None, heats=0, heat_tracks=None, field=None,
+                   parts=("held-out", "perturbations", "traffic", "heats")) -> dict:
+    """The report for one agent file (see the module docstring): the `parts` asked for, heats if `heats` > 0."""
     seen = trained_tracks(agent_path)
     if tracks is None:
         tracks = held_out_tracks(seen, quick)
+    tracks = tracks if "held-out" in parts else []
+    grid = (GRID if grid is None else grid) if "perturbations" in parts else []
+    traffic_seeds = seeds if "traffic" in parts else 0
     reference = reference or (sorted(seen)[0] if seen and sorted(seen)[0] in list_tracks() else "reinvent_base")
-    grid = GRID if grid is None else grid
     reverses = (False, True) if directions == "both" else (True,) if directions == "reverse" else (False,)
     report = {"agent": str(agent_path), "trained_on": sorted(seen), "reference_track": reference, "laps": laps,
-              "directions": directions, "randomize": randomize, "held_out": [], "perturbations": [], "traffic": []}
+              "directions": directions, "randomize": randomize, "held_out": [], "perturbations": [], "traffic": [],
+              "heats": []}
     say = progress or (lambda line: None)
     for track in tracks:
         for reverse in reverses:
@@ -136,11 +144,14 @@ def evaluate_agent(agent_path, tracks=None, grid=None, laps=2, seeds=1, referenc
             row["perturbation"] = name
             report["perturbations"].append(row)
             say(f"{name} seed {seed}: {row['laps']}/{laps} laps, {row['off_tracks']} off-tracks")
-    for seed in range(seeds):
+    for seed in range(traffic_seeds):
         row = race_agent(agent_path, reference, laps=laps, seed=seed, bots=TRAFFIC_BOTS, race="head_to_head")
         report["traffic"].append(row)
         say(f"traffic seed {seed}: {row['laps']}/{laps} laps, position {row['position']}, "
             f"{row['collisions']} collisions")
+    if heats > 0 and "heats" in parts:
+        heat_tracks = heat_tracks or ["reinvent_base", *held_out_tracks(seen)[:1]]
+        report["heats"] = run_heats(agent_path, heat_tracks, range(1, heats + 1), field=field, progress=say)
     report["summary"] = summarise(report)
     return report
 
@@ -174,6 +185,8 @@ def summarise(report: dict) -> dict:
                                                     for r in report["traffic"]]),
         "traffic_position": _mean([r["position"] for r in report["traffic"]]),
     }
+    if report.get("heats"):
+        summary["heats"] = summarise_heats(report["heats"])
     if summary["nominal_completion"] is not None and summary["perturbed_completion"] is not None:
         summary["completion_drop_points"] = 100.0 * (summary["nominal_completion"] - summary["perturbed_completion"])
     return summary
@@ -208,11 +221,27 @@ def print_report(reports: list, console) -> None:
     summary.add_column("figure")
     for report in reports:
         summary.add_column(Path(report["agent"]).stem, justify="right")
-    keys = list(reports[0]["summary"])
+    keys = [key for key in reports[0]["summary"] if key != "heats"]
     for key in keys:
         summary.add_row(key, *[_fmt(r["summary"].get(key)) if not isinstance(r["summary"].get(key), list)
                                else str(len(r["summary"][key])) for r in reports])
     console.print(summary)
+    for report in reports:
+        if report["summary"].get("heats"):
+            print_heats(Path(report["agent"]).name, report["summary"]["heats"], console)
+
+
+def print_heats(agent_name: str, heats: dict, console) -> None:
+    from rich.table import Table
+
+    table = Table(title=f"{agent_name}: head-to-head heats (collisions caused per lap driven)")
+    for column in ("track", "entrant", "heats", "first", "mean position", "laps driven", "caused", "caused/lap"):
+        table.add_column(column)
+    for track, entrants in heats.items():
+        for name, f in entrants.items():
+            table.add_row(track, name, str(f["heats"]), str(f["first"]), f"{f['mean_position']:.2f}",
+                          f"{f['laps_driven']:.1f}", str(f["collisions_caused"]), f"{f['caused_per_lap']:.3f}")
+    console.print(table)
 
 
 def plot_report(reports: list, path) -> None:
@@ -247,19 +276,27 @@ def plot_report(reports: list, path) -> None:
     plt.close(fig)
 
 
+def _names(text):
+    """A comma-separated command-line list (None stays None)."""
+    return [t.strip() for t in text.split(",") if t.strip()] if text else None
+
+
 def run_evaluation(args) -> int:
     """The `multirace evaluate` command."""
     from rich.console import Console
 
     console = Console(width=140)
-    tracks = [t.strip() for t in args.tracks.split(",")] if args.tracks else None
+    tracks = _names(args.tracks)
     grid = QUICK_GRID if args.quick else None
+    parts = _names(args.parts)
     reports = []
     for agent in args.agents:
         if not Path(agent).exists():
             raise FileNotFoundError(f"{agent}: no such agent file")
         reports.append(evaluate_agent(agent, tracks=tracks, grid=grid, laps=args.laps, seeds=args.seeds,
                                       quick=args.quick, directions=args.directions, randomize=args.randomize,
+                                      heats=args.heats, heat_tracks=_names(args.heat_tracks),
+                                      field=_names(args.field), parts=parts,
                                       progress=lambda line: console.print(f"[dim]{line}[/dim]")))
     print_report(reports, console)
     png = Path(args.png) if args.png else (Path(args.json).with_suffix(".png") if args.json

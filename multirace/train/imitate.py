@@ -190,13 +190,26 @@ def imitation_runs(config: ImitationConfig) -> list:
     return runs
 
 
+def check_init_action_space(init_space, space, init_path) -> None:
+    """Refuse an action space that an --init net's outputs do not fit: a continuous net's outputs are commands in
+    degrees and m/s, so any continuous range fits it; a discrete net needs the same number of actions."""
+    if init_space.discrete != space.discrete or (space.discrete and len(space.actions) != len(init_space.actions)):
+        size = f"{len(init_space.actions)} actions" if init_space.discrete else "steering and speed"
+        raise ValueError(f"--action-space: does not fit the net of --init {init_path} ({init_space.kind}, {size})")
+
+
 def run_dagger(config: ImitationConfig) -> dict:
     """Train a camera agent by DAgger and write it to `config.out`; returns a summary dict."""
     started = time.perf_counter()
     budget = max(1.0, 60.0 * float(config.minutes))
     if config.init:  # the learner is the init file's net: its network, image size, action space (and sensors)
         settings = init_settings(config.init)
-        config = dataclasses.replace(config, network=settings["network"], action_space=settings["action_space"],
+        action_space = settings["action_space"]
+        if config.action_space is not None:  # a new action space the init net's outputs still fit
+            action_space = config.action_space
+            check_init_action_space(load_action_space(settings["action_space"]),
+                                    load_action_space(action_space), config.init)
+        config = dataclasses.replace(config, network=settings["network"], action_space=action_space,
                                      camera=settings["camera"], sensor=settings.get("sensor", config.sensor))
     threads = config.threads or default_threads()
     torch.set_num_threads(int(threads))

@@ -1,0 +1,80 @@
+"""Head-to-head heats of an agent against a field: does it finish ahead, and how many collisions does it cause?
+
+The field defaults to the other shipped agents and `bot:follow@1.0`, the scripted
+car that keeps to the centre line and never pushes. Every heat is a
+`head_to_head` race (3 laps by default) with the agent on the pole and the
+field behind it in a fixed order, run once per seed on each track. A collision
+is *caused* by the striker (the car that moved into the other, `world.Contact`),
+so a car pushed from behind into the car ahead is the striker of that second
+contact.
+
+Per entrant: first places, mean position, laps driven and collisions caused
+per lap driven. The agent meets the racing goal on a track when it takes
+most of the first places and causes no more collisions per lap than
+`bot:follow` does.
+"""
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+from ..resources import agents_dir, list_agents
+
+FIELD_BOT = "bot:follow@1.0"
+HEAT_LAPS = 3
+STEP_BUDGET = 30.0  # seconds of CPU time per inference step: heats judge driving, not inference speed
+
+
+def default_field(agent_path) -> list[str]:
+    """The other shipped agents (by content, so a copy of a shipped file is not raced against itself) and
+    `bot:follow@1.0`."""
+    own = hashlib.sha256(Path(agent_path).read_bytes()).digest()
+    others = [name for name in list_agents()
+              if hashlib.sha256((agents_dir() / f"{name}.pt").read_bytes()).digest() != own]
+    return others + [FIELD_BOT]
+
+
+def run_heats(agent_path, tracks, seeds, field=None, laps=HEAT_LAPS, progress=None) -> list[dict]:
+    """One row per heat: the track, seed and every car's place, laps driven and collisions caused."""
+    from ..racing.runner import RaceConfig, make_controller, run_race
+
+    field = default_field(agent_path) if field is None else list(field)
+    say = progress or (lambda line: None)
+    rows = []
+    for track in tracks:
+        for seed in seeds:
+            entrants = [make_controller(spec, **({} if spec.startswith("bot:") else {"step_budget": STEP_BUDGET}))
+                        for spec in [str(agent_path), *field]]
+            result = run_race(entrants, RaceConfig(track=track, race="head_to_head", laps=laps, seed=seed))
+            cars = sorted(result["cars"], key=lambda c: int(c["car"].split("_")[1]))
+            row = {"track": result["track"], "seed": seed, "laps": laps, "cars": [
+                {"entrant": spec, "position": car["position"], "laps": car["laps"],
+                 "laps_driven": round(car["progress"] * laps / 100.0, 3), "resets": car["resets"],
+                 "collisions": car["collisions"], "collisions_caused": car["collisions_caused"],
+                 "status": car["status"]}
+                for spec, car in zip([Path(str(agent_path)).stem] + field, cars)]}
+            rows.append(row)
+            agent = row["cars"][0]
+            say(f"heat {track} seed {seed}: P{agent['position']}, {agent['laps']}/{laps} laps, "
+                f"{agent['collisions_caused']} collisions caused")
+    return rows
+
+
+def summarise_heats(rows: list[dict]) -> dict:
+    """Per track and over all heats, per entrant: heats, first places, mean position, caused per lap driven."""
+    def figures(selected):
+        out = {}
+        for k, name in enumerate(c["entrant"] for c in selected[0]["cars"]):
+            cars = [r["cars"][k] for r in selected]
+            driven = sum(c["laps_driven"] for c in cars)
+            out[name] = {"heats": len(cars), "first": sum(c["position"] == 1 for c in cars),
+                         "mean_position": sum(c["position"] for c in cars) / len(cars),
+                         "laps_driven": round(driven, 2),
+                         "collisions_caused": sum(c["collisions_caused"] for c in cars),
+                         "caused_per_lap": sum(c["collisions_caused"] for c in cars) / max(driven, 0.25)}
+        return out
+
+    if not rows:
+        return {}
+    tracks = list(dict.fromkeys(r["track"] for r in rows))
+    return {"all": figures(rows), **{t: figures([r for r in rows if r["track"] == t]) for t in tracks}}
