@@ -4,6 +4,8 @@ import math
 import numpy as np
 
 import multirace
+from multirace.sim.car import CarSpec
+from multirace.sim.world import World
 from helpers import CONTINUOUS, place
 
 
@@ -54,3 +56,29 @@ def test_car_driven_into_a_box_stops_and_reports_it():
     assert ahead >= 0.5 * (env.car_spec.length + 0.30) - 0.03  # stopped at the box's face
     assert env.races[0].collisions[0] == {"time": env.races[0].collisions[0]["time"], "with": "obstacle_0",
                                           "caused": True}
+
+
+def _strikers(world, commands, steps):
+    return [c.striker for _ in range(steps) for c in world.step(np.array(commands))]
+
+
+def test_a_car_passing_close_by_a_crawling_car_grazes_it_and_is_the_striker():
+    world = World(CarSpec(), 2, 0, 60, 15)
+    world.connect()
+    world.place_car(0, 0.0, 0.0, 0.3, speed=0.3)  # edging left at a crawl
+    world.place_car(1, -0.1, 0.24, 0.0, speed=3.0)  # passing on its left, straight, 3 m/s
+    strikers = _strikers(world, [[0.0, 0.3], [0.0, 3.0]], 3)
+    assert strikers and set(strikers) == {("car", 1)}  # not the crawler, though it edged toward the passer
+
+
+def test_a_car_pushed_into_the_car_ahead_by_a_third_causes_nothing():
+    world = World(CarSpec(), 3, 0, 60, 15)
+    world.connect()
+    world.place_car(0, 0.0, 0.0, 0.0, speed=0.3)
+    world.place_car(1, -0.36, 0.0, 0.0, speed=0.3)  # queued 4 cm behind car 0 at the same pace
+    world.place_car(2, -1.2, 0.0, 0.0, speed=3.0)  # runs into the queue
+    contacts = [c for _ in range(8) for c in world.step(np.array([[0.0, 0.3], [0.0, 0.3], [0.0, 3.0]]))]
+    pairs = {(c.a[1], c.b[1]) for c in contacts}
+    assert pairs == {(0, 1), (1, 2)}  # car 1 is shoved into car 0
+    assert {c.striker for c in contacts if (c.a[1], c.b[1]) == (1, 2)} == {("car", 2)}
+    assert {c.striker for c in contacts if (c.a[1], c.b[1]) == (0, 1)} == {None}

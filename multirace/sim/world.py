@@ -56,6 +56,7 @@ PARKED_Z = -50.0  # where parked cars wait, far below the scene
 SOLVER_ITERATIONS = 10
 CONTACT_DISTANCE = 0.002  # metres; closer than this counts as touching
 CONTACT_EVERY = 2  # physics steps between contact queries
+RESTING_SPEED = 0.05  # m/s; two cars that close and slide slower than this are only resting against each other
 DYNAMICS = ("dynamic", "kinematic")
 
 
@@ -64,12 +65,20 @@ class Contact:
     """Two bodies touched during an action step.
 
     `a` and `b` are ("car", i) or ("obstacle", k); `striker` is whichever of
-    them drove into the other (for an obstacle, always the car).
+    them drove into the other (for an obstacle, always the car). Where the two
+    meet head-on more than they slide along each other (their closing speed
+    along the contact normal exceeds their relative speed across it), the one
+    closing faster along the normal; in a grazing contact (a car passing a
+    slow one close by, or cutting in across its nose), the faster of the two,
+    since a car at a crawl cannot graze anything. `striker` is None where
+    neither drives into the other (closing and sliding under `RESTING_SPEED`),
+    and where the striker is being pushed: a third car struck it in this action
+    step or the one before (the pile-up's cause is the car that pushed it).
     """
 
     a: tuple[str, int]
     b: tuple[str, int]
-    striker: tuple[str, int]
+    striker: tuple[str, int] | None
 
 
 def _rgba(rgb) -> list[float]:
@@ -106,6 +115,7 @@ class World:
         self.drive_speed = np.zeros(num_cars)  # the drive train's current speed, m/s
         self.parked = np.zeros(num_cars, dtype=bool)
         self._set_velocity = [(0.0, 0.0, 0.0)] * num_cars  # last velocity we imposed
+        self._struck_by: dict[int, set[int]] = {}  # car -> the cars that struck it in the last action step
         step_time = self.physics_dt * self.substeps  # the car's command changes once per action step
         self._speed_blend = 1.0 - math.exp(-step_time / spec.speed_time_constant)
         self._grip_keep = math.exp(-step_time / spec.grip_time_constant)
@@ -179,6 +189,7 @@ class World:
         self.motion[i] = (speed, 0.0, 0.0)
         self.poses[i] = (x, y, yaw)
         self.parked[i] = False
+        self._struck_by.pop(i, None)  # a car put back on the track is no longer being pushed
 
     def park(self, i: int) -> None:
         """Take car `i` out of the scene (finished or forfeited); it no longer collides."""
@@ -226,7 +237,26 @@ class World:
             if substep % CONTACT_EVERY == CONTACT_EVERY - 1 or substep == self.substeps - 1:
                 self._collect_contacts(contacts)
         self._read_poses(active)
-        return list(contacts.values())
+        return self._clear_pushed_strikers(list(contacts.values()))
+
+    def _clear_pushed_strikers(self, contacts: list[Contact]) -> list[Contact]:
+        """The step's contacts with no striker where the striker was being pushed by a third car (struck by it
+        in this step or the last one); remembers who struck whom for the next step."""
+        struck_by: dict[int, set[int]] = {}
+        for contact in contacts:
+            if contact.a[0] == contact.b[0] == "car" and contact.striker is not None:
+                struck = contact.b if contact.striker == contact.a else contact.a
+                struck_by.setdefault(struck[1], set()).add(contact.striker[1])
+        out = []
+        for contact in contacts:
+            if contact.a[0] == contact.b[0] == "car" and contact.striker is not None:
+                car = contact.striker[1]
+                other = (contact.b if contact.striker == contact.a else contact.a)[1]
+                if (struck_by.get(car, set()) | self._struck_by.get(car, set())) - {other}:
+                    contact = dataclasses.replace(contact, striker=None)
+            out.append(contact)
+        self._struck_by = struck_by
+        return out
 
     def _command_dynamic(self, active: list[int], commands) -> None:
         """Run the tyre model for the active cars (a push since the last step joins their motion)."""
@@ -299,14 +329,25 @@ class World:
             normal_on_b = point[7]  # points from B towards A
             approach_a = -self._velocity_along(a, normal_on_b)
             approach_b = self._velocity_along(b, normal_on_b)
-            striker = a if approach_a >= approach_b else b
+            (ax, ay), (bx, by) = self._planar_velocity(a), self._planar_velocity(b)
+            closing = approach_a + approach_b
+            sliding = abs((ax - bx) * normal_on_b[1] - (ay - by) * normal_on_b[0])  # relative speed across n
+            if a[0] == "obstacle" or b[0] == "obstacle":
+                striker = a if a[0] == "car" else b
+            elif max(closing, sliding) <= RESTING_SPEED:  # neither drives into the other (a push made it)
+                striker = None
+            elif closing > sliding:  # a hit: the one closing faster along the normal struck
+                striker = a if approach_a >= approach_b else b
+            else:  # a graze: the faster car ran along the other
+                striker = a if math.hypot(ax, ay) >= math.hypot(bx, by) else b
             first, second = (a, b) if a <= b else (b, a)
             contacts[key] = Contact(a=first, b=second, striker=striker)
 
+    def _planar_velocity(self, owner: tuple[str, int]) -> tuple[float, float]:
+        return self._set_velocity[owner[1]][:2] if owner[0] == "car" else (0.0, 0.0)
+
     def _velocity_along(self, owner: tuple[str, int], direction) -> float:
-        if owner[0] != "car":
-            return 0.0
-        vx, vy, _ = self._set_velocity[owner[1]]
+        vx, vy = self._planar_velocity(owner)
         return vx * direction[0] + vy * direction[1]
 
     def _read_poses(self, active: list[int]) -> None:

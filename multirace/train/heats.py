@@ -1,12 +1,12 @@
 """Head-to-head heats of an agent against a field: does it finish ahead, and how many collisions does it cause?
 
 The field defaults to the other shipped agents and `bot:follow@1.0`, the scripted
-car that keeps to the centre line and never pushes. Every heat is a
-`head_to_head` race (3 laps by default) with the agent on the pole and the
-field behind it in a fixed order, run once per seed on each track. A collision
-is *caused* by the striker (the car that moved into the other, `world.Contact`),
-so a car pushed from behind into the car ahead is the striker of that second
-contact.
+car that keeps to the centre line and slows behind a car in its lane. Every
+heat is a `head_to_head` race (3 laps by default) with the agent on the pole
+and the field behind it in a fixed order, run once per seed on each track. A
+collision is *caused* by its striker (`world.Contact`: the car that drove into
+the other; in a graze the faster car; nobody where a third car pushed the
+striker into it).
 
 Per entrant: first places, mean position, laps driven and collisions caused
 per lap driven. The agent meets the racing goal on a track when it takes
