@@ -22,3 +22,25 @@ def test_racer_laps_a_held_out_track_clean_near_the_racing_line(track, reverse):
     row = race_agent(RACER, track, reverse=reverse, laps=2, seed=0, step_budget=1.0)
     assert row["clean"], row
     assert row["best_lap"] <= 1.25 * reference_lap(track, reverse, 2)
+
+
+LIDAR_RACER = agents_dir() / "racer_lidar.pt"
+
+
+def test_lidar_racer_reads_the_lidar_never_trained_on_a_held_out_track_and_can_crawl():
+    assert not trained_tracks(LIDAR_RACER) & set(HELD_OUT_TRACKS)
+    metadata = load_agent(LIDAR_RACER).metadata
+    assert metadata["sensor"] == ["FRONT_FACING_CAMERA", "LIDAR"]
+    assert metadata["action_space"]["speed"]["low"] <= 0.1  # it can queue behind a slow car at the expert's crawl
+    assert metadata["training"]["traffic"] and metadata["training"]["init"]["name"] in ("racer", "racer_lidar")
+
+
+def test_lidar_racer_laps_a_held_out_track_clean_and_wins_a_heat_there_without_causing_a_collision():
+    from multirace.train.heats import run_heats
+
+    row = race_agent(LIDAR_RACER, "Mexico_track", reverse=True, laps=2, seed=1, randomize="mild", step_budget=1.0)
+    assert row["clean"], row
+    assert row["best_lap"] <= 1.25 * reference_lap("Mexico_track", True, 2)
+    (heat,) = run_heats(LIDAR_RACER, ["2022_april_open"], [1])  # against the other shipped agents and bot:follow
+    racer = heat["cars"][0]
+    assert racer["position"] == 1 and racer["laps"] == 3 and racer["collisions_caused"] == 0
