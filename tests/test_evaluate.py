@@ -77,8 +77,15 @@ def test_the_default_heat_field_is_the_other_shipped_agents_and_bot_follow(tmp_p
     assert field == [n for n in list_agents() if n != "dagger_small"] + ["bot:follow@1.0"]
 
 
-def test_evaluate_refuses_an_unknown_part_and_negative_heats(capsys):
+def test_evaluate_refuses_bad_parts_heats_entrants_and_heat_tracks_up_front(capsys):
     assert main(["evaluate", str(AGENT), "--parts", "held-out,laps"]) == 2
     assert "--parts: laps is not a part" in capsys.readouterr().err
     assert main(["evaluate", str(AGENT), "--heats", "-1"]) == 2
     assert "--heats: -1" in capsys.readouterr().err
+    # a bad heat entrant or track is refused before the held-out part spends minutes racing
+    assert main(["evaluate", str(AGENT), "--heats", "1", "--field", "bot:follow@1.0,nosuch"]) == 2
+    assert "--field: nosuch: no such agent file" in capsys.readouterr().err
+    assert main(["evaluate", str(AGENT), "--heats", "1", "--field", "bot:zoom@1"]) == 2
+    assert "--field: bot 'bot:zoom@1'" in capsys.readouterr().err
+    assert main(["evaluate", str(AGENT), "--heats", "1", "--heat-tracks", "Mexico_track,Nowhere"]) == 2
+    assert "--heat-tracks: track 'Nowhere'" in capsys.readouterr().err

@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from ..sim.tracks import list_tracks
-from .heats import run_heats, summarise_heats
+from .heats import check_heats, run_heats, summarise_heats
 from .nature import UNCERTAINTY_SET
 from .splits import HELD_OUT_TRACKS
 
@@ -289,6 +289,8 @@ def run_evaluation(args) -> int:
     tracks = _names(args.tracks)
     grid = QUICK_GRID if args.quick else None
     parts = _names(args.parts)
+    if args.heats and "heats" in parts:
+        check_heats(_names(args.heat_tracks), _names(args.field))
     reports = []
     for agent in args.agents:
         if not Path(agent).exists():

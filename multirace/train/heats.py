@@ -9,9 +9,8 @@ the other; in a graze the faster car; nobody where a third car pushed the
 striker into it).
 
 Per entrant: first places, mean position, laps driven and collisions caused
-per lap driven. The agent meets the racing goal on a track when it takes
-most of the first places and causes no more collisions per lap than
-`bot:follow` does.
+per lap driven: a racer should take most of the first places and cause no
+more collisions per lap than `bot:follow`.
 """
 from __future__ import annotations
 
@@ -32,6 +31,27 @@ def default_field(agent_path) -> list[str]:
     others = [name for name in list_agents()
               if hashlib.sha256((agents_dir() / f"{name}.pt").read_bytes()).digest() != own]
     return others + [FIELD_BOT]
+
+
+def check_heats(tracks, field) -> None:
+    """Refuse, before any race runs, a heat track or an entrant that cannot race (naming the option)."""
+    from ..environment.bots import parse_bot
+    from ..racing.runner import resolve_agent_path
+    from ..sim.tracks import TrackError, resolve_track_path
+
+    for track in tracks or ():
+        try:
+            resolve_track_path(track)
+        except TrackError as exc:
+            raise ValueError(f"--heat-tracks: {exc}") from None
+    for spec in field or ():
+        if spec.startswith("bot:"):
+            try:
+                parse_bot(spec)
+            except ValueError as exc:
+                raise ValueError(f"--field: {exc}") from None
+        elif not resolve_agent_path(spec).is_file():
+            raise ValueError(f"--field: {spec}: no such agent file or shipped agent")
 
 
 def run_heats(agent_path, tracks, seeds, field=None, laps=HEAT_LAPS, progress=None) -> list[dict]:
