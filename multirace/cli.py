@@ -317,7 +317,8 @@ def build_parser() -> argparse.ArgumentParser:
                               "(DeepRacer's shallow net, about 23 MB at 120x160)")
     imitate.add_argument("--action-space", default=None, metavar="JSON",
                          help="DeepRacer model_metadata.json with the action space (default: 10 actions, "
-                              "steering -30..30 by 15 x speed 0.5, 1.0)")
+                              "steering -30..30 by 15 x speed 0.5, 1.0; with --init: the init file's, and a new "
+                              "one must fit its net: any continuous range, or as many discrete actions)")
     imitate.add_argument("--speed", type=float, default=1.0,
                          help="the default pass expert's speed in m/s (default 1.0)")
     imitate.add_argument("--expert", default=None, metavar="BOT",

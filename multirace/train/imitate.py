@@ -69,7 +69,7 @@ class ImitationConfig:
     minutes: float = 4.0  # wall-clock budget (rollouts + training), the file is written after it
     seed: int = 0
     network: str = DEFAULT_NETWORK
-    action_space: object = None  # model_metadata path/dict; None = the 10 default actions
+    action_space: object = None  # model_metadata path/dict; None = the 10 default actions (with init: its own)
     expert_speed: float = 1.0  # m/s the default `pass` expert drives (and so labels)
     expert: str | None = None  # a bot spec such as "racingline@0.9"; None = pass@expert_speed
     randomize: object = None  # the env's domain randomisation (None, "mild", "strong" or a dict), per episode
