@@ -58,16 +58,12 @@ def test_car_driven_into_a_box_stops_and_reports_it():
                                           "caused": True}
 
 
-def _strikers(world, commands, steps):
-    return [c.striker for _ in range(steps) for c in world.step(np.array(commands))]
-
-
 def test_a_car_passing_close_by_a_crawling_car_grazes_it_and_is_the_striker():
     world = World(CarSpec(), 2, 0, 60, 15)
     world.connect()
     world.place_car(0, 0.0, 0.0, 0.3, speed=0.3)  # edging left at a crawl
     world.place_car(1, -0.1, 0.24, 0.0, speed=3.0)  # passing on its left, straight, 3 m/s
-    strikers = _strikers(world, [[0.0, 0.3], [0.0, 3.0]], 3)
+    strikers = [c.striker for _ in range(3) for c in world.step(np.array([[0.0, 0.3], [0.0, 3.0]]))]
     assert strikers and set(strikers) == {("car", 1)}  # not the crawler, though it edged toward the passer
 
 

@@ -242,21 +242,16 @@ class World:
     def _clear_pushed_strikers(self, contacts: list[Contact]) -> list[Contact]:
         """The step's contacts with no striker where the striker was being pushed by a third car (struck by it
         in this step or the last one); remembers who struck whom for the next step."""
+        hits = [(k, c.striker[1], (c.b if c.striker == c.a else c.a)[1]) for k, c in enumerate(contacts)
+                if c.a[0] == c.b[0] == "car" and c.striker is not None]  # (index, striker car, struck car)
         struck_by: dict[int, set[int]] = {}
-        for contact in contacts:
-            if contact.a[0] == contact.b[0] == "car" and contact.striker is not None:
-                struck = contact.b if contact.striker == contact.a else contact.a
-                struck_by.setdefault(struck[1], set()).add(contact.striker[1])
-        out = []
-        for contact in contacts:
-            if contact.a[0] == contact.b[0] == "car" and contact.striker is not None:
-                car = contact.striker[1]
-                other = (contact.b if contact.striker == contact.a else contact.a)[1]
-                if (struck_by.get(car, set()) | self._struck_by.get(car, set())) - {other}:
-                    contact = dataclasses.replace(contact, striker=None)
-            out.append(contact)
+        for _, striker, struck in hits:
+            struck_by.setdefault(struck, set()).add(striker)
+        for k, striker, struck in hits:
+            if (struck_by.get(striker, set()) | self._struck_by.get(striker, set())) - {struck}:
+                contacts[k] = dataclasses.replace(contacts[k], striker=None)
         self._struck_by = struck_by
-        return out
+        return contacts
 
     def _command_dynamic(self, active: list[int], commands) -> None:
         """Run the tyre model for the active cars (a push since the last step joins their motion)."""
@@ -327,9 +322,9 @@ class World:
             if a is None or b is None or (a[0] == "obstacle" and b[0] == "obstacle"):
                 continue
             normal_on_b = point[7]  # points from B towards A
-            approach_a = -self._velocity_along(a, normal_on_b)
-            approach_b = self._velocity_along(b, normal_on_b)
             (ax, ay), (bx, by) = self._planar_velocity(a), self._planar_velocity(b)
+            approach_a = -(ax * normal_on_b[0] + ay * normal_on_b[1])  # A's speed towards B
+            approach_b = bx * normal_on_b[0] + by * normal_on_b[1]  # B's speed towards A
             closing = approach_a + approach_b
             sliding = abs((ax - bx) * normal_on_b[1] - (ay - by) * normal_on_b[0])  # relative speed across n
             if a[0] == "obstacle" or b[0] == "obstacle":
@@ -345,10 +340,6 @@ class World:
 
     def _planar_velocity(self, owner: tuple[str, int]) -> tuple[float, float]:
         return self._set_velocity[owner[1]][:2] if owner[0] == "car" else (0.0, 0.0)
-
-    def _velocity_along(self, owner: tuple[str, int], direction) -> float:
-        vx, vy = self._planar_velocity(owner)
-        return vx * direction[0] + vy * direction[1]
 
     def _read_poses(self, active: list[int]) -> None:
         cid = self.client
