@@ -31,6 +31,7 @@ from ..sim.objects import objects_seen
 from .randomize import Randomization, apply_command, apply_image
 from .rewards import load_reward_function
 from .rules import CarRace, StepMeasure, make_rules
+from .state import CAR_FEATURES, GLOBAL_PER_CAR, car_features, global_state
 from ..sim.texture import DEFAULT_PALETTE, TrackTexture
 from ..sim.tracks import Track, load_track
 from ..sim.world import World
@@ -77,6 +78,10 @@ class RaceEnv(ParallelEnv):
     (`camera.observation_shape`). An observation is the image, or with
     ``LIDAR`` (or ``lidar=True``) or ``SECTOR_LIDAR`` a dict ``{"camera": image,
     "lidar": 64 float32 ranges}`` or ``{"camera": image, "lidar": 8 binary sectors}``.
+
+    ``observation="state"`` gives each car its privileged state instead
+    (`state.car_features`: float32 vectors; nothing is rendered), for RL
+    teachers; `state()` is the global state of every car (`state.global_state`).
     """
 
     metadata = {"name": "multirace_v0", "render_modes": ["human", "rgb_array"], "render_fps": ACTION_HZ,
@@ -85,7 +90,8 @@ class RaceEnv(ParallelEnv):
     def __init__(self, track="reinvent_base", reverse=False, num_cars=4, race="time_trial", laps=3,
                  obstacles=None, bots=(), action_space=None, reward_function=None, camera=(120, 160),
                  grayscale=True, lidar=False, renderer="fast", randomize=None, render_mode=None, max_steps=None,
-                 physics_hz=60, car_names=None, max_cycles=None, sensor=None, dynamics="dynamic"):
+                 physics_hz=60, car_names=None, max_cycles=None, sensor=None, dynamics="dynamic",
+                 observation="camera"):
         self.track: Track = track if isinstance(track, Track) else load_track(track, reverse=reverse)
         self.rules = make_rules(race, laps, obstacles)
         self.bots = [parse_bot(b) for b in bots]
@@ -141,7 +147,13 @@ class RaceEnv(ParallelEnv):
                 spec.min_range, spec.max_range, (spec.samples,), np.float32)})
         elif self.sensors.lidar == "sector":
             obs_space = spaces.Dict({"camera": obs_space, "lidar": spaces.Box(0.0, 1.0, (SECTORS,), np.float32)})
+        if observation not in ("camera", "state"):
+            raise ValueError(f"observation: expected 'camera' or 'state', got {observation!r}")
+        self.observation = observation
+        if observation == "state":  # privileged state vectors instead of sensors: nothing is rendered
+            obs_space = spaces.Box(-np.inf, np.inf, (CAR_FEATURES,), np.float32)
         self.observation_spaces = {a: obs_space for a in self.possible_agents}
+        self.state_space = spaces.Box(-np.inf, np.inf, (self.total_cars * GLOBAL_PER_CAR,), np.float32)
         self.action_spaces = {a: self.actions.space for a in self.possible_agents}
 
         self._renderer = None
@@ -200,7 +212,7 @@ class RaceEnv(ParallelEnv):
         if self.renderer_name == "fast" and palette != self.texture.palette:  # (un)tinted track colours
             self._texture = TrackTexture(self.track, palette)
             self._renderer = None
-        if self._renderer is None:
+        if self._renderer is None and self.observation == "camera":
             self._renderer = make_renderer(self.renderer_name, self.camera, self.texture)
         self.steps = 0
         self.sim_time = 0.0
@@ -434,6 +446,8 @@ class RaceEnv(ParallelEnv):
 
     # ----------------------------------------------------------- outputs
     def _observe(self) -> dict:
+        if self.observation == "state":
+            return {agent: car_features(self, i) for i, agent in enumerate(self.possible_agents)}
         draw = self._draw
         jitter = None
         if draw is not None and self.randomization.camera_enabled:
@@ -458,6 +472,15 @@ class RaceEnv(ParallelEnv):
             scans = sector_lidar(scans)
         return {agent: {"camera": image, "lidar": scan}
                 for agent, image, scan in zip(self.possible_agents, images, scans)}
+
+    def car_state(self, i: int) -> np.ndarray:
+        """Car i's privileged ego state (`state.car_features`), what an RL teacher reads."""
+        return car_features(self, i)
+
+    def state(self) -> np.ndarray:
+        """PettingZoo's global state: every car's pose, motion, race distance, road position and the curvature
+        ahead (`state.global_state`), for centralised critics; `state_space` gives its shape."""
+        return global_state(self)
 
     def _params(self, i: int, touched: set, table: tuple) -> dict:
         """The 27 DeepRacer reward params of car i, in DeepRacer's units."""

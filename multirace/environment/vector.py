@@ -4,7 +4,8 @@ Each worker process owns one `RaceEnv` (built there from a picklable factory)
 and resets it automatically when its episode ends. Everything per step that
 has a fixed shape lives in shared memory, one block per kind with a slot per
 worker: the actions the learner writes, and the camera images (and LIDAR
-ranges, for envs that scan one), rewards and done flags the workers write. A
+ranges, for envs that scan one; or the state vectors of state envs),
+rewards and done flags the workers write. A
 step is then one command byte down each pipe and one byte back (or, when info
 keys were asked for, a small pickled list of those infos): the pipe round
 trip is the largest cost of a worker step after the env itself. The
@@ -79,8 +80,8 @@ def _worker(remote, make_env, info_keys, spin_wait: float) -> None:
         scans = isinstance(obs[agents[0]], dict)  # {"camera", "lidar"} observations
         if "images" not in shared:  # first images: the learner sizes the shared blocks from them
             first = obs[agents[0]]
-            remote.send(((len(agents),) + first["camera"].shape, first["lidar"].shape) if scans
-                        else ((len(agents),) + first.shape, None))
+            image = first["camera"] if scans else first
+            remote.send(((len(agents),) + image.shape, first["lidar"].shape if scans else None, image.dtype.str))
             slot, specs = remote.recv()
             shared.update({name: _SharedArray.attach(spec) for name, spec in specs.items()})
         images = shared["images"].array[slot]
@@ -165,10 +166,10 @@ class SubprocVectorEnv:
         shapes = [tuple(remote.recv()) for remote in self.remotes]
         if len(set(shapes)) != 1:
             raise ValueError(f"vector env: the envs' cars, camera images or LIDARs differ: {shapes}")
-        images, lidar = shapes[0]
+        images, lidar, dtype = shapes[0]
         cars = images[0]
         E = self.num_envs
-        self.shared = {"images": _SharedArray((E,) + images, np.uint8),
+        self.shared = {"images": _SharedArray((E,) + images, dtype),
                        "rewards": _SharedArray((E, cars), np.float32), "flags": _SharedArray((E, 2), bool)}
         if lidar is not None:
             self.shared["lidar"] = _SharedArray((E, cars) + tuple(lidar), np.float32)

@@ -96,9 +96,11 @@ def cmd_train(args) -> int:
         from .rllib import train_rllib
 
         return train_rllib(config, args.out, envs=args.envs, address=args.address)
+    command = shlex.join(["multirace", *sys.argv[1:]]) if sys.argv and sys.argv[0].endswith("multirace") else None
+    if config.privileged:
+        return report_privileged(config, args, command)
     from .ppo import train
 
-    command = shlex.join(["multirace", *sys.argv[1:]]) if sys.argv and sys.argv[0].endswith("multirace") else None
     summary = train(config, args.out, init=args.init, resume=args.resume, command=command)
     first = summary["first_success_seconds"]
     print(f"wrote {summary['out']}: {summary['iterations']} iterations, {summary['agent_steps']} agent-steps in "
@@ -108,6 +110,25 @@ def cmd_train(args) -> int:
           + (f"{first} s" if first is not None else "none") + ", first with no off-track: "
           + (f"{summary['first_clean_seconds']} s" if summary["first_clean_seconds"] is not None else "none"))
     print(f"learning curve: {Path(args.out).with_suffix('.png')}")
+    return 0
+
+
+def report_privileged(config, args, command) -> int:
+    """Run learning by cheating (`distill.train_privileged`) and print both stages' figures."""
+    if args.init or args.resume:
+        raise ValueError("--set privileged=true trains from nothing; --init and --resume are for PPO from the camera")
+    from .distill import train_privileged
+
+    summary = train_privileged(config, args.out, command=command)
+    teacher, student = summary["teacher"], summary["student"]
+    for name, evaluation, ratio in (("teacher", teacher["selected"], teacher["ratio"]),
+                                    ("student", student["evaluation"], student["ratio"])):
+        lap = f"{evaluation['best_lap']:.2f} s" if evaluation.get("best_lap") else "none"
+        print(f"{name}: {evaluation['laps']}/{config.eval_laps} laps, {evaluation['resets']} off-track resets, best "
+              f"lap {lap}" + (f" ({ratio}x the racing line's {summary['racing_line_lap']:.2f} s)" if ratio else ""))
+    print(f"wrote {summary['out']} (camera agent) and {summary['teacher_file']} (teacher) in "
+          f"{summary['wall_seconds']} s: teacher {teacher['wall_seconds']} s, {teacher['agent_steps']} agent-steps; "
+          f"student {student['wall_seconds']} s, {student['samples']} labelled images")
     return 0
 
 

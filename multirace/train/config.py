@@ -24,7 +24,7 @@ from __future__ import annotations
 import dataclasses
 import json
 
-from ..racing.nets import SHALLOW, TINY
+from ..racing.nets import DEFAULT_NETWORK, SHALLOW, TINY
 from ..resources import agents_dir
 from ..sensors.suite import SensorSuite, declared_sensors
 
@@ -81,6 +81,14 @@ class TrainConfig:
     expert_coef: float = 0.0  # weight of an auxiliary imitation loss toward the expert's action (privileged state); 0 = pure RL
     expert: str = ""  # the expert of expert_coef as a bot spec (e.g. "racingline@0.9"); "" = bot:pass at the action space's top speed
     value_warmup: int = 0  # with --init: first iterations train only the (new) value head, policy frozen
+    # ---- learning by cheating (multirace.train.teacher / distill)
+    privileged: bool = False  # stage 1: PPO of a state policy (the teacher) on the privileged state, no camera; stage 2: DAgger of the camera policy from it
+    distill_share: float = 0.35  # with privileged: share of `minutes` for stage 2 (the camera student)
+    teacher_hidden: int = 128  # width of the teacher's two hidden layers (policy and value MLPs)
+    teacher_lr: float = 3e-4  # the teacher's Adam learning rate
+    teacher_epochs: int = 5  # the teacher's passes over each rollout
+    teacher_minibatch: int = 512  # the teacher's samples per gradient step
+    student_network: str = DEFAULT_NETWORK  # with privileged: the camera student's network (nets.NETWORKS)
     # ---- budget, logging, outputs
     minutes: float = 10.0  # wall-clock budget, including evaluations and checkpoints
     max_iterations: int = 0  # > 0: stop after this many PPO iterations too (a budget machine load cannot change)

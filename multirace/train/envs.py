@@ -78,7 +78,8 @@ class TrainEnv:
                  sensor=None, episode_steps=1500, terminate_off_track=True, off_track_penalty=1.0, progress_weight=1.0,
                  centre_weight=0.1, randomize=None, shared=None, worker=0, collision_penalty=0.0,
                  terminate_collision=False, proximity_penalty=0.0, proximity_gap=1.0, proximity_side_room=0.1,
-                 bots_ahead=0.0, bots_ahead_spread=0.0, expert_labels=False, expert="", deepracer_log=False):
+                 bots_ahead=0.0, bots_ahead_spread=0.0, expert_labels=False, expert="", deepracer_log=False,
+                 observation="camera"):
         self.runs = list(runs)  # [(track name/path or Track rows, reverse)]
         self.num_cars = int(num_cars)
         self.bots = tuple(bots)
@@ -100,6 +101,7 @@ class TrainEnv:
         self.expert = str(expert or "")  # the labelling driver's bot spec; "" = bot:pass at the space's top speed
         self._expert = None  # that driver (built on first use)
         self.deepracer_log = bool(deepracer_log)  # each step's info carries the car's sim-trace params
+        self.observation = observation  # "camera" (the sensors) or "state" (privileged vectors, for RL teachers)
         self.progress_weight = float(progress_weight)
         self.centre_weight = float(centre_weight)
         self.randomize = randomize
@@ -125,7 +127,7 @@ class TrainEnv:
             self._envs[k] = RaceEnv(track=track, reverse=reverse, num_cars=self.num_cars, race="time_trial",
                                     laps=100000, bots=self.bots, action_space=self.action_space,
                                     reward_function=reward, camera=self.camera, sensor=self.sensor,
-                                    max_steps=self.episode_steps)
+                                    max_steps=self.episode_steps, observation=self.observation)
         return self._envs[k]
 
     def _episode_randomization(self):

@@ -72,6 +72,7 @@ class ImitationConfig:
     action_space: object = None  # model_metadata path/dict; None = the 10 default actions (with init: its own)
     expert_speed: float = 1.0  # m/s the default `pass` expert drives (and so labels)
     expert: str | None = None  # a bot spec such as "racingline@0.9"; None = pass@expert_speed
+    teacher: str | None = None  # a teacher file (`teacher.py`, an RL state policy): the expert drives as it does
     randomize: object = None  # the env's domain randomisation (None, "mild", "strong" or a dict), per episode
     procedural_tracks: int = 0  # seeded generated tracks added to `tracks` (each in both directions if asked)
     init: str | None = None  # start from this agent file's weights (its network, image size and action space)
@@ -198,6 +199,33 @@ def check_init_action_space(init_space, space, init_path) -> None:
         raise ValueError(f"--action-space: does not fit the net of --init {init_path} ({init_space.kind}, {size})")
 
 
+def make_expert(config: ImitationConfig, space):
+    """The driver whose commands label the images: a teacher file's state policy, or a scripted bot."""
+    if config.teacher:
+        from .teacher import load_teacher
+
+        return load_teacher(config.teacher)
+    expert = parse_bot(config.expert) if config.expert else Bot(kind="pass", speed=float(config.expert_speed))
+    if expert.kind != "racingline" and not space.discrete and not space.low[1] <= expert.speed <= space.high[1]:
+        raise ValueError(f"expert speed {expert.speed} is outside the action space's speed range")
+    return expert
+
+
+def expert_command(expert, env) -> tuple[float, float]:
+    """(steering degrees, speed m/s) the expert would command for the env's car 0: a bot from the track and the
+    traffic, a teacher from the car's privileged state."""
+    if isinstance(expert, Bot):
+        return expert.command(env.track, env.car_spec, env.world.poses[0], env.sim_time, env.races[0].segment_hint,
+                              env.traffic(0))
+    steer, speed = expert.command(env.car_state(0)[None])[0]
+    return float(steer), float(speed)
+
+
+def expert_name(expert, config: ImitationConfig) -> str:
+    """The expert as the agent file's training notes name it."""
+    return expert.name if isinstance(expert, Bot) else f"teacher:{Path(config.teacher).name}"
+
+
 def run_dagger(config: ImitationConfig) -> dict:
     """Train a camera agent by DAgger and write it to `config.out`; returns a summary dict."""
     started = time.perf_counter()
@@ -216,10 +244,8 @@ def run_dagger(config: ImitationConfig) -> dict:
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
     space = load_action_space(config.action_space)
-    expert = parse_bot(config.expert) if config.expert else Bot(kind="pass", speed=float(config.expert_speed))
+    expert = make_expert(config, space)
     bots = tuple(parse_bot(b).name for b in config.traffic)  # a clear error on a bad spec, before any env starts
-    if expert.kind != "racingline" and not space.discrete and not space.low[1] <= expert.speed <= space.high[1]:
-        raise ValueError(f"expert speed {expert.speed} is outside the action space's speed range")
 
     runs = imitation_runs(config)
     envs = [parallel_env(track=t, reverse=r, num_cars=1, race="time_trial", laps=1000, action_space=space,
@@ -269,9 +295,7 @@ def run_dagger(config: ImitationConfig) -> dict:
                 with torch.no_grad():
                     learner = _greedy(space, net(stack_observations(observations)))
                 for k, env in enumerate(envs):
-                    steer, speed = expert.command(env.track, env.car_spec, env.world.poses[0], env.sim_time,
-                                                  env.races[0].segment_hint, env.traffic(0))
-                    label = space.nearest(steer, speed)
+                    label = space.nearest(*expert_command(expert, env))
                     data.add(observations[k], label)
                     use_learner = rng.random() >= beta
                     action = learner[k] if use_learner else label
@@ -321,7 +345,7 @@ def run_dagger(config: ImitationConfig) -> dict:
     net.eval()
     wall = time.perf_counter() - started
     training = {
-        "method": "dagger", "expert": expert.name, "traffic": list(bots), "traffic_share": config.traffic_share,
+        "method": "dagger", "expert": expert_name(expert, config), "traffic": list(bots), "traffic_share": config.traffic_share,
         "lidar": bool(config.lidar),
         "tracks": list(dict.fromkeys(str(t) for t in config.tracks)),
         "directions": ["forward", "reverse"] if config.both_directions else ["forward"],

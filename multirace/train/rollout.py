@@ -11,12 +11,12 @@ class Rollout:
     """(T, N) buffers: uint8 images, LIDAR ranges, actions, log-probs, rewards, dones, values, expert labels,
     and which cars' samples train the learner (opponent-pool cars do not)."""
 
-    def __init__(self, steps: int, cars: int, obs_shape, lidar_samples: int, space):
+    def __init__(self, steps: int, cars: int, obs_shape, lidar_samples: int, space, obs_dtype=np.uint8):
         T, N = steps, cars
         self.steps, self.cars, self.obs_shape, self.lidar_samples = T, N, tuple(obs_shape), lidar_samples
         self.act_shape = () if space.discrete else (2,)
         act_dtype = torch.long if space.discrete else torch.float32
-        self.obs = np.zeros((T, N, *obs_shape), np.uint8)
+        self.obs = np.zeros((T, N, *obs_shape), obs_dtype)  # images, or a state policy's float vectors
         self.lidar = np.zeros((T, N, lidar_samples), np.float32)
         self.act = torch.zeros((T, N, *self.act_shape), dtype=act_dtype)
         self.logp = torch.zeros((T, N))

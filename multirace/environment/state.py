@@ -1,0 +1,115 @@
+"""Privileged state of a race: what a car would know with perfect sensing, as flat float32 vectors.
+
+Two views of the same step, read from the env after its cars are located:
+
+- `car_features(env, i)`: car i's own view (ego-centric), the observation of
+  ``observation="state"`` envs and of the RL teachers that learn from it
+  ("learning by cheating": a state policy learns to race fast, with no camera
+  to render and no CNN to train, then teaches a camera policy by DAgger).
+  Its speed over the ground, slip and yaw rate, the command it is carrying
+  out, where it sits on the road, the centre line ahead of it in its own frame
+  (which holds the heading error and the curvature to come), and the nearest
+  cars ahead and behind. A DeepRacer car measures none of these; the camera
+  policies that ship read only their sensors.
+- `global_state(env)`: every car's pose, motion, race distance, position on
+  the road and the curvature ahead of it, for centralised critics
+  (PettingZoo's `state()`).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+LOOKAHEAD = np.array([0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0])  # metres along the centre line
+TRAFFIC_AHEAD, TRAFFIC_BEHIND = 2, 1  # nearest cars ahead and behind in the ego view
+TRAFFIC_RANGE = 5.0  # metres; cars farther along the track than this are not in the ego view
+MAX_SPEED = 4.0  # m/s: speeds are scaled by this
+CURVATURE_AHEAD = (1.0, 2.0, 3.0)  # metres: the global state's heading change of the centre line to these points
+CAR_FEATURES = 11 + 2 * len(LOOKAHEAD) + 4 * (TRAFFIC_AHEAD + TRAFFIC_BEHIND)
+GLOBAL_PER_CAR = 13 + len(CURVATURE_AHEAD)
+
+
+def centre_points(track, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Centre-line (x, y, heading) at the arc lengths `s` (any shape, wrapped round the loop)."""
+    s = np.mod(s, track.length)
+    i = np.clip(np.searchsorted(track.cum_s, s, side="right") - 1, 0, len(track.seg_len) - 1)
+    t = (s - track.cum_s[i]) / np.maximum(track.seg_len[i], 1e-9)
+    xy = track.seg_start[i] + t[..., None] * track.seg_vec[i]
+    return xy[..., 0], xy[..., 1], track.seg_heading[i]
+
+
+def _wrap(angle):
+    return (angle + math.pi) % (2 * math.pi) - math.pi
+
+
+def _motion(env, i: int) -> tuple[float, float, float]:
+    """(forward speed, leftward speed, yaw rate) of car i; the kinematic car has no slip."""
+    world = env.world
+    if world.dynamics == "dynamic":
+        forward, left, yaw_rate = (float(v) for v in world.motion[i])
+        return forward, left, yaw_rate
+    return float(world.drive_speed[i]), 0.0, 0.0
+
+
+def _traffic_features(env, i: int) -> list[float]:
+    """(present, gap / range, lateral difference, speed difference / max) of the nearest cars ahead, then behind."""
+    ahead, behind = [], []
+    length = env.track.length
+    for along, lateral, speed in env.traffic(i):
+        if along <= TRAFFIC_RANGE:
+            ahead.append((along, lateral, speed))
+        elif length - along <= TRAFFIC_RANGE:
+            behind.append((length - along, lateral, speed))
+    own = float(env.world.drive_speed[i])
+    rows = []
+    for cars, count in ((sorted(ahead), TRAFFIC_AHEAD), (sorted(behind), TRAFFIC_BEHIND)):
+        for k in range(count):
+            if k < len(cars):
+                gap, lateral, speed = cars[k]
+                rows += [1.0, gap / TRAFFIC_RANGE, lateral, (speed - own) / MAX_SPEED]
+            else:
+                rows += [0.0, 1.0, 0.0, 0.0]
+    return rows
+
+
+def car_features(env, i: int) -> np.ndarray:
+    """Car i's privileged ego view (`CAR_FEATURES` float32 values; see the module docstring)."""
+    geo = env._geometry[i]
+    x, y, yaw = (float(v) for v in env.world.poses[i])
+    if geo is None:  # a parked car: nothing to see
+        return np.zeros(CAR_FEATURES, np.float32)
+    proj = geo["proj"]
+    forward, left, yaw_rate = _motion(env, i)
+    steer, speed = env._commands[i]
+    half = max(proj.width / 2, 1e-3)
+    error = _wrap(yaw - proj.heading)
+    px, py, _ = centre_points(env.track, proj.s + LOOKAHEAD)
+    dx, dy = px - x, py - y
+    cos, sin = math.cos(yaw), math.sin(yaw)
+    ahead_x, ahead_y = cos * dx + sin * dy, -sin * dx + cos * dy  # the centre line in the car's frame
+    values = [forward / MAX_SPEED, left, yaw_rate / 3.0, float(env.world.drive_speed[i]) / MAX_SPEED,
+              steer / env.car_spec.max_steer, speed / MAX_SPEED, proj.lateral / half, proj.left_width,
+              proj.right_width, math.sin(error), math.cos(error)]
+    values += (ahead_x / LOOKAHEAD).tolist() + (ahead_y / LOOKAHEAD).tolist() + _traffic_features(env, i)
+    return np.asarray(values, np.float32)
+
+
+def global_state(env) -> np.ndarray:
+    """Every car's state, learning cars then bots (`GLOBAL_PER_CAR` values each; see the module docstring)."""
+    track = env.track
+    rows = np.zeros((env.total_cars, GLOBAL_PER_CAR), np.float32)
+    centre = (track.bounds[0] + track.bounds[1]) / 2
+    for i in range(env.total_cars):
+        geo = env._geometry[i] if i < len(env._geometry) else None
+        if geo is None:
+            continue
+        proj, race = geo["proj"], env.races[i]
+        x, y, yaw = (float(v) for v in env.world.poses[i])
+        forward, left, yaw_rate = _motion(env, i)
+        _, _, headings = centre_points(track, proj.s + np.array(CURVATURE_AHEAD))
+        rows[i] = [1.0, (x - centre[0]) / 10.0, (y - centre[1]) / 10.0, math.cos(yaw), math.sin(yaw),
+                   forward / MAX_SPEED, left, yaw_rate / 3.0, race.distance / track.length, race.laps,
+                   proj.lateral / max(proj.width / 2, 1e-3), math.sin(_wrap(yaw - proj.heading)),
+                   math.cos(_wrap(yaw - proj.heading)), *(_wrap(headings - proj.heading))]
+    return rows.reshape(-1)

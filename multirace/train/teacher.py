@@ -1,0 +1,191 @@
+"""Learning by cheating, stage 1: a state policy (the teacher) learns to race by PPO from the reward.
+
+The teacher reads each car's privileged state (`environment.state.car_features`: its motion, where it
+sits on the road, the centre line ahead in its own frame, the nearest cars) instead of a camera, so the
+envs render nothing and the net is a small MLP: PPO gets many more samples per second and learns from
+far fewer. It learns from the same reward as a camera run (the built-in progress reward or a
+DeepRacer reward file) and is evaluated like one: a greedy 3-lap time trial under the race rules. Stage
+2 (`distill.py`) teaches a camera policy to drive as it does by DAgger; no scripted driver is involved.
+
+A teacher file is a torch weights-only archive: {"weights", "features", "hidden", "action_space"}.
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from ..environment.actions import load_action_space
+from ..environment.state import CAR_FEATURES
+from .config import TrainConfig
+from .envs import INFO_KEYS, TrainEnv, env_settings
+from .ppo import Policy, RewardScale, anneal_learning_rate, check_reward_file, collect_rollout, ppo_update, \
+    training_runs
+from .robust import RobustKnobs
+from .rollout import Rollout, expert_actions
+
+
+class StatePolicyNet(nn.Module):
+    """Gaussian policy and value MLPs over the privileged state; outputs are commands in degrees and m/s.
+
+    The mean is the action box's centre plus its half-range times a linear output, and the log-std a
+    learned vector, so the net learns in units of the box whatever the space's range.
+    """
+
+    def __init__(self, space, features: int = CAR_FEATURES, hidden: int = 128):
+        super().__init__()
+        if space.discrete:
+            raise ValueError("the privileged teacher drives a continuous action space (steering and speed "
+                             "ranges); give --action-space a continuous model_metadata.json")
+        self.features, self.hidden = int(features), int(hidden)
+        self.trunk = nn.Sequential(nn.Linear(features, hidden), nn.Tanh(), nn.Linear(hidden, hidden), nn.Tanh())
+        self.mean = nn.Linear(hidden, 2)
+        self.value_head = nn.Sequential(nn.Linear(features, hidden), nn.Tanh(), nn.Linear(hidden, hidden), nn.Tanh(),
+                                        nn.Linear(hidden, 1))
+        low, high = torch.tensor(space.low, dtype=torch.float32), torch.tensor(space.high, dtype=torch.float32)
+        self.register_buffer("centre", (low + high) / 2)
+        self.register_buffer("half_range", torch.clamp((high - low) / 2, min=1e-3))
+        self.log_std = nn.Parameter(torch.full((2,), -math.log(2.0)))  # half a half-range to start
+        with torch.no_grad():
+            self.mean.weight.mul_(0.01)
+            self.mean.bias.zero_()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(N, 4): mean steering, mean speed, log-std of each, in the action space's units."""
+        mean = self.centre + self.half_range * self.mean(self.trunk(x))
+        log_std = (torch.log(self.half_range) + self.log_std).expand_as(mean)
+        return torch.cat([mean, log_std], dim=1)
+
+    def forward_all(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.forward(x), self.value_head(x).squeeze(-1)
+
+    def command(self, features: np.ndarray) -> np.ndarray:
+        """Greedy (steering degrees, speed m/s) for a batch of state vectors (N, features)."""
+        with torch.no_grad():
+            return self.forward(torch.as_tensor(features, dtype=torch.float32))[:, :2].numpy()
+
+
+def save_teacher(path, net: StatePolicyNet, space, training: dict) -> Path:
+    """Write a teacher file (weights, sizes, action space and training notes), atomically."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save({"weights": net.state_dict(), "features": net.features, "hidden": net.hidden,
+                "action_space": space.to_metadata(), "training": training}, tmp)
+    tmp.replace(path)
+    return path
+
+
+def load_teacher(path) -> StatePolicyNet:
+    """A teacher file's net, ready to drive (weights-only load: no code runs)."""
+    try:
+        saved = torch.load(path, map_location="cpu", weights_only=True)
+        space = load_action_space(saved["action_space"])
+        net = StatePolicyNet(space, int(saved["features"]), int(saved["hidden"]))
+        net.load_state_dict(saved["weights"])
+    except (OSError, KeyError, RuntimeError, ValueError, TypeError) as exc:
+        raise ValueError(f"teacher file {path}: not a readable teacher ({type(exc).__name__}: {exc})") from None
+    if net.features != CAR_FEATURES:
+        raise ValueError(f"teacher file {path}: reads {net.features} state values, this version gives {CAR_FEATURES}")
+    net.space = space
+    return net.eval()
+
+
+def evaluate_teacher(net: StatePolicyNet, space, track: str, laps: int = 3, seed: int = 0,
+                     reverse: bool = False) -> dict:
+    """A greedy time trial of the teacher under the race rules (`multirace race`'s, with DeepRacer's action
+    noise); a result row like a race's: laps, resets, total_time, best_lap, status."""
+    from ..environment.race_env import RaceEnv
+
+    env = RaceEnv(track=track, reverse=reverse, num_cars=1, race="time_trial", laps=laps, action_space=space,
+                  observation="state")
+    try:
+        obs, _ = env.reset(seed=seed)
+        while env.agents:
+            action = net.command(obs["car_0"][None])[0]
+            obs, _, _, _, infos = env.step({"car_0": action})
+        race = env.races[0]
+        return {"laps": race.laps, "resets": race.resets, "total_time": race.finish_time,
+                "best_lap": min(race.lap_times) if race.lap_times else None, "status": race.status}
+    finally:
+        env.close()
+
+
+def train_teacher(config: TrainConfig, out, seconds: float, log=print) -> dict:
+    """PPO of a `StatePolicyNet` for `seconds` of wall time; writes the best-evaluated teacher to `out`
+    and returns its summary (evaluations, agent-steps, the sampling and update split)."""
+    started = time.perf_counter()
+    torch.manual_seed(config.seed)
+    space = load_action_space(config.action_space)
+    policy = Policy(space)
+    runs = training_runs(config)
+    check_reward_file(config, runs)
+    settings = {**env_settings(config), "observation": "state", "expert_labels": False, "deepracer_log": False}
+    from ..environment.vector import SubprocVectorEnv
+
+    vec = SubprocVectorEnv([functools.partial(TrainEnv, runs, worker=w, **settings) for w in range(config.num_envs)],
+                           info_keys=INFO_KEYS)
+    E, A, T = config.num_envs, config.cars_per_env, config.rollout_steps
+    N = E * A
+    net = StatePolicyNet(space, hidden=config.teacher_hidden)
+    optimiser = torch.optim.Adam(net.parameters(), lr=config.teacher_lr, eps=1e-5)
+    reward_scale = RewardScale(N, config.gamma) if config.norm_reward else None
+    teacher_config = dataclasses.replace(config, lr=config.teacher_lr, epochs=config.teacher_epochs,
+                                         minibatch_size=config.teacher_minibatch, ent_coef=0.0, expert_coef=0.0)
+    robust = RobustKnobs(TrainConfig(), seed=config.seed)  # no pool or nature: every car is the learner
+    learner_mask = np.ones((E, A), bool)
+    summary = {"agent_steps": 0, "iterations": 0, "sample_seconds": 0.0, "update_seconds": 0.0, "evals": []}
+    best = None
+    last_eval = time.perf_counter()
+    try:
+        obs, _ = vec.reset(seeds=[config.seed * 100_000 + e for e in range(E)])
+        rollout = Rollout(T, N, obs.shape[2:], 0, space, obs_dtype=np.float32)
+        rollout.start(obs, expert_actions([[{}] * A] * E, discrete=False))  # no expert labels: NaN
+        torch.set_num_threads(1)
+        while time.perf_counter() - started < seconds:
+            fraction = (time.perf_counter() - started) / seconds
+            t0 = time.perf_counter()
+            next_value, _, _ = collect_rollout(vec, net, policy, rollout, robust, learner_mask, reward_scale,
+                                               teacher_config)
+            t1 = time.perf_counter()
+            advantages, returns = rollout.advantages(next_value, config.gamma, config.gae_lambda)
+            anneal_learning_rate(optimiser, teacher_config, fraction)
+            ppo_update(net, policy, optimiser, rollout.learner_batch(advantages, returns), teacher_config, space,
+                       lidar=False, value_only=False)
+            summary["sample_seconds"] += t1 - t0
+            summary["update_seconds"] += time.perf_counter() - t1
+            summary["agent_steps"] += T * N
+            summary["iterations"] += 1
+            if time.perf_counter() - last_eval >= config.eval_every:
+                best = _evaluate_and_keep(net, space, config, started, summary, best, log)
+                last_eval = time.perf_counter()
+    finally:
+        vec.close()
+    best = _evaluate_and_keep(net, space, config, started, summary, best, log)
+    net.load_state_dict(best[1])
+    summary.update(wall_seconds=round(time.perf_counter() - started, 1), selected=best[2])
+    save_teacher(out, net, space, {k: v for k, v in summary.items() if k != "evals"})
+    return summary
+
+
+def _evaluate_and_keep(net, space, config: TrainConfig, started: float, summary: dict, best, log):
+    """Evaluate the teacher now, record it, and return the best (score, weights, evaluation) so far."""
+    from .run import eval_score
+
+    row = evaluate_teacher(net.eval(), space, config.eval_track or str(config.tracks[0]), config.eval_laps)
+    row.update(elapsed=round(time.perf_counter() - started, 1), agent_steps=summary["agent_steps"],
+               target=config.eval_laps)
+    summary["evals"].append(row)
+    if log:
+        lap = f"{row['best_lap']:.2f} s" if row["best_lap"] else "-"
+        log(f"teacher {row['elapsed']:6.0f} s {row['agent_steps']:9d} steps: {row['laps']}/{row['target']} laps, "
+            f"{row['resets']} resets, best lap {lap}")
+    score = eval_score(row)
+    if best is None or score > best[0]:
+        best = (score, {k: v.detach().clone() for k, v in net.state_dict().items()}, row)
+    return best
