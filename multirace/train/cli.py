@@ -128,7 +128,7 @@ def report_privileged(config, args, command) -> int:
               f"lap {lap}" + (f" ({ratio}x the racing line's {summary['racing_line_lap']:.2f} s)" if ratio else ""))
     print(f"wrote {summary['out']} (camera agent) and {summary['teacher_file']} (teacher) in "
           f"{summary['wall_seconds']} s: teacher {teacher['wall_seconds']} s, {teacher['agent_steps']} agent-steps; "
-          f"student {student['wall_seconds']} s, {student['samples']} labelled images")
+          f"student {student['wall_seconds']} s, {student['agent_steps']} agent-steps")
     return 0
 
 

@@ -24,7 +24,7 @@ from __future__ import annotations
 import dataclasses
 import json
 
-from ..racing.nets import DEFAULT_NETWORK, SHALLOW, TINY
+from ..racing.nets import SHALLOW, TINY
 from ..resources import agents_dir
 from ..sensors.suite import SensorSuite, declared_sensors
 
@@ -83,12 +83,16 @@ class TrainConfig:
     value_warmup: int = 0  # with --init: first iterations train only the (new) value head, policy frozen
     # ---- learning by cheating (multirace.train.teacher / distill)
     privileged: bool = False  # stage 1: PPO of a state policy (the teacher) on the privileged state, no camera; stage 2: DAgger of the camera policy from it
-    distill_share: float = 0.35  # with privileged: share of `minutes` for stage 2 (the camera student)
+    distill_share: float = 0.7  # with privileged: share of `minutes` for stage 2 (the camera student)
     teacher_hidden: int = 128  # width of the teacher's two hidden layers (policy and value MLPs)
     teacher_lr: float = 3e-4  # the teacher's Adam learning rate
     teacher_epochs: int = 5  # the teacher's passes over each rollout
     teacher_minibatch: int = 512  # the teacher's samples per gradient step
-    student_network: str = DEFAULT_NETWORK  # with privileged: the camera student's network (nets.NETWORKS)
+    student_network: str = TINY  # with privileged: the camera student's network (nets.NETWORKS)
+    distill_lr: float = 1e-3  # with privileged: the student's Adam learning rate
+    distill_batch: int = 128  # with privileged: labelled images per gradient step of the student
+    distill_steps: int = 40  # with privileged: gradient steps after each rollout (of rollout_steps x cars)
+    distill_samples: int = 60000  # with privileged: labelled images kept (beyond: new ones replace random old ones)
     # ---- budget, logging, outputs
     minutes: float = 10.0  # wall-clock budget, including evaluations and checkpoints
     max_iterations: int = 0  # > 0: stop after this many PPO iterations too (a budget machine load cannot change)

@@ -2,35 +2,120 @@
 
 1. `teacher.train_teacher`: PPO of a state policy on the privileged state, from the run's reward, for
    the first ``1 - distill_share`` of the budget (the best-evaluated teacher is kept);
-2. `imitate.run_dagger` with that teacher as the expert: the camera policy (the student, a CNN that
-   sees only what the agent file's sensors give it) drives, and every image it meets is labelled with
-   the teacher's command there, for the rest of the budget.
+2. DAgger of the camera policy (the student, a CNN that sees only what its agent file's sensors give
+   it) with the teacher as its expert (`distill_student`): the envs run in worker processes as in PPO,
+   every image a car meets is labelled there with the teacher's command for that car, the cars are
+   driven by the teacher with probability beta (1, then halved every iteration) and by the student
+   otherwise, and the student is trained on the aggregated labels.
 
 Both stages learn from the reward through the teacher: no scripted driver labels anything. Writes
-`out` (the camera agent file), `out.teacher.pt` (the teacher) and `out.train.json` (both stages'
-figures, evaluations and wall times, and the racing line's reference lap for scale).
+`out` (the camera agent file), `out.teacher.pt` (the teacher), `out.png` (the student's learning
+curve) and `out.train.json` (both stages' figures, evaluations and wall times, and the racing line's
+reference lap for scale).
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from pathlib import Path
 
+import numpy as np
+import torch
+
+from ..environment.actions import load_action_space
+from ..racing.nets import build_net
+from ..sensors.camera import image_shape_of
 from .config import TrainConfig
-from .imitate import ImitationConfig, run_dagger
-from .run import evaluate_time_trial
+from .envs import TEACHER_PREFIX
+from .imitate import Dataset, greedy_actions, imitation_loss
+from .ppo import init_continuous_head, make_vector_env
+from .rollout import Rollout, expert_actions, finished_episodes
+from .run import TrainingRun
 from .teacher import train_teacher
+from .threads import update_threads
 
 
-def student_config(config: TrainConfig, out, teacher_path, minutes: float, command: str | None) -> ImitationConfig:
-    """The DAgger settings of the camera student: the run's tracks, directions, action space and sensors."""
-    if config.reverse == "yes":
-        raise ValueError("--reverse yes: the privileged run trains a direction set of 'no' or 'both'")
-    return ImitationConfig(out=str(out), tracks=tuple(config.tracks), both_directions=config.reverse == "both",
-                           minutes=minutes, seed=config.seed, network=config.student_network,
-                           action_space=config.action_space, teacher=str(teacher_path), randomize=config.randomize,
-                           procedural_tracks=config.procedural_tracks, camera=tuple(config.camera),
-                           sensor=tuple(config.sensors().names), progress=config.progress, command=command)
+def student_config(config: TrainConfig, teacher_path, seconds: float) -> TrainConfig:
+    """The camera student's settings: the run's own, with the teacher as the labelling expert and the rest of
+    the budget."""
+    return dataclasses.replace(config, privileged=False, network=config.student_network, minutes=seconds / 60.0,
+                               expert=f"{TEACHER_PREFIX}{teacher_path}", expert_coef=1.0)
+
+
+def distill_student(config: TrainConfig, out, command: str | None = None, log=print) -> dict:
+    """DAgger of a camera net from `config.expert` (a teacher) in the vectorised envs; writes the agent file
+    (the best-evaluated student) and its curve and history like a PPO run; returns the run's summary."""
+    run = TrainingRun(config, out, command, log)
+    run.method, run.notes = "dagger", {"expert": config.expert.replace(TEACHER_PREFIX, "teacher:"),
+                                       "stage": "student of an RL teacher (learning by cheating)"}
+    torch.set_num_threads(int(config.threads))
+    torch.manual_seed(config.seed)
+    rng = np.random.default_rng(config.seed)
+    space = load_action_space(config.action_space)
+    vec = make_vector_env(config)
+    E, A, T = config.num_envs, config.cars_per_env, config.rollout_steps
+    try:
+        obs, infos = vec.reset(seeds=[config.seed * 100_000 + e for e in range(E)])
+        obs_shape = (obs["camera"] if isinstance(obs, dict) else obs).shape[2:]
+        lidar = obs["lidar"].shape[-1] if isinstance(obs, dict) else 0
+        image_shape = image_shape_of(obs_shape)
+        net = build_net(config.network, image_shape, space, lidar_samples=lidar)
+        if not space.discrete:
+            init_continuous_head(net, space)
+        optimiser = torch.optim.Adam(net.parameters(), lr=config.distill_lr)
+        loss_fn = imitation_loss(space)
+        label_shape, label_dtype = ((), np.int64) if space.discrete else ((2,), np.float32)
+        data = Dataset(config.distill_samples, obs_shape, label_shape, label_dtype, rng, lidar)
+        view = Rollout(1, E * A, obs_shape, lidar, space)  # only for its net_input(): (E, A, ...) -> (N, ...)
+        labels = expert_actions(infos, space.discrete).numpy()
+        while run.keep_going(0):
+            t0 = time.perf_counter()
+            beta = 0.5 ** run.iteration
+            net.eval()
+            episodes = []
+            for _ in range(T):
+                x = view.net_input(obs)
+                known = labels >= 0 if space.discrete else ~np.isnan(labels).any(-1)
+                for k in np.flatnonzero(known):
+                    data.add({key: x[key][k] for key in x} if lidar else x[k], labels[k])
+                with torch.no_grad():
+                    mine = np.asarray(greedy_actions(space, net(x)))
+                teacher_drives = (rng.random(E * A) < beta) & known
+                actions = np.where(teacher_drives.reshape(-1, *([1] * (mine.ndim - 1))), labels, mine)
+                obs, _, _, _, infos = vec.step(actions.reshape(E, A, *actions.shape[1:]))
+                labels = expert_actions(infos, space.discrete).numpy()
+                episodes += finished_episodes(infos, np.ones((E, A), bool))
+            run.agent_steps += T * E * A
+            run.sample_time += time.perf_counter() - t0
+            t1 = time.perf_counter()
+            loss = _fit(net, optimiser, loss_fn, data, config)
+            run.update_time += time.perf_counter() - t1
+            run.iteration += 1
+            run.record(episodes, {"expert_loss": round(loss, 4), "beta": round(beta, 4)}, 0.0, T * E * A,
+                       time.perf_counter() - t0, {})
+            if run.checkpoint_and_evaluate(net, optimiser, None, space, image_shape):
+                break
+    finally:
+        run.stop_progress()
+        vec.close()
+    return run.finish(net, optimiser, None, space, image_shape)
+
+
+def _fit(net, optimiser, loss_fn, data: Dataset, config: TrainConfig) -> float:
+    """`distill_steps` gradient steps on random batches of the aggregated labels; the mean loss."""
+    net.train()
+    torch.set_num_threads(update_threads(config.update_threads))
+    losses = []
+    for _ in range(config.distill_steps):
+        inputs, targets = data.batch(config.distill_batch)
+        loss = loss_fn(net(inputs), targets)
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+        losses.append(loss.item())
+    torch.set_num_threads(int(config.threads))
+    return float(np.mean(losses))
 
 
 def train_privileged(config: TrainConfig, out, command: str | None = None, log=print) -> dict:
@@ -45,22 +130,22 @@ def train_privileged(config: TrainConfig, out, command: str | None = None, log=p
     log(f"wrote {teacher_path}: {teacher['agent_steps']} agent-steps in {teacher['wall_seconds']} s (sampling "
         f"{teacher['sample_seconds']:.0f} s, updates {teacher['update_seconds']:.0f} s)")
     remaining = max(30.0, budget - (time.perf_counter() - started))
-    student = run_dagger(student_config(config, out, teacher_path, remaining / 60.0, command))
+    student = distill_student(student_config(config, teacher_path, remaining), out, command=command, log=log)
     track = config.eval_track or str(config.tracks[0])
-    car = evaluate_time_trial(out, track, config.eval_laps)
     reference = reference_lap(track)
-    student_eval = {key: car[key] for key in ("laps", "resets", "total_time", "best_lap", "status")}
-    summary = {"out": str(out), "teacher_file": str(teacher_path), "track": track, "racing_line_lap": reference,
-               "wall_seconds": round(time.perf_counter() - started, 1),
-               "teacher": {**{k: v for k, v in teacher.items()}, "ratio": _ratio(teacher["selected"], reference)},
-               "student": {**{k: v for k, v in student.items() if k != "history"}, "evaluation": student_eval,
-                           "ratio": _ratio(student_eval, reference)},
-               "config": config.to_dict()}
-    out.with_suffix(".train.json").write_text(json.dumps(summary, indent=1))
-    return summary
+    record = json.loads(out.with_suffix(".train.json").read_text())
+    record["teacher"] = {**teacher, "file": str(teacher_path), "ratio": ratio(teacher["selected"], reference)}
+    record["racing_line_lap"] = reference
+    record["summary"]["wall_seconds_both_stages"] = round(time.perf_counter() - started, 1)
+    out.with_suffix(".train.json").write_text(json.dumps(record, indent=1))
+    selected = student.get("selected_eval") or {}
+    return {"out": str(out), "teacher_file": str(teacher_path), "track": track, "racing_line_lap": reference,
+            "wall_seconds": record["summary"]["wall_seconds_both_stages"], "teacher": record["teacher"],
+            "student": {**{k: v for k, v in student.items() if k not in ("history", "evals")},
+                        "evaluation": selected, "ratio": ratio(selected, reference)}}
 
 
-def _ratio(evaluation: dict, reference) -> float | None:
+def ratio(evaluation: dict, reference) -> float | None:
     """Best lap over the racing line's, for a run with every lap and no off-track (else None)."""
     if not evaluation.get("best_lap") or not reference or evaluation.get("resets"):
         return None

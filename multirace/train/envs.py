@@ -24,9 +24,11 @@ adds what training needs on top of the race env:
 - `time_limit` in the infos when only the env's step limit ended the car's
   episode (the learner bootstraps those from its value estimate, as the car
   could have driven on);
-- optionally (`expert_labels`), the action the scripted ``pass`` driver
-  (`bots.passing_line`, privileged state) would take from each car's next
-  observation, for the learner's auxiliary imitation loss (`expert_coef`);
+- optionally (`expert_labels`), the action an expert would take from each
+  car's next observation, for the learner's auxiliary imitation loss
+  (`expert_coef`): a scripted driver (by default ``pass``,
+  `bots.passing_line`) or an RL teacher on the car's privileged state
+  (``expert="teacher:PATH"``, `teacher.py`);
 - per-car episode statistics in the infos (return, length, laps driven,
   collisions caused);
 - optionally (`deepracer_log`), the few DeepRacer params of each car's
@@ -42,6 +44,7 @@ import numpy as np
 
 from ..recording.simtrace import closest_waypoint
 
+TEACHER_PREFIX = "teacher:"  # an expert spec naming a teacher file (`teacher.py`) instead of a bot
 BOT_SPACING = 2.0  # metres between bots started ahead of the learning cars (bots_ahead)
 INFO_KEYS = ("train_done", "time_limit", "ep_return", "ep_length", "ep_laps", "ep_caused", "off_track", "collisions",
              "caused", "perturbation", "expert_action", "deepracer")
@@ -98,7 +101,7 @@ class TrainEnv:
         self.bots_ahead = float(bots_ahead)
         self.bots_ahead_spread = float(bots_ahead_spread)
         self.expert_labels = bool(expert_labels)
-        self.expert = str(expert or "")  # the labelling driver's bot spec; "" = bot:pass at the space's top speed
+        self.expert = str(expert or "")  # the labelling driver: a bot spec or "teacher:PATH"; "" = bot:pass at top speed
         self._expert = None  # that driver (built on first use)
         self.deepracer_log = bool(deepracer_log)  # each step's info carries the car's sim-trace params
         self.observation = observation  # "camera" (the sensors) or "state" (privileged vectors, for RL teachers)
@@ -186,14 +189,25 @@ class TrainEnv:
         if not known:
             return -1 if space.discrete else [math.nan, math.nan]
         if self._expert is None:  # every run shares the action space, so one driver serves all
-            from ..environment.bots import Bot, parse_bot
-
-            top = max(a[1] for a in space.actions) if space.discrete else float(space.high[1])
-            self._expert = parse_bot(self.expert) if self.expert else Bot(kind="pass", speed=top)
-        steer, speed = self._expert.command(env.track, env.car_spec, env.world.poses[i], env.sim_time,
-                                            env.races[i].segment_hint, env.traffic(i))
+            self._expert = self._make_expert(space)
+        if self.expert.startswith(TEACHER_PREFIX):
+            steer, speed = (float(v) for v in self._expert.command(env.car_state(i)[None])[0])
+        else:
+            steer, speed = self._expert.command(env.track, env.car_spec, env.world.poses[i], env.sim_time,
+                                                env.races[i].segment_hint, env.traffic(i))
         label = space.nearest(steer, speed)
         return label if space.discrete else [float(v) for v in label]
+
+    def _make_expert(self, space):
+        """The labelling driver: a teacher file's state policy ("teacher:PATH"), a bot spec, or bot:pass."""
+        if self.expert.startswith(TEACHER_PREFIX):
+            from .teacher import load_teacher
+
+            return load_teacher(self.expert[len(TEACHER_PREFIX):])
+        from ..environment.bots import Bot, parse_bot
+
+        top = max(a[1] for a in space.actions) if space.discrete else float(space.high[1])
+        return parse_bot(self.expert) if self.expert else Bot(kind="pass", speed=top)
 
     def _small(self, info, done, episode, caused=0, time_limit=False):
         small = {"train_done": done, "time_limit": time_limit, "off_track": bool(info.get("off_track", False)),

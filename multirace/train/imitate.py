@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 import time
 from pathlib import Path
 
@@ -54,6 +53,7 @@ from ..environment.bots import Bot, parse_bot
 from ..environment.race_env import parallel_env
 from ..racing.nets import DEFAULT_NETWORK, build_net
 from ..sensors.camera import image_shape_of
+from .threads import default_threads
 from .warmstart import init_lineage, init_settings, load_init_agent
 
 DEFAULT_TRACKS = ("reinvent_base", "reInvent2019_track", "Oval_track", "Bowtie_track")
@@ -135,7 +135,7 @@ def stack_observations(observations: list):
     return torch.from_numpy(np.stack(observations))
 
 
-def _make_loss(space):
+def imitation_loss(space):
     """Loss(outputs, labels) for the action space: cross-entropy, or Gaussian NLL on scaled commands."""
     if space.discrete:
         ce = nn.CrossEntropyLoss()
@@ -151,25 +151,11 @@ def _make_loss(space):
     return nll
 
 
-def _greedy(space, out: torch.Tensor):
+def greedy_actions(space, out: torch.Tensor):
     """The learner's actions for a batch of outputs."""
     if space.discrete:
         return out.argmax(dim=1).tolist()
     return [row[:2].numpy() for row in out]
-
-
-def default_threads() -> int:
-    """Torch threads for training: every core on an idle machine, else 1.
-
-    On a busy machine several torch threads spin against other processes and a
-    training step gets several times slower than on one thread.
-    """
-    cores = os.cpu_count() or 1
-    try:
-        busy = os.getloadavg()[0] > 0.5
-    except OSError:
-        busy = False
-    return 1 if busy else cores
 
 
 def with_traffic(k: int, share: float) -> bool:
@@ -260,7 +246,7 @@ def run_dagger(config: ImitationConfig) -> dict:
     if config.init:
         load_init_agent(config.init, net)
     optimiser = torch.optim.Adam(net.parameters(), lr=config.lr)
-    loss_fn = _make_loss(space)
+    loss_fn = imitation_loss(space)
     label_shape, label_dtype = ((), np.int64) if space.discrete else ((2,), np.float32)
     data = Dataset(config.max_samples, obs_shape, label_shape, label_dtype, rng, lidar_samples)
 
@@ -293,7 +279,7 @@ def run_dagger(config: ImitationConfig) -> dict:
                 if step and time.perf_counter() - started >= budget:
                     break  # out of time: train on what we have and finish
                 with torch.no_grad():
-                    learner = _greedy(space, net(stack_observations(observations)))
+                    learner = greedy_actions(space, net(stack_observations(observations)))
                 for k, env in enumerate(envs):
                     label = space.nearest(*expert_command(expert, env))
                     data.add(observations[k], label)

@@ -32,6 +32,8 @@ class TrainingRun:
         self.history: list = []
         self.evals: list = []
         self.lineage: dict | None = None  # what the policy started from (`warmstart.init_lineage`), if anything
+        self.method = "ppo"  # how the weights learn, as the agent file's training notes name it
+        self.notes: dict = {}  # more training notes for every agent file the run writes (e.g. the teacher)
         self.first_success = self.first_clean = None  # elapsed seconds at the first evaluation finishing every lap
         self.best = None  # (score, weights, evaluation) of the best evaluated policy so far
         self.sample_time = self.update_time = 0.0
@@ -107,7 +109,7 @@ class TrainingRun:
     def snapshot_agent(self, path, net, space, image_shape, note=None) -> Path:
         """An agent file of the current weights, with the run's training notes."""
         config = self.config
-        training = {"method": "ppo", "agent_steps": self.agent_steps, "iterations": self.iteration,
+        training = {"method": self.method, "agent_steps": self.agent_steps, "iterations": self.iteration,
                     "tracks": [str(t) for t in config.tracks], "reverse": config.reverse, "seed": config.seed,
                     "wall_seconds": round(self.spent + self.elapsed(), 1), "reward": str(config.reward),
                     "robust": bool(config.robust)}
@@ -115,6 +117,7 @@ class TrainingRun:
             training["command"] = self.command
         if self.lineage:
             training["init"] = self.lineage
+        training.update(self.notes)
         if note:
             training.update(note)
         net.eval()
@@ -211,7 +214,8 @@ class TrainingRun:
             car = evaluate_time_trial(final, config.eval_track or str(config.tracks[0]), config.eval_laps,
                                       bots=config.eval_bots)
             final_eval = {"laps": car["laps"], "target": config.eval_laps, "resets": car["resets"],
-                          "total_time": car["total_time"], "iteration": self.iteration, "final": True}
+                          "total_time": car["total_time"], "best_lap": car["best_lap"], "iteration": self.iteration,
+                          "final": True}
             if self.best[0] > eval_score(final_eval):
                 net.load_state_dict(self.best[1])
                 note["selected"] = f"best evaluation (iteration {self.best[2]['iteration']})"
