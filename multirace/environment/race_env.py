@@ -31,7 +31,7 @@ from ..sim.objects import objects_seen
 from .randomize import Randomization, apply_command, apply_image
 from .rewards import load_reward_function
 from .rules import CarRace, StepMeasure, make_rules
-from .state import CAR_FEATURES, GLOBAL_PER_CAR, car_features, global_state
+from .state import CAR_FEATURES, GLOBAL_PER_CAR, STATE_BOUND, car_features, global_state
 from ..sim.texture import DEFAULT_PALETTE, TrackTexture
 from ..sim.tracks import Track, load_track
 from ..sim.world import World
@@ -151,9 +151,9 @@ class RaceEnv(ParallelEnv):
             raise ValueError(f"observation: expected 'camera' or 'state', got {observation!r}")
         self.observation = observation
         if observation == "state":  # privileged state vectors instead of sensors: nothing is rendered
-            obs_space = spaces.Box(-np.inf, np.inf, (CAR_FEATURES,), np.float32)
+            obs_space = spaces.Box(-STATE_BOUND, STATE_BOUND, (CAR_FEATURES,), np.float32)
         self.observation_spaces = {a: obs_space for a in self.possible_agents}
-        self.state_space = spaces.Box(-np.inf, np.inf, (self.total_cars * GLOBAL_PER_CAR,), np.float32)
+        self.state_space = spaces.Box(-STATE_BOUND, STATE_BOUND, (self.total_cars * GLOBAL_PER_CAR,), np.float32)
         self.action_spaces = {a: self.actions.space for a in self.possible_agents}
 
         self._renderer = None

@@ -26,6 +26,7 @@ TRAFFIC_AHEAD, TRAFFIC_BEHIND = 2, 1  # nearest cars ahead and behind in the ego
 TRAFFIC_RANGE = 5.0  # metres; cars farther along the track than this are not in the ego view
 MAX_SPEED = 4.0  # m/s: speeds are scaled by this
 CURVATURE_AHEAD = (1.0, 2.0, 3.0)  # metres: the global state's heading change of the centre line to these points
+STATE_BOUND = 1e4  # every state value lies within +-this (the spaces' bounds)
 CAR_FEATURES = 11 + 2 * len(LOOKAHEAD) + 4 * (TRAFFIC_AHEAD + TRAFFIC_BEHIND)
 GLOBAL_PER_CAR = 13 + len(CURVATURE_AHEAD)
 
@@ -92,7 +93,7 @@ def car_features(env, i: int) -> np.ndarray:
               steer / env.car_spec.max_steer, speed / MAX_SPEED, proj.lateral / half, proj.left_width,
               proj.right_width, math.sin(error), math.cos(error)]
     values += (ahead_x / LOOKAHEAD).tolist() + (ahead_y / LOOKAHEAD).tolist() + _traffic_features(env, i)
-    return np.asarray(values, np.float32)
+    return np.clip(np.asarray(values, np.float32), -STATE_BOUND, STATE_BOUND)
 
 
 def global_state(env) -> np.ndarray:
@@ -112,4 +113,4 @@ def global_state(env) -> np.ndarray:
                    forward / MAX_SPEED, left, yaw_rate / 3.0, race.distance / track.length, race.laps,
                    proj.lateral / max(proj.width / 2, 1e-3), math.sin(_wrap(yaw - proj.heading)),
                    math.cos(_wrap(yaw - proj.heading)), *(_wrap(headings - proj.heading))]
-    return rows.reshape(-1)
+    return np.clip(rows.reshape(-1), -STATE_BOUND, STATE_BOUND)

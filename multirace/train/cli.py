@@ -40,6 +40,10 @@ def add_train_parser(sub) -> None:
     p.add_argument("--robust", action="store_true",
                    help="domain randomisation with a curriculum, opponent pool (PFSP), nature adversary and "
                         "procedural tracks")
+    p.add_argument("--privileged", action="store_true",
+                   help="learning by cheating: PPO of a state policy (the teacher) on the privileged state, then "
+                        "DAgger of the camera policy from it (writes FILE.pt and FILE.teacher.pt; continuous "
+                        "action spaces)")
     p.add_argument("--stop-on-success", action="store_true",
                    help="stop at the first evaluation that finishes every lap with no off-track")
     p.add_argument("--engine", default="local", choices=("local", "rllib"),
@@ -66,6 +70,8 @@ def config_from_args(args):
     tracks = tuple(expand_tracks(t.strip() for t in args.track.split(",") if t.strip()))
     if args.robust:
         overrides.setdefault("robust", True)
+    if args.privileged:
+        overrides.setdefault("privileged", True)
     config = make_config(args.config, tracks=tracks, reverse=args.reverse, minutes=args.minutes, seed=args.seed,
                          action_space=args.action_space, reward=args.reward, network=args.network,
                          num_envs=args.envs, cars_per_env=args.cars,
@@ -126,6 +132,10 @@ def report_privileged(config, args, command) -> int:
         lap = f"{evaluation['best_lap']:.2f} s" if evaluation.get("best_lap") else "none"
         print(f"{name}: {evaluation['laps']}/{config.eval_laps} laps, {evaluation['resets']} off-track resets, best "
               f"lap {lap}" + (f" ({ratio}x the racing line's {summary['racing_line_lap']:.2f} s)" if ratio else ""))
+    for name, stage in (("teacher", teacher), ("student", student)):
+        reached = ", ".join(f"{key.replace('_', ' ')} at {m['seconds']:.0f} s ({m['agent_steps']} agent-steps)"
+                            for key, m in stage["milestones"].items())
+        print(f"{name} first evaluations: {reached or 'none clean'}")
     print(f"wrote {summary['out']} (camera agent) and {summary['teacher_file']} (teacher) in "
           f"{summary['wall_seconds']} s: teacher {teacher['wall_seconds']} s, {teacher['agent_steps']} agent-steps; "
           f"student {student['wall_seconds']} s, {student['agent_steps']} agent-steps")

@@ -88,6 +88,7 @@ class TrainConfig:
     teacher_lr: float = 3e-4  # the teacher's Adam learning rate
     teacher_epochs: int = 5  # the teacher's passes over each rollout
     teacher_minibatch: int = 512  # the teacher's samples per gradient step
+    teacher_norm_reward: bool = True  # the teacher divides rewards by a running std of the return (as norm_reward)
     student_network: str = TINY  # with privileged: the camera student's network (nets.NETWORKS)
     distill_lr: float = 1e-3  # with privileged: the student's Adam learning rate
     distill_batch: int = 128  # with privileged: labelled images per gradient step of the student

@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import pickle
 import time
 from pathlib import Path
 
@@ -88,7 +89,7 @@ def load_teacher(path) -> StatePolicyNet:
         space = load_action_space(saved["action_space"])
         net = StatePolicyNet(space, int(saved["features"]), int(saved["hidden"]))
         net.load_state_dict(saved["weights"])
-    except (OSError, KeyError, RuntimeError, ValueError, TypeError) as exc:
+    except (OSError, KeyError, RuntimeError, ValueError, TypeError, pickle.UnpicklingError, EOFError) as exc:
         raise ValueError(f"teacher file {path}: not a readable teacher ({type(exc).__name__}: {exc})") from None
     if net.features != CAR_FEATURES:
         raise ValueError(f"teacher file {path}: reads {net.features} state values, this version gives {CAR_FEATURES}")
@@ -117,8 +118,8 @@ def evaluate_teacher(net: StatePolicyNet, space, track: str, laps: int = 3, seed
 
 
 def train_teacher(config: TrainConfig, out, seconds: float, log=print) -> dict:
-    """PPO of a `StatePolicyNet` for `seconds` of wall time; writes the best-evaluated teacher to `out`
-    and returns its summary (evaluations, agent-steps, the sampling and update split)."""
+    """PPO of a `StatePolicyNet` for `seconds` of wall time (or `max_iterations`); writes the best-evaluated
+    teacher to `out` and returns its summary (evaluations, agent-steps, the sampling and update split)."""
     started = time.perf_counter()
     torch.manual_seed(config.seed)
     space = load_action_space(config.action_space)
@@ -134,7 +135,7 @@ def train_teacher(config: TrainConfig, out, seconds: float, log=print) -> dict:
     N = E * A
     net = StatePolicyNet(space, hidden=config.teacher_hidden)
     optimiser = torch.optim.Adam(net.parameters(), lr=config.teacher_lr, eps=1e-5)
-    reward_scale = RewardScale(N, config.gamma) if config.norm_reward else None
+    reward_scale = RewardScale(N, config.gamma) if config.teacher_norm_reward else None
     teacher_config = dataclasses.replace(config, lr=config.teacher_lr, epochs=config.teacher_epochs,
                                          minibatch_size=config.teacher_minibatch, ent_coef=0.0, expert_coef=0.0)
     robust = RobustKnobs(TrainConfig(), seed=config.seed)  # no pool or nature: every car is the learner
@@ -147,7 +148,8 @@ def train_teacher(config: TrainConfig, out, seconds: float, log=print) -> dict:
         rollout = Rollout(T, N, obs.shape[2:], 0, space, obs_dtype=np.float32)
         rollout.start(obs, expert_actions([[{}] * A] * E, discrete=False))  # no expert labels: NaN
         torch.set_num_threads(1)
-        while time.perf_counter() - started < seconds:
+        while time.perf_counter() - started < seconds and not (
+                config.max_iterations and summary["iterations"] >= config.max_iterations):
             fraction = (time.perf_counter() - started) / seconds
             t0 = time.perf_counter()
             next_value, _, _ = collect_rollout(vec, net, policy, rollout, robust, learner_mask, reward_scale,

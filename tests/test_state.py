@@ -1,0 +1,62 @@
+"""Privileged state: PettingZoo's `state()` for centralised critics and the `observation="state"` env of RL
+teachers (environment/state.py)."""
+import math
+
+import numpy as np
+import pytest
+from pettingzoo.test import parallel_api_test
+from pettingzoo.test.state_test import state_test
+
+import multirace
+from multirace.environment.state import CAR_FEATURES, GLOBAL_PER_CAR, LOOKAHEAD
+
+CONTINUOUS = {"action_space_type": "continuous",
+              "action_space": {"steering_angle": {"low": -30, "high": 30}, "speed": {"low": 0.5, "high": 4.0}}}
+
+
+def test_state_passes_pettingzoo_state_test():
+    """PettingZoo's own state test: state() in state_space at every step of the AEC and parallel forms."""
+    config = dict(num_cars=2, bots=("follow@1.0",), obstacles=1, max_steps=60)
+    state_test(multirace.env(**config), multirace.parallel_env(**config), num_cycles=40)
+
+
+def test_state_holds_every_car_learning_cars_then_bots():
+    env = multirace.parallel_env(num_cars=2, bots=("follow@1.5",), race="head_to_head", max_steps=200)
+    env.reset(seed=3)
+    assert env.state_space.shape == (3 * GLOBAL_PER_CAR,)
+    for _ in range(40):
+        env.step({a: 4 for a in env.agents})  # straight on at 1 m/s
+    rows = env.state().reshape(3, GLOBAL_PER_CAR)
+    assert (rows[:, 0] == 1.0).all(), "every car is racing"
+    bot = rows[2]
+    assert bot[5] * 4.0 == pytest.approx(env.world.drive_speed[2], abs=0.05), "the bot's forward speed, scaled"
+    assert bot[8] > rows[0][8] - 0.2, "race distance (laps) is carried per car"
+    np.testing.assert_allclose(rows[:, 3] ** 2 + rows[:, 4] ** 2, 1.0, atol=1e-5)  # cos, sin of the yaw
+
+
+def test_state_observations_render_nothing_and_match_the_env():
+    env = multirace.parallel_env(num_cars=2, observation="state", action_space=CONTINUOUS, max_steps=50)
+    parallel_api_test(env, num_cycles=50)
+    obs, _ = env.reset(seed=0)
+    assert env._renderer is None, "a state env never builds a camera renderer"
+    x = obs["car_0"]
+    assert x.shape == (CAR_FEATURES,) and x.dtype == np.float32
+    assert env.observation_space("car_0").contains(x)
+    # on the grid, at rest, facing along the track: the centre line ahead lies ahead of the car
+    ahead_x = x[11:11 + len(LOOKAHEAD)]
+    assert (ahead_x > 0.8).all()
+    assert x[0] == pytest.approx(0.0, abs=1e-3), "at rest"
+
+
+def test_state_lateral_offset_sign_follows_the_road():
+    """A car moved to the left half of the road reads a positive offset, one on the right a negative one."""
+    env = multirace.parallel_env(num_cars=2, observation="state", action_space=CONTINUOUS)
+    env.reset(seed=0)
+    obs = env.move_cars({0: (5.0, 0.2), 1: (8.0, -0.2)})
+    assert obs["car_0"][6] > 0.2 and obs["car_1"][6] < -0.2
+    assert math.isclose(obs["car_0"][10], 1.0, abs_tol=1e-3), "placed along the track: no heading error"
+
+
+def test_state_observation_keyword_is_checked():
+    with pytest.raises(ValueError, match="observation"):
+        multirace.parallel_env(observation="lidar")

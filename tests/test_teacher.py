@@ -1,0 +1,90 @@
+"""Learning by cheating: an RL teacher on the privileged state (train/teacher.py), its camera student by
+DAgger in the vectorised envs (train/distill.py), and `imitate` with a teacher as the expert.
+
+Iteration counts, not time budgets: the same learning on an idle and on a busy machine.
+"""
+from pathlib import Path
+
+import pytest
+
+from multirace.racing.agentfile import AgentController, load_agent
+from multirace.racing.runner import RaceConfig, run_race
+from multirace.train.config import make_config
+from multirace.train.distill import distill_student, milestones, student_config
+from multirace.train.teacher import evaluate_teacher, load_teacher, train_teacher
+
+SPACE = str(Path(__file__).parents[1] / "agents" / "action_space_racer.json")  # steering +-30 deg, 0.5-4 m/s
+
+
+@pytest.fixture(scope="module")
+def teacher(tmp_path_factory):
+    """A teacher after 24 PPO iterations on re:Invent 2018 (about 50 k agent-steps)."""
+    out = tmp_path_factory.mktemp("teacher") / "t.teacher.pt"
+    config = make_config("fast", tracks=("reinvent_base",), action_space=SPACE, max_iterations=24, seed=0,
+                         eval_every=1e9, progress=False)
+    summary = train_teacher(config, out, seconds=1e9, log=None)
+    return out, summary
+
+
+def test_teacher_learns_to_lap_from_the_reward(teacher):
+    """From nothing to clean laps of re:Invent 2018 in 24 iterations, judged by the race rules."""
+    out, summary = teacher
+    assert summary["iterations"] == 24 and summary["agent_steps"] == 24 * 2 * 4 * 256
+    net = load_teacher(out)
+    row = evaluate_teacher(net, net.space, "reinvent_base", laps=2)
+    assert row["laps"] == 2 and row["status"] == "finished"
+    assert row["resets"] <= 1
+    assert row["best_lap"] < 9.0, "faster than 2 m/s round the lap (the racing line laps in 4.9 s)"
+
+
+def test_teacher_file_is_checked(tmp_path):
+    bad = tmp_path / "bad.teacher.pt"
+    bad.write_bytes(b"not a torch file")
+    with pytest.raises(ValueError, match="bad.teacher.pt"):
+        load_teacher(bad)
+
+
+def test_teacher_refuses_a_discrete_space(tmp_path):
+    config = make_config("tiny", tracks=("Oval_track",), max_iterations=1, progress=False)
+    with pytest.raises(ValueError, match="continuous"):
+        train_teacher(config, tmp_path / "x.pt", seconds=1e9, log=None)
+
+
+def test_student_distils_the_teacher_into_a_camera_agent(teacher, tmp_path):
+    """Two DAgger iterations: the student is an agent file that races, named for its RL teacher."""
+    teacher_path, _ = teacher
+    base = make_config("tiny", tracks=("reinvent_base",), action_space=SPACE, max_iterations=2, seed=0,
+                       progress=False, eval_every=0)
+    config = student_config(base, teacher_path, seconds=1e9)
+    config.rollout_steps, config.distill_steps, config.distill_batch = 32, 4, 16
+    summary = distill_student(config, tmp_path / "student.pt", log=None)
+    assert summary["iterations"] == 2 and summary["agent_steps"] == 2 * 32 * 4
+    agent = load_agent(tmp_path / "student.pt", step_budget=None)
+    training = agent.metadata["training"]
+    assert training["method"] == "dagger" and training["expert"] == f"teacher:{teacher_path}"
+    assert agent.metadata["sensor"] == ["FRONT_FACING_CAMERA"], "the student reads the camera only"
+    result = run_race([AgentController(tmp_path / "student.pt", step_budget=0.5)],
+                      RaceConfig(track="reinvent_base", race="time_trial", laps=1, max_steps=30))
+    assert result["cars"][0]["status"] != "forfeit"
+
+
+def test_imitate_takes_a_teacher_as_expert(teacher, tmp_path):
+    from multirace.train.imitate import ImitationConfig, run_dagger
+
+    teacher_path, _ = teacher
+    summary = run_dagger(ImitationConfig(out=str(tmp_path / "i.pt"), tracks=("reinvent_base",),
+                                         both_directions=False, minutes=0.02, action_space=SPACE,
+                                         teacher=str(teacher_path), rollout_steps=20, train_steps=2, progress=False,
+                                         threads=1))
+    assert summary["expert"] == f"teacher:{teacher_path.name}"
+    assert summary["samples"] >= 20
+
+
+def test_milestones_read_the_first_clean_and_fast_evaluations():
+    evals = [{"laps": 3, "target": 3, "resets": 2, "best_lap": 5.0, "elapsed": 10, "agent_steps": 100},
+             {"laps": 3, "target": 3, "resets": 0, "best_lap": 6.5, "elapsed": 20, "agent_steps": 200},
+             {"laps": 3, "target": 3, "resets": 0, "best_lap": 5.5, "elapsed": 30, "agent_steps": 300}]
+    found = milestones(evals, reference=5.0, offset=100)
+    assert found["clean"] == {"seconds": 120, "agent_steps": 200}
+    assert found["within_1.25x"] == found["within_1.15x"] == {"seconds": 130, "agent_steps": 300}
+    assert "within_1.15x" not in milestones(evals, reference=4.5)
