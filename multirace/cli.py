@@ -13,7 +13,7 @@ from rich.table import Table
 
 from .environment.rules import FORMATS
 from .text import display_name
-from .resources import list_agents, list_tracks
+from .resources import agent_argument, list_agents, list_tracks
 
 
 def _format_time(value) -> str:
@@ -155,6 +155,27 @@ def cmd_agent_inspect(args) -> int:
     return 0 if info["valid"] else 1
 
 
+def cmd_agent_list(args) -> int:
+    from .racing.agentfile import agent_summary
+    from .resources import agents_dir
+
+    rows = [agent_summary(agents_dir() / f"{name}.pt") for name in list_agents()]
+    if args.json:
+        print(json.dumps(rows, indent=2))
+        return 0
+    table = Table(title="shipped agents (race, evaluate, explain, inspect, export or submit them by name)")
+    for column in ("name", "network", "parameters", "sensor", "actions", "made by", "size"):
+        table.add_column(column, justify="right" if column in ("parameters", "size") else "left")
+    for row in rows:
+        table.add_row(escape(row["name"]), row["network"], f"{row['parameters']:,}", " + ".join(row["sensor"]),
+                      row["actions"], escape(row["made_by"]), f"{row['size_bytes'] / 1e6:.2f} MB")
+    console = Console(width=160)
+    console.print(table)
+    console.print(f"files in {agents_dir()}; how each was made and how it races: {agents_dir() / 'README.md'}",
+                  soft_wrap=True)
+    return 0
+
+
 def cmd_agent_export(args) -> int:
     from .deepracer.export import export_agent
 
@@ -273,19 +294,24 @@ def build_parser() -> argparse.ArgumentParser:
     race.add_argument("--video", metavar="FILE.mp4", help="write the top-down race view as an MP4 (15 fps)")
     race.set_defaults(func=cmd_race)
 
-    agent = sub.add_parser("agent", help="inspect agent files",
+    agent = sub.add_parser("agent", help="list, inspect, export and import agent files",
                            description="Tools for agent files (.pt: weights + model_metadata).")
     agent_sub = agent.add_subparsers(dest="agent_command", required=True)
+    listing = agent_sub.add_parser("list", help="the agents shipped with multirace: figures and paths",
+                                   description="List the shipped agents (network, sensors, action space, how "
+                                               "each was made, size) and the folder that holds them.")
+    listing.add_argument("--json", action="store_true", help="print the list as JSON (with each file's path)")
+    listing.set_defaults(func=cmd_agent_list)
     inspect = agent_sub.add_parser("inspect", help="print an agent file's metadata, size and hash",
                                    description="Validate an agent file and print its model_metadata, "
                                                "parameter count and sha256 (exit 1 if invalid).")
-    inspect.add_argument("file", help="agent file (.pt)")
+    inspect.add_argument("file", type=agent_argument, help="agent file (.pt) or a shipped agent's name")
     inspect.add_argument("--json", action="store_true", help="print the information as JSON")
     inspect.set_defaults(func=cmd_agent_inspect)
     export = agent_sub.add_parser("export", help="write an agent as the .tar.gz a DeepRacer car loads",
                                   description="Write the car's archive: one frozen TensorFlow graph (agent/model.pb, "
                                               "the car's node names) and model_metadata.json.")
-    export.add_argument("file", help="agent file (.pt) or a shipped agent's name")
+    export.add_argument("file", type=agent_argument, help="agent file (.pt) or a shipped agent's name")
     export.add_argument("--out", required=True, metavar="MODEL.tar.gz", help="archive to write")
     export.set_defaults(func=cmd_agent_export)
     imported = agent_sub.add_parser("import", help="turn a DeepRacer model into an agent file",
@@ -328,7 +354,7 @@ def build_parser() -> argparse.ArgumentParser:
     imitate.add_argument("--traffic", default=None, metavar="BOTS",
                          help="bots in the envs (all, or --traffic-share of them), comma-separated (e.g. "
                               "follow@1.0,lanes@1.0), started ahead of the learner")
-    imitate.add_argument("--init", default=None, metavar="AGENT.pt",
+    imitate.add_argument("--init", default=None, metavar="AGENT.pt", type=agent_argument,
                          help="start from this agent file's net (its network, image size, action space)")
     imitate.add_argument("--max-samples", type=int, default=40000, metavar="N",
                          help="dataset cap; beyond it new samples replace random old ones (default 40000; "
@@ -360,7 +386,7 @@ def build_parser() -> argparse.ArgumentParser:
     explain = sub.add_parser("explain", help="Grad-CAM heat maps of what an agent looks at while it drives",
                              description="Drive an agent file alone on a track (1-car time trial) and write "
                                          "Grad-CAM heat maps of its chosen actions over its camera frames.")
-    explain.add_argument("agent", metavar="AGENT.pt", help="an agent file")
+    explain.add_argument("agent", metavar="AGENT.pt", type=agent_argument, help="an agent file or a shipped agent's name")
     explain.add_argument("--track", default="reinvent_base", help="track name or .npy (default reinvent_base)")
     explain.add_argument("--reverse", action="store_true", help="drive the track the other way round")
     explain.add_argument("--out", metavar="FILE.mp4|FILE.png",

@@ -39,3 +39,20 @@ def list_tracks() -> list[str]:
 def list_agents() -> list[str]:
     """Names of the shipped agent files (`multirace race dagger_fast` races one by name)."""
     return sorted(p.stem for p in agents_dir().glob("*.pt"))
+
+
+def resolve_agent_path(spec) -> Path:
+    """The agent file `spec` names: a path, or else the name of an agent shipped with multirace (`racer`).
+
+    Every command and function that takes an agent file goes through here, so a shipped agent's name
+    works wherever a path does; a path that exists (a file of that name here) comes first."""
+    path = Path(spec)
+    shipped = agents_dir() / f"{spec}.pt"
+    if not path.is_file() and path.name == str(spec) and shipped.exists():  # a bare name: a folder of that
+        return shipped                                                       # name does not shadow the agent
+    return path
+
+
+def agent_argument(spec: str) -> str:
+    """`resolve_agent_path` as an argparse `type`: every command-line argument that takes an agent file."""
+    return str(resolve_agent_path(spec))

@@ -43,10 +43,46 @@ def test_bad_arguments_get_a_clear_error_and_exit_2(args, message, capsys):
 
 
 def test_a_shipped_agent_by_name_is_not_shadowed_by_a_folder_of_that_name(tmp_path, monkeypatch):
-    from multirace.racing.runner import resolve_agent_path
+    from multirace.resources import resolve_agent_path
     from multirace.resources import agents_dir
 
     monkeypatch.chdir(tmp_path)
     (tmp_path / "racer").mkdir()  # e.g. a training run's output folder
     assert resolve_agent_path("racer") == agents_dir() / "racer.pt"
     assert resolve_agent_path("mine") == Path("mine")  # no shipped agent of that name: the path as given
+
+
+@pytest.mark.parametrize("argv,field", [
+    (["evaluate", "racer", "--quick"], "agents"),
+    (["explain", "racer"], "agent"),
+    (["agent", "inspect", "racer"], "file"),
+    (["agent", "export", "racer", "--out", "m.tar.gz"], "file"),
+    (["league", "submit", "lg", "racer", "--name", "r"], "file"),
+    (["imitate", "--out", "a.pt", "--init", "racer"], "init"),
+    (["train", "--out", "a.pt", "--init", "racer"], "init"),
+])
+def test_every_command_that_takes_an_agent_file_takes_a_shipped_name(argv, field, tmp_path, monkeypatch):
+    from multirace.cli import build_parser
+    from multirace.resources import agents_dir
+
+    monkeypatch.chdir(tmp_path)  # a folder with no agents/ in it, as a user's
+    value = getattr(build_parser().parse_args(argv), field)
+    assert (value[0] if isinstance(value, list) else value) == str(agents_dir() / "racer.pt")
+
+
+def test_agent_inspect_and_agent_list_work_by_name_from_any_folder(tmp_path):
+    from multirace.resources import agents_dir, list_agents
+
+    inspect = subprocess.run([sys.executable, "-m", "multirace.cli", "agent", "inspect", "dagger_fast", "--json"],
+                             capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert inspect.returncode == 0, inspect.stderr
+    info = json.loads(inspect.stdout)
+    assert info["valid"] and info["name"] == "dagger_fast"
+    listed = subprocess.run([sys.executable, "-m", "multirace.cli", "agent", "list", "--json"],
+                            capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert listed.returncode == 0, listed.stderr
+    rows = json.loads(listed.stdout)
+    assert [row["name"] for row in rows] == list_agents()
+    for row in rows:
+        assert Path(row["path"]) == agents_dir() / f"{row['name']}.pt" and row["parameters"] > 100_000
+        assert "m/s" in row["actions"] and row["network"]

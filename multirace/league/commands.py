@@ -6,6 +6,7 @@ import sqlite3
 import sys
 from pathlib import Path
 
+from ..resources import agent_argument
 from .config import DB, TOML, LeagueError
 from .runner import run_league
 from .submissions import init_league, submit
@@ -26,7 +27,7 @@ def add_league_commands(sub) -> None:
                                              "inference within the league's step budget) in a subprocess, then "
                                              "stores it by sha256. Duplicates and bad files are refused.")
     sub_.add_argument("dir", help="the league folder")
-    sub_.add_argument("file", help="agent file (.pt)")
+    sub_.add_argument("file", type=agent_argument, help="agent file (.pt) or a shipped agent's name")
     sub_.add_argument("--name", required=True, help="the entrant's name in the league")
     sub_.set_defaults(func=_cmd_submit)
     run = league_sub.add_parser("run", help="run every pending match (resumable)",
