@@ -87,6 +87,11 @@ def cmd_race(args) -> int:
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)  # as the other outputs do
         Path(args.json).write_text(json.dumps(result, indent=2))
+    for option, what in (("json", "the result record"), ("replay", "the replay (`multirace replay FILE`)"),
+                         ("simtrace", "the DeepRacer sim-trace"), ("eval_metrics", "DeepRacer's evaluation metrics"),
+                         ("video", "the top-down race video")):
+        if getattr(args, option, None):
+            print(f"wrote {getattr(args, option)}: {what.replace('FILE', getattr(args, option))}")
     return 0
 
 

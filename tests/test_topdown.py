@@ -141,3 +141,29 @@ def test_videos_are_h264_in_mp4_as_browsers_play_them(tmp_path):
     capture.release()
     assert len(decoded) == 10 and decoded[0].shape[:2] == (62, 98)
     assert [int(round(f[:61, :97].mean())) for f in decoded] == pytest.approx([20 * k for k in range(10)], abs=3)
+
+
+def _top_level_boxes(data: bytes) -> list[str]:
+    """The types of an MP4's top-level boxes (atoms), in file order."""
+    boxes, at = [], 0
+    while at + 8 <= len(data):
+        size, kind = int.from_bytes(data[at:at + 4], "big"), data[at + 4:at + 8].decode("latin-1")
+        if size == 1:  # a 64-bit size follows the type
+            size = int.from_bytes(data[at + 8:at + 16], "big")
+        boxes.append(kind)
+        at += size if size else len(data)
+    return boxes
+
+
+def test_videos_are_faststart_and_only_mp4(tmp_path):
+    path = tmp_path / "fast.mp4"
+    write_video([np.full((64, 96, 3), 9 * k, np.uint8) for k in range(20)], path)
+    boxes = _top_level_boxes(path.read_bytes())
+    assert "moov" in boxes and "mdat" in boxes
+    assert boxes.index("moov") < boxes.index("mdat")  # a browser can start playing before the whole file arrives
+    for name in ("race.avi", "race.gif", "race"):
+        with pytest.raises(ValueError, match="MP4"):
+            VideoRecorder(tmp_path / name)
+        with pytest.raises(ValueError, match="MP4"):
+            write_video([np.zeros((8, 8, 3), np.uint8)], tmp_path / name)
+    assert not list(tmp_path.glob("race*"))
