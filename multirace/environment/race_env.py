@@ -21,6 +21,7 @@ from pettingzoo import ParallelEnv
 from pettingzoo.utils import OrderEnforcingWrapper, parallel_to_aec
 
 from .actions import load_action_space
+from .kernels import announce_compile
 from .bots import parse_bot
 from ..sensors.camera import CameraSpec, camera_poses, observation_shape, stereo_poses
 from ..sensors.renderers import make_renderer
@@ -185,6 +186,7 @@ class RaceEnv(ParallelEnv):
 
     # ------------------------------------------------------------- reset
     def reset(self, seed=None, options=None):
+        announce_compile()  # once per process, and only if the kernels are not cached yet
         if seed is not None:
             self._rng = np.random.default_rng(seed)
             self._randomizer_rng = np.random.default_rng([seed, 3])  # its own stream: same grid either way
