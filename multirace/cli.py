@@ -122,6 +122,9 @@ def cmd_explain(args) -> int:
                      reverse=args.reverse, seed=args.seed, target=args.target, scale=args.scale)
     print(f"wrote {result['out']}: Grad-CAM of {result['agent']} over {result['frames']} frames on "
           f"{result['track']}" + (f", replay {result['replay']}" if result["replay"] else ""))
+    if result["status"] != "not_finished" and result["frames"] < args.steps:
+        print(f"the run ended ({result['status']}) after {result['frames']} of --steps {args.steps}: explain drives "
+              "one lap at most (a 1-lap time trial)")
     print(f"heat on the track (road + borders + centre line): {100 * result['heat_on_track']:.1f}% of the mass, "
           f"on {100 * result['track_fraction']:.1f}% of the image; on the lines {result['lines_lift']:.2f}x "
           "their area share")
@@ -277,10 +280,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     race = sub.add_parser("race", help="race agent files and bots against each other",
                           description="Race agent files (.pt) and scripted bots (bot:follow@1.5, "
-                                      "bot:lanes@1.0) and print the result.")
+                                      "bot:lanes@1.0, bot:racingline) and print the result.")
     race.add_argument("entrants", nargs="+",
                       help=f"agent files, shipped agents by name ({', '.join(list_agents())}) or bot:KIND@SPEED "
-                           "(KIND: follow, lanes, pass)")
+                           "(KIND: follow, lanes, pass at SPEED m/s; racingline, racingline@SCALE: the racing line, its speeds x SCALE)")
     race.add_argument("--track", default="reinvent_base",
                       help=f"bundled track name or .npy path (bundled: {', '.join(list_tracks())})")
     race.add_argument("--reverse", action="store_true", help="race the track in the other direction")
@@ -396,7 +399,8 @@ def build_parser() -> argparse.ArgumentParser:
     explain.add_argument("--reverse", action="store_true", help="drive the track the other way round")
     explain.add_argument("--out", metavar="FILE.mp4|FILE.png",
                          help="an MP4 of every frame, or a PNG strip of a few (default AGENT_gradcam.mp4)")
-    explain.add_argument("--steps", type=int, default=150, help="steps to drive (default 150, 10 s)")
+    explain.add_argument("--steps", type=int, default=150,
+                         help="steps to drive at most (default 150, 10 s); the run ends after one lap")
     explain.add_argument("--replay", metavar="FILE.rrd", help="also record the run with the heat maps as a replay")
     explain.add_argument("--seed", type=int, default=0)
     explain.add_argument("--target", choices=("steer", "speed"), default="steer",

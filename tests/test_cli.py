@@ -86,3 +86,12 @@ def test_agent_inspect_and_agent_list_work_by_name_from_any_folder(tmp_path):
     for row in rows:
         assert Path(row["path"]) == agents_dir() / f"{row['name']}.pt" and row["parameters"] > 100_000
         assert "m/s" in row["actions"] and row["network"]
+
+
+def test_race_help_names_every_bot_kind(capsys):
+    from multirace.environment.bots import BOT_KINDS
+
+    with pytest.raises(SystemExit):
+        main(["race", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert all(kind in text.split("KIND:")[1] for kind in BOT_KINDS), text

@@ -103,13 +103,15 @@ def cmd_train(args) -> int:
 
     command = shlex.join(["multirace", *sys.argv[1:]]) if sys.argv and sys.argv[0].endswith("multirace") else None
     summary = train(config, args.out, init=args.init, resume=args.resume, command=command)
-    first = summary["first_success_seconds"]
+    def when(seconds):
+        return f"{seconds} s" if seconds is not None else "none"
+
+    laps = f"{config.eval_laps}/{config.eval_laps}"
     print(f"wrote {summary['out']}: {summary['iterations']} iterations, {summary['agent_steps']} agent-steps in "
           f"{summary['wall_seconds']} s ({summary['steps_per_s']} agent-steps/s, sampling "
-          f"{summary['sample_seconds']} s, updates {summary['update_seconds']} s); first "
-          f"{config.eval_laps}/{config.eval_laps} evaluation: "
-          + (f"{first} s" if first is not None else "none") + ", first with no off-track: "
-          + (f"{summary['first_clean_seconds']} s" if summary["first_clean_seconds"] is not None else "none"))
+          f"{summary['sample_seconds']} s, updates {summary['update_seconds']} s); first clean {laps} evaluation "
+          f"(no off-track): {when(summary['first_clean_seconds'])}; first {laps} counting resets: "
+          f"{when(summary['first_success_seconds'])}")
     print(f"learning curve: {Path(args.out).with_suffix('.png')}")
     return 0
 

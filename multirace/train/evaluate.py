@@ -244,36 +244,70 @@ def print_heats(agent_name: str, heats: dict, console) -> None:
     console.print(table)
 
 
+def _bar_panel(ax, series: list, title: str, ceiling: float) -> None:
+    """Grouped bars of `series` ([(label, [(name, value or None), ...]), ...]) on `ax`. The y axis starts at 0
+    and reaches at least `ceiling`, so counts that are all zero draw as zero, not as an empty panel; a panel
+    with nothing to draw (a part not run) says so."""
+    names = list(dict.fromkeys(name for _, bars in series for name, _ in bars))
+    ax.set_title(title, fontsize=10)
+    if not names:
+        ax.text(0.5, 0.5, "not run", ha="center", va="center", transform=ax.transAxes, color="grey")
+        ax.set_xticks([])
+        ax.set_yticks([])
+        return
+    width = 0.8 / len(series)
+    top = ceiling
+    for k, (label, bars) in enumerate(series):
+        values = dict(bars)
+        heights = [values.get(name) or 0.0 for name in names]
+        top = max(top, *heights)
+        bars = ax.bar(np.arange(len(names)) + k * width, heights, width, label=label)
+        ax.bar_label(bars, fmt="%.3g", fontsize=6)  # a zero reads as 0, not as a missing bar
+    ax.set_xticks(np.arange(len(names)) + 0.4 - width / 2, names, rotation=60, ha="right", fontsize=7)
+    ax.set_ylim(0, top * 1.1)
+    ax.grid(alpha=0.3, axis="y")
+
+
 def plot_report(reports: list, path) -> None:
+    """Write `report_figure(reports)` as a PNG at `path`."""
+    import matplotlib.pyplot as plt
+
+    fig = report_figure(reports)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def report_figure(reports: list):
+    """The report as a matplotlib figure: lap completion on held-out tracks and under perturbations,
+    off-tracks per lap under perturbations, and the traffic race (lap completion, collisions and collisions
+    caused per lap)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
-    width = 0.8 / len(reports)
-    for k, report in enumerate(reports):
-        label = Path(report["agent"]).stem
-        for ax, rows, key in ((axes[0], report["held_out"], "track"),
-                              (axes[1], report["perturbations"], "perturbation")):
-            names = list(dict.fromkeys(r[key] for r in rows))
-            values = [_mean([r["completion"] for r in rows if r[key] == n]) for n in names]
-            ax.bar(np.arange(len(names)) + k * width, [100 * v for v in values], width, label=label)
-            ax.set_xticks(np.arange(len(names)) + 0.4 - width / 2, names, rotation=60, ha="right", fontsize=7)
-        names = list(dict.fromkeys(r["perturbation"] for r in report["perturbations"]))
-        values = [_mean([r["off_tracks_per_lap"] for r in report["perturbations"] if r["perturbation"] == n])
-                  for n in names]
-        axes[2].bar(np.arange(len(names)) + k * width, values, width, label=label)
-        axes[2].set_xticks(np.arange(len(names)) + 0.4 - width / 2, names, rotation=60, ha="right", fontsize=7)
-    axes[0].set_title("lap completion on held-out tracks (%)")
-    axes[1].set_title("lap completion under perturbations (%)")
-    axes[2].set_title("off-tracks per lap under perturbations")
-    for ax in axes:
-        ax.grid(alpha=0.3, axis="y")
+    def by(rows, key, value):
+        names = list(dict.fromkeys(r[key] for r in rows))
+        return [(name, _mean([value(r) for r in rows if r[key] == name])) for name in names]
+
+    def traffic(rows):
+        return [(figure, _mean([value(r) for r in rows])) for figure, value in (
+            ("lap completion", lambda r: r["completion"]), ("collisions/lap", lambda r: r["collisions_per_lap"]),
+            ("caused/lap", lambda r: r["collisions_caused"] / max(r["laps_driven"], 0.25)))] if rows else []
+
+    fig, axes = plt.subplots(1, 4, figsize=(19, 4.4))
+    labels = [Path(report["agent"]).stem for report in reports]
+    _bar_panel(axes[0], [(label, by(r["held_out"], "track", lambda x: 100 * x["completion"]))
+                         for label, r in zip(labels, reports)], "lap completion on held-out tracks (%)", 100)
+    _bar_panel(axes[1], [(label, by(r["perturbations"], "perturbation", lambda x: 100 * x["completion"]))
+                         for label, r in zip(labels, reports)], "lap completion under perturbations (%)", 100)
+    _bar_panel(axes[2], [(label, by(r["perturbations"], "perturbation", lambda x: x["off_tracks_per_lap"]))
+                         for label, r in zip(labels, reports)], "off-tracks per lap under perturbations", 1.0)
+    _bar_panel(axes[3], [(label, traffic(r["traffic"])) for label, r in zip(labels, reports)],
+               "traffic race (completion 0-1; per lap driven)", 1.0)
     axes[0].legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    return fig
 
 
 def _names(text):
