@@ -9,7 +9,7 @@ import pytest
 
 from multirace.environment.race_env import RaceEnv
 from multirace.racing.runner import RaceConfig, make_controller, run_race
-from multirace.sensors.topdown import layout_for, render_topdown
+from multirace.sensors.topdown import layout_for, panel_order, render_topdown
 from multirace.recording.video import VideoRecorder, write_video
 from multirace.sim.world import CAR_COLOURS
 
@@ -167,3 +167,52 @@ def test_videos_are_faststart_and_only_mp4(tmp_path):
         with pytest.raises(ValueError, match="MP4"):
             write_video([np.zeros((8, 8, 3), np.uint8)], tmp_path / name)
     assert not list(tmp_path.glob("race*"))
+
+
+class _PanelWatch:
+    """A race recorder that notes, after every step, the panel's order and the road order (rules' ranking)."""
+
+    def __init__(self):
+        self.steps = []
+
+    def start(self, env):
+        pass
+
+    def step(self, env, *_):
+        road = env.ranks()
+        self.steps.append((panel_order(env), sorted(range(len(road)), key=lambda k: road[k]),
+                           [race.penalty_time for race in env.races]))
+
+    def finish(self, env, result):
+        self.final = panel_order(env)
+
+
+def test_the_video_panel_follows_the_results_order_with_penalties():
+    # dagger_fast causes collisions: as the striker it collects 5 s penalties while it leads on the road
+    watch = _PanelWatch()
+    result = run_race([make_controller(s) for s in ("dagger_fast", "bot:follow@1.0", "bot:follow@1.5")],
+                      RaceConfig(race="head_to_head", laps=2, seed=0), recorders=[watch])
+    penalised = [int(c["car"][4:]) for c in result["cars"] if c["penalties"]]
+    assert penalised, "the race should have a penalised car"
+    assert watch.final == [int(c["car"][4:]) for c in result["cars"]]  # the last frame lists the results' order
+    ahead_on_road_behind_in_panel = [
+        k for k, (panel, road, penalties) in enumerate(watch.steps)
+        for car in penalised if penalties[car] > 0
+        and any(road.index(car) < road.index(other) and panel.index(car) > panel.index(other)
+                for other in range(len(road)) if other != car)]
+    assert ahead_on_road_behind_in_panel  # its penalties count in the panel before it finishes
+
+
+def test_penalties_and_resets_are_marked_on_the_car_and_in_the_panel():
+    env = RaceEnv(num_cars=2, race="head_to_head", laps=1)
+    env.reset(seed=0)
+    plain = render_topdown(env)
+    env.races[1].penalty_time, env.races[1].penalties, env.races[1].resets = 5.0, 1, 1
+    env.sim_time += 0.1
+    marked = render_topdown(env)
+    layout = layout_for(env)
+    col, row = (int(v) for v in layout.to_frame(env.world.poses[1][None, :2])[0])
+    near = (slice(max(row - 40, 0), row + 40), slice(max(col - 40, 0), col + 40))
+    assert (marked[near] != plain[near]).any(axis=2).sum() > 30  # a ring around car_1 and "+5s"
+    assert (marked[:, layout.panel_x:] != plain[:, layout.panel_x:]).any()  # "+5s 1 reset" in its panel line
+    env.close()

@@ -540,11 +540,12 @@ class RaceEnv(ParallelEnv):
 
     def ranks(self) -> list[int]:
         """Current position (1 = leading) of every car, learning cars then bots."""
-        order = self.rules.ranking(self.races, self.track.length)
-        positions = [0] * len(order)
-        for place, i in enumerate(order):
-            positions[i] = place + 1
-        return positions
+        return _positions(self.rules.ranking(self.races, self.track.length))
+
+    def standings(self) -> list[int]:
+        """Every car's position with penalties counted while it races (`RaceRules.standings`; the race view's
+        panel): the result's positions once the race is over."""
+        return _positions(self.rules.standings(self.races, self.track.length, self.sim_time))
 
     def _info(self, i: int, params: dict, touched: set, ranks: list[int], events=()) -> dict:
         """Car i's info: its reward params (the same dict, extended) plus its race state."""
@@ -590,3 +591,11 @@ class RaceEnv(ParallelEnv):
         if self._renderer is not None:
             self._renderer.close()
         self.world.close()
+
+
+def _positions(order: list[int]) -> list[int]:
+    """Positions (1 = first) of the cars listed in `order` (car indices, first first)."""
+    positions = [0] * len(order)
+    for place, i in enumerate(order):
+        positions[i] = place + 1
+    return positions
