@@ -10,6 +10,7 @@ from ..resources import agent_argument
 from .config import DB, TOML, LeagueError
 from .runner import run_league
 from .submissions import init_league, submit
+from .table import FORMATS as TABLE_FORMATS
 
 
 def add_league_commands(sub) -> None:
@@ -43,7 +44,8 @@ def add_league_commands(sub) -> None:
                                   description="Ratings (OpenSkill Plackett-Luce ordinal), time-trial standings "
                                               "and clean driving; also writes DIR/ratings.png.")
     table.add_argument("dir", help="the league folder")
-    table.add_argument("--format", dest="table_format", default="md", choices=("md", "csv", "json", "html"))
+    table.add_argument("--format", dest="table_format", default="text", choices=TABLE_FORMATS,
+                       help="text (terminal tables, the default), md, csv, json or html (a self-contained page)")
     table.add_argument("--out", metavar="FILE", help="write the table to FILE instead of printing it")
     table.set_defaults(func=_cmd_table)
 
