@@ -36,6 +36,7 @@ def test_race_command_prints_a_table_and_writes_the_record(tmp_path):
     (["race", "bot:follow@1", "--laps", "0"], "laps"),
     (["race", "bot:warp@1"], "bot:KIND@SPEED"),
     (["race", "bot:follow@1", "--obstacles", "9"], "obstacles"),
+    (["race", "bot:follow@1", "--video", "race.avi"], "MP4 only"),
 ])
 def test_bad_arguments_get_a_clear_error_and_exit_2(args, message, capsys):
     assert main(args) == 2
