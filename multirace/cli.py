@@ -165,18 +165,21 @@ def cmd_agent_inspect(args) -> int:
 
 def cmd_agent_list(args) -> int:
     from .racing.agentfile import agent_summary
-    from .resources import agents_dir
+    from .resources import agents_dir, shipped_figures
 
-    rows = [agent_summary(agents_dir() / f"{name}.pt") for name in list_agents()]
+    figures = shipped_figures()
+    rows = [{**agent_summary(agents_dir() / f"{name}.pt"), **figures.get(name, {"held_out": "-", "traffic": "-"})}
+            for name in list_agents()]
     if args.json:
         print(json.dumps(rows, indent=2))
         return 0
     table = Table(title="shipped agents (race, evaluate, explain, inspect, export or submit them by name)")
-    for column in ("name", "network", "parameters", "sensor", "actions", "made by", "size"):
-        table.add_column(column, justify="right" if column in ("parameters", "size") else "left")
+    for column in ("name", "sensor", "actions", "made by", "held out (agents/README)", "traffic"):
+        table.add_column(column)
     for row in rows:
-        table.add_row(escape(row["name"]), row["network"], f"{row['parameters']:,}", " + ".join(row["sensor"]),
-                      row["actions"], escape(row["made_by"]), f"{row['size_bytes'] / 1e6:.2f} MB")
+        table.add_row(escape(row["name"]), " + ".join(row["sensor"]), row["actions"],
+                      escape(f"{row['made_by']}; {row['network']}, {row['parameters']:,} parameters, "
+                             f"{row['size_bytes'] / 1e6:.2f} MB"), escape(row["held_out"]), escape(row["traffic"]))
     console = Console(width=160)
     console.print(table)
     console.print(f"files in {agents_dir()}; how each was made and how it races: {agents_dir() / 'README.md'}",

@@ -87,6 +87,7 @@ def test_agent_inspect_and_agent_list_work_by_name_from_any_folder(tmp_path):
     for row in rows:
         assert Path(row["path"]) == agents_dir() / f"{row['name']}.pt" and row["parameters"] > 100_000
         assert "m/s" in row["actions"] and row["network"]
+        assert "clean" in row["held_out"] and "per lap" in row["traffic"]  # agents/README's "At a glance" figures
 
 
 def test_race_help_names_every_bot_kind(capsys):
