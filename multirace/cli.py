@@ -12,7 +12,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from .environment.rules import FORMATS
-from .text import display_name
+from .text import display_name, laps_text
 from .resources import agent_argument, list_agents, list_tracks
 
 
@@ -23,7 +23,7 @@ def _format_time(value) -> str:
 def print_result(result: dict, console: Console) -> None:
     """The race result as a table."""
     direction = " (reverse)" if result["reverse"] else ""
-    table = Table(title=f"{result['format']} on {result['track']}{direction}, {result['laps']} laps, "
+    table = Table(title=f"{result['format']} on {result['track']}{direction}, {laps_text(result['laps'])}, "
                         f"seed {result['seed']}")
     for column in ("pos", "agent", "laps", "best lap", "total time", "resets", "penalties", "collisions",
                    "status"):
@@ -451,6 +451,9 @@ def main(argv=None) -> int:
     except (ValueError, FileNotFoundError, RewardFunctionError) as exc:  # TrackError, AgentFileError... are ValueErrors
         print(f"multirace {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # the output piped into a reader that stopped (`| head`): stop quietly
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error when Python flushes
+        return 1
 
 
 if __name__ == "__main__":
