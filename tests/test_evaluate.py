@@ -94,7 +94,7 @@ def test_evaluate_refuses_bad_parts_heats_entrants_and_heat_tracks_up_front(caps
 def test_the_report_figure_draws_zero_counts_from_zero_and_plots_traffic():
     import matplotlib.pyplot as plt
 
-    from multirace.train.evaluate import race_agent, report_figure, summarise
+    from multirace.train.evaluate import SUMMARY_LABELS, race_agent, report_figure, summarise
 
     agent = str(agents_dir() / "dagger_small.pt")
     short = race_agent(agent, "Oval_track", laps=1, max_steps=20)  # 20 steps: no lap, no off-track, no contact
@@ -103,6 +103,7 @@ def test_the_report_figure_draws_zero_counts_from_zero_and_plots_traffic():
     report = {"agent": agent, "reference_track": "Oval_track", "laps": 1, "trained_on": [],
               "held_out": [short], "perturbations": [dict(short, perturbation="none")], "traffic": [traffic]}
     report["summary"] = summarise(report)
+    assert set(report["summary"]) <= set(SUMMARY_LABELS)  # the printed summary names every figure in words
     fig = report_figure([report])
     held, perturbed, off_tracks, traffic_panel = fig.axes
     for ax in fig.axes:  # every count is 0: each panel starts at 0 and shows a positive range

@@ -192,6 +192,19 @@ def summarise(report: dict) -> dict:
     return summary
 
 
+SUMMARY_LABELS = {  # the summary's keys (JSON) as the printed table names them
+    "held_out_runs": "held-out runs", "held_out_completion": "held-out lap completion",
+    "held_out_clean_share": "held-out clean share", "held_out_lap_ratio": "held-out best lap / racing line",
+    "held_out_clean_within_1_25_share": "held-out clean and within 1.25x share",
+    "held_out_tracks_completed": "held-out tracks with a lap", "held_out_best_lap": "held-out mean best lap (s)",
+    "held_out_off_tracks_per_lap": "held-out off-tracks / lap", "nominal_completion": "nominal lap completion",
+    "perturbed_completion": "perturbed lap completion", "perturbed_off_tracks_per_lap": "perturbed off-tracks / lap",
+    "nominal_off_tracks_per_lap": "nominal off-tracks / lap", "traffic_completion": "traffic lap completion",
+    "traffic_collisions_per_lap": "traffic collisions / lap",
+    "traffic_collisions_caused_per_lap": "traffic collisions caused / lap", "traffic_position": "traffic position",
+    "completion_drop_points": "completion drop under perturbations (points)"}
+
+
 def _fmt(value, digits=2):
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return "-"
@@ -202,8 +215,10 @@ def print_report(reports: list, console) -> None:
     from rich.table import Table
 
     for report in reports:
-        table = Table(title=f"{Path(report['agent']).name}: held-out tracks, perturbations (on "
-                            f"{report['reference_track']}), traffic; {report['laps']} laps per race")
+        reference = report["reference_track"] + (", trained on" if report["reference_track"] in report.get(
+            "trained_on", ()) else "")
+        table = Table(title=f"{Path(report['agent']).name}: held-out tracks, perturbations (on {reference}), "
+                            f"traffic; {report['laps']} laps per race")
         for column in ("part", "track / perturbation", "laps", "lap completion", "best lap", "x racing line",
                        "off-tracks/lap", "collisions/lap", "status"):
             table.add_column(column)
@@ -223,7 +238,7 @@ def print_report(reports: list, console) -> None:
         summary.add_column(Path(report["agent"]).stem, justify="right")
     keys = [key for key in reports[0]["summary"] if key != "heats"]
     for key in keys:
-        summary.add_row(key, *[_fmt(r["summary"].get(key)) if not isinstance(r["summary"].get(key), list)
+        summary.add_row(SUMMARY_LABELS.get(key, key), *[_fmt(r["summary"].get(key)) if not isinstance(r["summary"].get(key), list)
                                else str(len(r["summary"][key])) for r in reports])
     console.print(summary)
     for report in reports:
