@@ -10,6 +10,8 @@ import pytest
 from multirace.environment.race_env import RaceEnv
 from multirace.racing.runner import RaceConfig, make_controller, run_race
 from multirace.sensors.topdown import layout_for, panel_order, render_topdown
+from multirace.recording.replay import ReplayRecorder
+from multirace.recording.replay_video import ReplayScene
 from multirace.recording.video import VideoRecorder, write_video
 from multirace.sim.world import CAR_COLOURS
 
@@ -187,11 +189,13 @@ class _PanelWatch:
         self.final = panel_order(env)
 
 
-def test_the_video_panel_follows_the_results_order_with_penalties():
+def test_the_video_panel_follows_the_results_order_with_penalties(tmp_path):
     # dagger_fast causes collisions: as the striker it collects 5 s penalties while it leads on the road
     watch = _PanelWatch()
+    replay = tmp_path / "race.rrd"
     result = run_race([make_controller(s) for s in ("dagger_fast", "bot:follow@1.0", "bot:follow@1.5")],
-                      RaceConfig(race="head_to_head", laps=2, seed=0), recorders=[watch])
+                      RaceConfig(race="head_to_head", laps=2, seed=0),
+                      recorders=[watch, ReplayRecorder(replay, image_every=0)])
     penalised = [int(c["car"][4:]) for c in result["cars"] if c["penalties"]]
     assert penalised, "the race should have a penalised car"
     assert watch.final == [int(c["car"][4:]) for c in result["cars"]]  # the last frame lists the results' order
@@ -201,6 +205,8 @@ def test_the_video_panel_follows_the_results_order_with_penalties():
         and any(road.index(car) < road.index(other) and panel.index(car) > panel.index(other)
                 for other in range(len(road)) if other != car)]
     assert ahead_on_road_behind_in_panel  # its penalties count in the panel before it finishes
+    scene = ReplayScene(replay)  # the replay's video (`multirace replay --video`) lists the same order
+    assert all(panel_order(scene.at(k + 1)) == panel for k, (panel, _, _) in enumerate(watch.steps))
 
 
 def test_penalties_and_resets_are_marked_on_the_car_and_in_the_panel():
