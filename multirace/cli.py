@@ -413,7 +413,8 @@ def build_parser() -> argparse.ArgumentParser:
     explain.set_defaults(func=cmd_explain)
 
     plot = sub.add_parser("plot", help="plot a sim-trace CSV: the path coloured by speed and reward",
-                          description="Draw the track with the driven path coloured by speed and by reward.")
+                          description="Draw the track with the driven path coloured by speed and by reward: a "
+                                      "row of panels per episode (in a race's sim-trace, per car), up to 8.")
     plot.add_argument("trace", metavar="TRACE.csv", help="a DeepRacer sim-trace CSV")
     plot.add_argument("--out", metavar="FILE.png", help="PNG to write (default: TRACE.png)")
     plot.add_argument("--track", default=None, help="track name or .npy (default: guessed from track_len)")
