@@ -150,9 +150,11 @@ class TrainingRun:
         if self.progress is not None:
             self.progress.n = min(int(self.elapsed()), self.progress.total)
             last_eval = self.evals[-1] if self.evals else None
+            training = (f"ret {row['return']:.1f} laps/ep {row['laps_per_episode']:.2f} episodes with a lap "
+                        f"{100 * row['lap_completion']:.0f}%" if any(h["episodes"] for h in self.history)
+                        else "no episode ended yet")
             self.progress.set_postfix_str(  # training episodes (exploring) beside the greedy evaluation
-                f"it {self.iteration} {row['steps_per_s']:.0f} steps/s | training: ret {row['return']:.1f} "
-                f"laps/ep {row['laps_per_episode']:.2f} episodes with a lap {100 * row['lap_completion']:.0f}%"
+                f"it {self.iteration} {row['steps_per_s']:.0f} steps/s | training: {training}"
                 + (f" | eval {last_eval['laps']}/{last_eval['target']} laps, {last_eval['resets']} resets"
                    if last_eval else ""))
             self.progress.refresh()
