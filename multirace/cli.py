@@ -12,8 +12,8 @@ from rich.markup import escape
 from rich.table import Table
 
 from .environment.rules import FORMATS
-from .text import display_name
-from .resources import list_agents, list_tracks
+from .text import display_name, laps_text
+from .resources import agent_argument, list_agents, list_tracks
 
 
 def _format_time(value) -> str:
@@ -23,7 +23,7 @@ def _format_time(value) -> str:
 def print_result(result: dict, console: Console) -> None:
     """The race result as a table."""
     direction = " (reverse)" if result["reverse"] else ""
-    table = Table(title=f"{result['format']} on {result['track']}{direction}, {result['laps']} laps, "
+    table = Table(title=f"{result['format']} on {result['track']}{direction}, {laps_text(result['laps'])}, "
                         f"seed {result['seed']}")
     for column in ("pos", "agent", "laps", "best lap", "total time", "resets", "penalties", "collisions",
                    "status"):
@@ -87,6 +87,11 @@ def cmd_race(args) -> int:
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)  # as the other outputs do
         Path(args.json).write_text(json.dumps(result, indent=2))
+    for option, what in (("json", "the result record"), ("replay", "the replay (`multirace replay FILE`)"),
+                         ("simtrace", "the DeepRacer sim-trace"), ("eval_metrics", "DeepRacer's evaluation metrics"),
+                         ("video", "the top-down race video")):
+        if getattr(args, option, None):
+            print(f"wrote {getattr(args, option)}: {what.replace('FILE', getattr(args, option))}")
     return 0
 
 
@@ -117,6 +122,9 @@ def cmd_explain(args) -> int:
                      reverse=args.reverse, seed=args.seed, target=args.target, scale=args.scale)
     print(f"wrote {result['out']}: Grad-CAM of {result['agent']} over {result['frames']} frames on "
           f"{result['track']}" + (f", replay {result['replay']}" if result["replay"] else ""))
+    if result["status"] != "not_finished" and result["frames"] < args.steps:
+        print(f"the run ended ({result['status']}) after {result['frames']} of --steps {args.steps}: explain drives "
+              "one lap at most (a 1-lap time trial)")
     print(f"heat on the track (road + borders + centre line): {100 * result['heat_on_track']:.1f}% of the mass, "
           f"on {100 * result['track_fraction']:.1f}% of the image; on the lines {result['lines_lift']:.2f}x "
           "their area share")
@@ -153,6 +161,30 @@ def cmd_agent_inspect(args) -> int:
         console.print("model_metadata:")
         console.print_json(json.dumps(info["metadata"]))
     return 0 if info["valid"] else 1
+
+
+def cmd_agent_list(args) -> int:
+    from .racing.agentfile import agent_summary
+    from .resources import agents_dir, shipped_figures
+
+    figures = shipped_figures()
+    rows = [{**agent_summary(agents_dir() / f"{name}.pt"), **figures.get(name, {"held_out": "-", "traffic": "-"})}
+            for name in list_agents()]
+    if args.json:
+        print(json.dumps(rows, indent=2))
+        return 0
+    table = Table(title="shipped agents (race, evaluate, explain, inspect, export or submit them by name)")
+    for column in ("name", "sensor", "actions", "made by", "held out (agents/README)", "traffic"):
+        table.add_column(column)
+    for row in rows:
+        table.add_row(escape(row["name"]), " + ".join(row["sensor"]), row["actions"],
+                      escape(f"{row['made_by']}; {row['network']}, {row['parameters']:,} parameters, "
+                             f"{row['size_bytes'] / 1e6:.2f} MB"), escape(row["held_out"]), escape(row["traffic"]))
+    console = Console(width=160)
+    console.print(table)
+    console.print(f"files in {agents_dir()}; how each was made and how it races: {agents_dir() / 'README.md'}",
+                  soft_wrap=True)
+    return 0
 
 
 def cmd_agent_export(args) -> int:
@@ -251,10 +283,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     race = sub.add_parser("race", help="race agent files and bots against each other",
                           description="Race agent files (.pt) and scripted bots (bot:follow@1.5, "
-                                      "bot:lanes@1.0) and print the result.")
+                                      "bot:lanes@1.0, bot:racingline) and print the result.")
     race.add_argument("entrants", nargs="+",
                       help=f"agent files, shipped agents by name ({', '.join(list_agents())}) or bot:KIND@SPEED "
-                           "(KIND: follow, lanes, pass)")
+                           "(KIND: follow, lanes, pass at SPEED m/s; racingline, racingline@SCALE: the racing line, its speeds x SCALE)")
     race.add_argument("--track", default="reinvent_base",
                       help=f"bundled track name or .npy path (bundled: {', '.join(list_tracks())})")
     race.add_argument("--reverse", action="store_true", help="race the track in the other direction")
@@ -273,19 +305,24 @@ def build_parser() -> argparse.ArgumentParser:
     race.add_argument("--video", metavar="FILE.mp4", help="write the top-down race view as an MP4 (15 fps)")
     race.set_defaults(func=cmd_race)
 
-    agent = sub.add_parser("agent", help="inspect agent files",
+    agent = sub.add_parser("agent", help="list, inspect, export and import agent files",
                            description="Tools for agent files (.pt: weights + model_metadata).")
     agent_sub = agent.add_subparsers(dest="agent_command", required=True)
+    listing = agent_sub.add_parser("list", help="the agents shipped with multirace: figures and paths",
+                                   description="List the shipped agents (network, sensors, action space, how "
+                                               "each was made, size) and the folder that holds them.")
+    listing.add_argument("--json", action="store_true", help="print the list as JSON (with each file's path)")
+    listing.set_defaults(func=cmd_agent_list)
     inspect = agent_sub.add_parser("inspect", help="print an agent file's metadata, size and hash",
                                    description="Validate an agent file and print its model_metadata, "
                                                "parameter count and sha256 (exit 1 if invalid).")
-    inspect.add_argument("file", help="agent file (.pt)")
+    inspect.add_argument("file", type=agent_argument, help="agent file (.pt) or a shipped agent's name")
     inspect.add_argument("--json", action="store_true", help="print the information as JSON")
     inspect.set_defaults(func=cmd_agent_inspect)
     export = agent_sub.add_parser("export", help="write an agent as the .tar.gz a DeepRacer car loads",
                                   description="Write the car's archive: one frozen TensorFlow graph (agent/model.pb, "
                                               "the car's node names) and model_metadata.json.")
-    export.add_argument("file", help="agent file (.pt) or a shipped agent's name")
+    export.add_argument("file", type=agent_argument, help="agent file (.pt) or a shipped agent's name")
     export.add_argument("--out", required=True, metavar="MODEL.tar.gz", help="archive to write")
     export.set_defaults(func=cmd_agent_export)
     imported = agent_sub.add_parser("import", help="turn a DeepRacer model into an agent file",
@@ -328,7 +365,7 @@ def build_parser() -> argparse.ArgumentParser:
     imitate.add_argument("--traffic", default=None, metavar="BOTS",
                          help="bots in the envs (all, or --traffic-share of them), comma-separated (e.g. "
                               "follow@1.0,lanes@1.0), started ahead of the learner")
-    imitate.add_argument("--init", default=None, metavar="AGENT.pt",
+    imitate.add_argument("--init", default=None, metavar="AGENT.pt", type=agent_argument,
                          help="start from this agent file's net (its network, image size, action space)")
     imitate.add_argument("--max-samples", type=int, default=40000, metavar="N",
                          help="dataset cap; beyond it new samples replace random old ones (default 40000; "
@@ -360,12 +397,13 @@ def build_parser() -> argparse.ArgumentParser:
     explain = sub.add_parser("explain", help="Grad-CAM heat maps of what an agent looks at while it drives",
                              description="Drive an agent file alone on a track (1-car time trial) and write "
                                          "Grad-CAM heat maps of its chosen actions over its camera frames.")
-    explain.add_argument("agent", metavar="AGENT.pt", help="an agent file")
+    explain.add_argument("agent", metavar="AGENT.pt", type=agent_argument, help="an agent file or a shipped agent's name")
     explain.add_argument("--track", default="reinvent_base", help="track name or .npy (default reinvent_base)")
     explain.add_argument("--reverse", action="store_true", help="drive the track the other way round")
     explain.add_argument("--out", metavar="FILE.mp4|FILE.png",
                          help="an MP4 of every frame, or a PNG strip of a few (default AGENT_gradcam.mp4)")
-    explain.add_argument("--steps", type=int, default=150, help="steps to drive (default 150, 10 s)")
+    explain.add_argument("--steps", type=int, default=150,
+                         help="steps to drive at most (default 150, 10 s); the run ends after one lap")
     explain.add_argument("--replay", metavar="FILE.rrd", help="also record the run with the heat maps as a replay")
     explain.add_argument("--seed", type=int, default=0)
     explain.add_argument("--target", choices=("steer", "speed"), default="steer",
@@ -375,7 +413,8 @@ def build_parser() -> argparse.ArgumentParser:
     explain.set_defaults(func=cmd_explain)
 
     plot = sub.add_parser("plot", help="plot a sim-trace CSV: the path coloured by speed and reward",
-                          description="Draw the track with the driven path coloured by speed and by reward.")
+                          description="Draw the track with the driven path coloured by speed and by reward: a "
+                                      "row of panels per episode (in a race's sim-trace, per car), up to 8.")
     plot.add_argument("trace", metavar="TRACE.csv", help="a DeepRacer sim-trace CSV")
     plot.add_argument("--out", metavar="FILE.png", help="PNG to write (default: TRACE.png)")
     plot.add_argument("--track", default=None, help="track name or .npy (default: guessed from track_len)")
@@ -413,6 +452,9 @@ def main(argv=None) -> int:
     except (ValueError, FileNotFoundError, RewardFunctionError) as exc:  # TrackError, AgentFileError... are ValueErrors
         print(f"multirace {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # the output piped into a reader that stopped (`| head`): stop quietly
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error when Python flushes
+        return 1
 
 
 if __name__ == "__main__":

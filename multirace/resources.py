@@ -7,8 +7,11 @@ same way from an editable install and from an installed wheel.
 """
 from __future__ import annotations
 
+import re
 from importlib.resources import files
 from pathlib import Path
+
+_GLANCE_ROW = re.compile(r"^\| `(?P<name>[^`]+)` \| (?P<held_out>[^|]+) \| (?P<traffic>[^|]+) \|$")
 
 
 def data_dir(folder: str) -> Path:
@@ -39,3 +42,30 @@ def list_tracks() -> list[str]:
 def list_agents() -> list[str]:
     """Names of the shipped agent files (`multirace race dagger_fast` races one by name)."""
     return sorted(p.stem for p in agents_dir().glob("*.pt"))
+
+
+def shipped_figures() -> dict[str, dict]:
+    """Each shipped agent's headline figures, {name: {"held_out", "traffic"}}, from the "At a glance" table of
+    the shipped agents/README.md (the measurements live there, with how they were made)."""
+    readme = agents_dir() / "README.md"
+    text = readme.read_text() if readme.exists() else ""
+    glance = text.partition("## At a glance")[2].partition("\n## ")[0]
+    return {m["name"]: {"held_out": m["held_out"].strip(), "traffic": m["traffic"].strip()}
+            for m in map(_GLANCE_ROW.match, glance.splitlines()) if m}
+
+
+def resolve_agent_path(spec) -> Path:
+    """The agent file `spec` names: a path, or else the name of an agent shipped with multirace (`racer`).
+
+    Every command and function that takes an agent file goes through here, so a shipped agent's name
+    works wherever a path does; a path that exists (a file of that name here) comes first."""
+    path = Path(spec)
+    shipped = agents_dir() / f"{spec}.pt"
+    if not path.is_file() and path.name == str(spec) and shipped.exists():  # a bare name: a folder of that
+        return shipped                                                       # name does not shadow the agent
+    return path
+
+
+def agent_argument(spec: str) -> str:
+    """`resolve_agent_path` as an argparse `type`: every command-line argument that takes an agent file."""
+    return str(resolve_agent_path(spec))

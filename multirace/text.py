@@ -14,3 +14,8 @@ def display_name(name, limit: int = NAME_LENGTH) -> str:
     write."""
     text = _CONTROL.sub("", str(name)).strip()
     return (text[:limit - 1] + "…") if len(text) > limit else (text or "?")
+
+
+def laps_text(laps) -> str:
+    """"1 lap", "3 laps"."""
+    return f"{laps} lap" + ("" if laps == 1 else "s")

@@ -364,3 +364,16 @@ def test_imported_deepracer_layers_load_or_name_the_field(tmp_path, change, mess
     with pytest.raises(AgentFileError, match=message) as err:
         load_agent(path)
     assert str(path) in str(err.value)
+
+
+def test_no_build_machine_folders_reach_inspect_or_a_written_file(tmp_path):
+    command = "multirace imitate --action-space /home/me/work/agents/space.json --init C:\\runs\\a.pt --out x.pt"
+    path = _save(tmp_path / "a.pt", training={"command": command, "init": {"file": "/srv/runs/b.pt"}})
+    stored = json.loads(torch.load(path, weights_only=True)["metadata"])  # written without the folders
+    assert stored["training"] == {"command": "multirace imitate --action-space space.json --init a.pt --out x.pt",
+                                  "init": {"file": "b.pt"}}
+    for shipped in SHIPPED:  # the shipped files were written on a build machine: what users see has no folder
+        shown = json.dumps(inspect_agent(shipped)["metadata"])
+        assert "/work/" not in shown and "/home/" not in shown, shipped.name
+    racer = inspect_agent(REPO / "agents" / "racer.pt")["metadata"]["training"]["command"]
+    assert "--action-space action_space_racer.json" in racer

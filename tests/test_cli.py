@@ -36,6 +36,7 @@ def test_race_command_prints_a_table_and_writes_the_record(tmp_path):
     (["race", "bot:follow@1", "--laps", "0"], "laps"),
     (["race", "bot:warp@1"], "bot:KIND@SPEED"),
     (["race", "bot:follow@1", "--obstacles", "9"], "obstacles"),
+    (["race", "bot:follow@1", "--video", "race.avi"], "MP4 only"),
 ])
 def test_bad_arguments_get_a_clear_error_and_exit_2(args, message, capsys):
     assert main(args) == 2
@@ -43,10 +44,56 @@ def test_bad_arguments_get_a_clear_error_and_exit_2(args, message, capsys):
 
 
 def test_a_shipped_agent_by_name_is_not_shadowed_by_a_folder_of_that_name(tmp_path, monkeypatch):
-    from multirace.racing.runner import resolve_agent_path
+    from multirace.resources import resolve_agent_path
     from multirace.resources import agents_dir
 
     monkeypatch.chdir(tmp_path)
     (tmp_path / "racer").mkdir()  # e.g. a training run's output folder
     assert resolve_agent_path("racer") == agents_dir() / "racer.pt"
     assert resolve_agent_path("mine") == Path("mine")  # no shipped agent of that name: the path as given
+
+
+@pytest.mark.parametrize("argv,field", [
+    (["evaluate", "racer", "--quick"], "agents"),
+    (["explain", "racer"], "agent"),
+    (["agent", "inspect", "racer"], "file"),
+    (["agent", "export", "racer", "--out", "m.tar.gz"], "file"),
+    (["league", "submit", "lg", "racer", "--name", "r"], "file"),
+    (["imitate", "--out", "a.pt", "--init", "racer"], "init"),
+    (["train", "--out", "a.pt", "--init", "racer"], "init"),
+])
+def test_every_command_that_takes_an_agent_file_takes_a_shipped_name(argv, field, tmp_path, monkeypatch):
+    from multirace.cli import build_parser
+    from multirace.resources import agents_dir
+
+    monkeypatch.chdir(tmp_path)  # a folder with no agents/ in it, as a user's
+    value = getattr(build_parser().parse_args(argv), field)
+    assert (value[0] if isinstance(value, list) else value) == str(agents_dir() / "racer.pt")
+
+
+def test_agent_inspect_and_agent_list_work_by_name_from_any_folder(tmp_path):
+    from multirace.resources import agents_dir, list_agents
+
+    inspect = subprocess.run([sys.executable, "-m", "multirace.cli", "agent", "inspect", "dagger_fast", "--json"],
+                             capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert inspect.returncode == 0, inspect.stderr
+    info = json.loads(inspect.stdout)
+    assert info["valid"] and info["name"] == "dagger_fast"
+    listed = subprocess.run([sys.executable, "-m", "multirace.cli", "agent", "list", "--json"],
+                            capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert listed.returncode == 0, listed.stderr
+    rows = json.loads(listed.stdout)
+    assert [row["name"] for row in rows] == list_agents()
+    for row in rows:
+        assert Path(row["path"]) == agents_dir() / f"{row['name']}.pt" and row["parameters"] > 100_000
+        assert "m/s" in row["actions"] and row["network"]
+        assert "clean" in row["held_out"] and "per lap" in row["traffic"]  # agents/README's "At a glance" figures
+
+
+def test_race_help_names_every_bot_kind(capsys):
+    from multirace.environment.bots import BOT_KINDS
+
+    with pytest.raises(SystemExit):
+        main(["race", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert all(kind in text.split("KIND:")[1] for kind in BOT_KINDS), text

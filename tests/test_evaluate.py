@@ -89,3 +89,26 @@ def test_evaluate_refuses_bad_parts_heats_entrants_and_heat_tracks_up_front(caps
     assert "--field: bot 'bot:zoom@1'" in capsys.readouterr().err
     assert main(["evaluate", str(AGENT), "--heats", "1", "--heat-tracks", "Mexico_track,Nowhere"]) == 2
     assert "--heat-tracks: track 'Nowhere'" in capsys.readouterr().err
+
+
+def test_the_report_figure_draws_zero_counts_from_zero_and_plots_traffic():
+    import matplotlib.pyplot as plt
+
+    from multirace.train.evaluate import SUMMARY_LABELS, race_agent, report_figure, summarise
+
+    agent = str(agents_dir() / "dagger_small.pt")
+    short = race_agent(agent, "Oval_track", laps=1, max_steps=20)  # 20 steps: no lap, no off-track, no contact
+    traffic = race_agent(agent, "Oval_track", laps=1, bots=("follow@0.8",), race="head_to_head", max_steps=20)
+    assert short["off_tracks_per_lap"] in (0, 0.0, None) and traffic["collisions_per_lap"] in (0, 0.0, None)
+    report = {"agent": agent, "reference_track": "Oval_track", "laps": 1, "trained_on": [],
+              "held_out": [short], "perturbations": [dict(short, perturbation="none")], "traffic": [traffic]}
+    report["summary"] = summarise(report)
+    assert set(report["summary"]) <= set(SUMMARY_LABELS)  # the printed summary names every figure in words
+    fig = report_figure([report])
+    held, perturbed, off_tracks, traffic_panel = fig.axes
+    for ax in fig.axes:  # every count is 0: each panel starts at 0 and shows a positive range
+        low, high = ax.get_ylim()
+        assert low == 0 and high > 0, ax.get_title()
+    assert "traffic" in traffic_panel.get_title()
+    assert [t.get_text() for t in traffic_panel.get_xticklabels()] == ["lap completion", "collisions/lap", "caused/lap"]
+    plt.close(fig)

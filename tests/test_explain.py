@@ -120,3 +120,12 @@ def test_continuous_agent_mp4_and_cli(tmp_path):
     assert count == 8
     assert cap.get(cv2.CAP_PROP_FRAME_WIDTH) == 480
     assert TRACK_LABELS == (ROAD, BORDER, CENTRE)
+
+
+def test_explain_says_when_the_one_lap_ends_the_run_before_its_steps(tmp_path, capsys):
+    from multirace.cli import main
+
+    assert main(["explain", "racer", "--track", "Mexico_track", "--steps", "200", "--out",
+                 str(tmp_path / "strip.png")]) == 0  # racer laps Mexico_track in about 6.4 s: 96 steps
+    printed = " ".join(capsys.readouterr().out.split())
+    assert "ended (finished) after" in printed and "of --steps 200" in printed and "one lap at most" in printed

@@ -507,3 +507,9 @@ def test_imported_deepracer_networks_race_and_league(tmp_path):
     with sqlite3.connect(folder / "results.sqlite") as conn:
         rows = conn.execute("SELECT status, result FROM results").fetchall()
     assert all(status == "ok" for status, _ in rows) and "forfeit" not in json.dumps([r for _, r in rows])
+
+
+def test_the_exported_metadata_names_no_build_machine_folder(tmp_path):
+    out = export_agent("racer", tmp_path / "racer.tar.gz")  # racer.pt was made with an absolute --action-space
+    text = (unpack(out, tmp_path / "x") / "model_metadata.json").read_text()
+    assert "action_space_racer.json" in text and "/agents/action_space_racer.json" not in text

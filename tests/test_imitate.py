@@ -25,6 +25,9 @@ def test_tiny_dagger_writes_a_loadable_agent(tmp_path):
     summary = _tiny(tmp_path, "tiny", seed=3, name="tiny_dagger")
     assert summary["iterations"] >= 1 and summary["samples"] >= 1
     assert summary["history"][0]["beta"] == 1.0
+    first = summary["history"][0]  # beta 1: the expert drove every step; no rate to show, not a nan
+    assert first["learner_steps"] == 0 and first["learner_resets_per_1000_steps"] is None
+    json.dumps(summary["history"], allow_nan=False)
     agent = load_agent(summary["out"])
     assert agent.name == "tiny_dagger"
     assert agent.metadata["training"]["method"] == "dagger"

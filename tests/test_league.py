@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import sqlite3
 import subprocess
@@ -23,7 +24,7 @@ from multirace.league.runner import run_league
 from multirace.league.schedule import build_schedule
 from multirace.league.store import connect
 from multirace.league.submissions import init_league, submit
-from multirace.league.table import compute_table, write_table
+from multirace.league.table import compute_table, to_html, write_table
 from multirace.racing.nets import SMALL, build_net
 from helpers import overflow_on_camera_images
 
@@ -250,7 +251,7 @@ def reference(tmp_path_factory):
     return folder, stats
 
 
-def test_league_runs_to_completion_and_ranks(reference, tmp_path):
+def test_league_runs_to_completion_and_ranks(reference, tmp_path, capsys):
     folder, stats = reference
     assert stats["scheduled"] == 4 + 6 and stats["ran"] == 10 and stats["failed"] == 0
     rows = _results(folder)
@@ -275,6 +276,10 @@ def test_league_runs_to_completion_and_ranks(reference, tmp_path):
     again = run_league(folder, workers=2, progress=False)
     assert again["ran"] == 0 and len(_results(folder)) == 10
     # exports
+    assert cli_main(["league", "table", str(folder)]) == 0  # the default: terminal tables, readable headers
+    text = capsys.readouterr().out
+    assert "TT best lap (s)" in text.replace("\n", " ") or "best lap (s)" in text
+    assert "tt_best_lap" not in text and "┃ entrant" in text
     for fmt in ("md", "csv", "json", "html"):
         out = tmp_path / f"table.{fmt}"
         assert cli_main(["league", "table", str(folder), "--format", fmt, "--out", str(out)]) == 0
@@ -286,6 +291,40 @@ def test_league_runs_to_completion_and_ranks(reference, tmp_path):
     assert page.count("data:image/png;base64,") == 2  # rating plot and the track map
     assert f"{folder.name}/replays/" in page and "<script" not in page
     assert (folder / "ratings.png").read_bytes()[:4] == b"\x89PNG"
+
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+BROWSER_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                "--disable-component-update", "--disable-sync", "--no-first-run"]
+
+
+def test_the_html_standings_fit_1280_px_in_a_browser(reference, tmp_path):
+    if CHROMIUM is None:
+        pytest.skip("no chromium installed (apt-get install chromium): the page is not measured in a browser")
+    sync_playwright = pytest.importorskip("playwright.sync_api", reason="pip install playwright").sync_playwright
+    folder, _ = reference
+    table = compute_table(folder)
+    first, longest = table["standings"][0]["entrant"], "L" * 64  # the longest name an entrant may have
+    table["standings"][0]["entrant"] = longest
+    for point in table["rating_history"]:
+        point["ordinal"][longest] = point["ordinal"].pop(first)
+    page_file = tmp_path / "table.html"
+    page_file.write_text(to_html(table))
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=BROWSER_ARGS)
+        try:
+            page = browser.new_page(viewport={"width": 1280, "height": 800})
+            page.goto(page_file.as_uri())
+            standings = page.locator("table").first
+            assert standings.evaluate("t => t.getBoundingClientRect().right") <= 1280
+            assert page.evaluate("() => document.documentElement.scrollWidth") <= 1280  # no sideways scrolling
+            headers = standings.locator("th").all_inner_texts()
+            assert headers and not any("_" in h for h in headers), headers  # readable, not identifiers
+            align = standings.evaluate(
+                "t => [...t.rows[1].cells].map(c => getComputedStyle(c).textAlign)")
+            assert align[1] == "left" and align[0] == align[2] == "right"  # entrant left, numbers right
+        finally:
+            browser.close()
 
 
 def test_kill_9_mid_run_then_resume_matches_uninterrupted(reference, tmp_path):

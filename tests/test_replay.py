@@ -141,10 +141,11 @@ def test_cli_race_replay_and_summary(tmp_path, capsys):
     rrd, out_json = tmp_path / "cli.rrd", tmp_path / "summary.json"
     assert main(["race", "bot:follow@2.0", "bot:lanes@1.5", "--laps", "1", "--replay", str(rrd)]) == 0
     assert rrd.stat().st_size > 0
-    capsys.readouterr()
+    assert f"wrote {rrd}" in capsys.readouterr().out  # as every command says what it wrote
     assert main(["replay", str(rrd), "--summary", "--json", str(out_json)]) == 0
     text = capsys.readouterr().out
     assert "bot:follow@2" in text and "lap 1 in" in text
+    assert "s of sim time" in text and "race clock" in text  # which clock each time is on
     summary = json.loads(out_json.read_text())
     assert [c["laps"] for c in summary["cars"]] == [1, 1]
     assert summary["format"] == "head_to_head" and summary["steps"] > 0

@@ -158,3 +158,23 @@ def test_driving_on_between_off_tracks_is_not_a_reset_loop():
         ruling = rules.judge(race, off, sim_time=3.0 * (k + 1))
         assert ruling.end is None and ruling.reset == (0.0, None)
     assert race.resets == 20 and race.quick_off_tracks == 0
+
+
+@pytest.mark.parametrize("race", ["head_to_head", "time_trial"])
+def test_standings_count_penalties_while_racing_and_equal_the_ranking_once_over(race):
+    rules, length = make_rules(race, laps=2), 20.0
+    leader = CarRace("leader", distance=12.0, penalty_time=10.0)  # ahead on the road with 10 s of penalties
+    chaser = CarRace("chaser", distance=10.0)
+    assert rules.ranking([leader, chaser], length) == [0, 1]
+    assert rules.standings([leader, chaser], length, sim_time=6.0) == [1, 0]  # 10 + 20 s projected against 24 s
+    assert rules.standings([CarRace("a", distance=1.0, penalty_time=10.0), CarRace("b", distance=0.5)],
+                           length, sim_time=1.0) == [0, 1]  # the first metres: the road order
+    for car, finish in ((leader, 30.0), (chaser, 26.0)):
+        car.status, car.laps, car.finish_time, car.distance = "finished", 2, finish, 40.0
+    assert rules.standings([leader, chaser], length, 30.0) == rules.ranking([leader, chaser], length) == [1, 0]
+
+
+def test_standings_under_the_reset_rule_are_its_ranking():
+    rules = make_rules("reset_rule", laps=3)
+    cars = [CarRace("slow", distance=30.0, lap_times=[9.0]), CarRace("fast", distance=25.0, lap_times=[8.0])]
+    assert rules.standings(cars, 20.0, 20.0) == rules.ranking(cars, 20.0) == [1, 0]

@@ -15,6 +15,7 @@ from multirace.deepracer.logs import EvaluationMetricsRecorder, TrainingLog
 from multirace.environment.actions import default_metadata, load_action_space
 from multirace.racing.entrant import BotController
 from multirace.racing.runner import RaceConfig, run_race
+from multirace.recording.plot import plot_simtrace
 from multirace.recording.simtrace import SimTraceRecorder, SimTraceWriter, read_simtrace
 from helpers import Wild
 
@@ -113,6 +114,9 @@ def test_plot_writes_a_png_of_the_track_and_path(trace, tmp_path, capsys):
     assert image is not None and image.shape[0] > 200 and image.shape[1] > 400
     non_white = (image < 240).any(axis=2).mean()
     assert non_white > 0.02  # lines and points drawn, not a blank canvas
+    one = tmp_path / "one.png"  # a race's log has a row of panels per car, not one cloud of every car's points
+    plot_simtrace(path, one, episodes=[0])
+    assert image.shape[0] == 2 * cv2.imread(str(one)).shape[0]
     hsv = cv2.cvtColor(image, cv2.COLOR_BGR2HSV)
     assert (hsv[..., 1] > 100).sum() > 500  # coloured path points (speed / reward colour maps)
 

@@ -9,7 +9,9 @@ import pytest
 
 from multirace.environment.race_env import RaceEnv
 from multirace.racing.runner import RaceConfig, make_controller, run_race
-from multirace.sensors.topdown import layout_for, render_topdown
+from multirace.sensors.topdown import layout_for, panel_order, render_topdown
+from multirace.recording.replay import ReplayRecorder
+from multirace.recording.replay_video import ReplayScene
 from multirace.recording.video import VideoRecorder, write_video
 from multirace.sim.world import CAR_COLOURS
 
@@ -141,3 +143,97 @@ def test_videos_are_h264_in_mp4_as_browsers_play_them(tmp_path):
     capture.release()
     assert len(decoded) == 10 and decoded[0].shape[:2] == (62, 98)
     assert [int(round(f[:61, :97].mean())) for f in decoded] == pytest.approx([20 * k for k in range(10)], abs=3)
+
+
+def _top_level_boxes(data: bytes) -> list[str]:
+    """The types of an MP4's top-level boxes (atoms), in file order."""
+    boxes, at = [], 0
+    while at + 8 <= len(data):
+        size, kind = int.from_bytes(data[at:at + 4], "big"), data[at + 4:at + 8].decode("latin-1")
+        if size == 1:  # a 64-bit size follows the type
+            size = int.from_bytes(data[at + 8:at + 16], "big")
+        boxes.append(kind)
+        at += size if size else len(data)
+    return boxes
+
+
+def test_videos_are_faststart_and_only_mp4(tmp_path):
+    path = tmp_path / "fast.mp4"
+    write_video([np.full((64, 96, 3), 9 * k, np.uint8) for k in range(20)], path)
+    boxes = _top_level_boxes(path.read_bytes())
+    assert "moov" in boxes and "mdat" in boxes
+    assert boxes.index("moov") < boxes.index("mdat")  # a browser can start playing before the whole file arrives
+    for name in ("race.avi", "race.gif", "race"):
+        with pytest.raises(ValueError, match="MP4"):
+            VideoRecorder(tmp_path / name)
+        with pytest.raises(ValueError, match="MP4"):
+            write_video([np.zeros((8, 8, 3), np.uint8)], tmp_path / name)
+    assert not list(tmp_path.glob("race*"))
+
+
+class _PanelWatch:
+    """A race recorder that notes, after every step, the panel's order and the road order (rules' ranking)."""
+
+    def __init__(self):
+        self.steps = []
+
+    def start(self, env):
+        pass
+
+    def step(self, env, *_):
+        road = env.ranks()
+        self.steps.append((panel_order(env), sorted(range(len(road)), key=lambda k: road[k]),
+                           [race.penalty_time for race in env.races]))
+
+    def finish(self, env, result):
+        self.final = panel_order(env)
+
+
+def test_the_video_panel_follows_the_results_order_with_penalties(tmp_path):
+    # dagger_fast causes collisions: as the striker it collects 5 s penalties while it leads on the road
+    watch = _PanelWatch()
+    replay = tmp_path / "race.rrd"
+    result = run_race([make_controller(s) for s in ("dagger_fast", "bot:follow@1.0", "bot:follow@1.5")],
+                      RaceConfig(race="head_to_head", laps=2, seed=0),
+                      recorders=[watch, ReplayRecorder(replay, image_every=0)])
+    assert any(car["penalties"] for car in result["cars"]), "the race should have a penalised car"
+    assert watch.final == [int(c["car"][4:]) for c in result["cars"]]  # the last frame lists the results' order
+    scene = ReplayScene(replay)  # the replay's video (`multirace replay --video`) lists the same order
+    assert all(panel_order(scene.at(k + 1)) == panel for k, (panel, _, _) in enumerate(watch.steps))
+
+
+class _Penalise(_PanelWatch):
+    """A `_PanelWatch` that gives the road leader a 10 s penalty after 3 s of racing."""
+
+    def step(self, env, *_):
+        if env.steps == 45:
+            env.races[int(np.argmin(env.ranks()))].penalty_time += 10.0
+        super().step(env)
+
+
+def test_a_road_leader_with_penalties_stands_where_it_will_finish():
+    # follow bots never overtake: bot:follow@1.5 leads bot:follow@1.2 on the road all race, 12 s to 15 s a lap
+    watch = _Penalise()
+    result = run_race([make_controller("bot:follow@1.5"), make_controller("bot:follow@1.2")],
+                      RaceConfig(race="head_to_head", laps=1, seed=0), recorders=[watch])
+    assert [c["name"] for c in result["cars"]] == ["bot:follow@1.2", "bot:follow@1.5"]  # 15 s against 12 + 10 s
+    assert watch.final == [1, 0]
+    before, after = watch.steps[:44], watch.steps[45:]
+    assert all(road == panel == [0, 1] for panel, road, _ in before)
+    assert all(panel == [1, 0] for panel, _, _ in after)  # the panel counts the penalty at once...
+    assert [road[0] for _, road, _ in after[:-1]] == [0] * (len(after) - 1)  # ...while it leads on the road
+
+
+def test_penalties_and_resets_are_marked_on_the_car_and_in_the_panel():
+    env = RaceEnv(num_cars=2, race="head_to_head", laps=1)
+    env.reset(seed=0)
+    plain = render_topdown(env)
+    env.races[1].penalty_time, env.races[1].penalties, env.races[1].resets = 5.0, 1, 1
+    env.sim_time += 0.1
+    marked = render_topdown(env)
+    layout = layout_for(env)
+    col, row = (int(v) for v in layout.to_frame(env.world.poses[1][None, :2])[0])
+    near = (slice(max(row - 40, 0), row + 40), slice(max(col - 40, 0), col + 40))
+    assert (marked[near] != plain[near]).any(axis=2).sum() > 30  # a ring around car_1 and "+5s"
+    assert (marked[:, layout.panel_x:] != plain[:, layout.panel_x:]).any()  # "+5s 1 reset" in its panel line
+    env.close()

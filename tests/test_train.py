@@ -305,6 +305,8 @@ def test_train_command_takes_a_reward_file_and_names_a_bad_one(tmp_path, capsys)
     out = tmp_path / "agent.pt"
     tiny = ["--config", "tiny", "--minutes", "0.05", "--no-progress", "--envs", "1", "--cars", "1"]
     assert main(["train", *tiny, "--reward", str(REWARD_FILES / "centerline.py"), "--out", str(out)]) == 0
+    summary = " ".join(capsys.readouterr().out.split())  # the clean evaluation first, then the one with resets
+    assert summary.index("first clean 3/3 evaluation (no off-track)") < summary.index("first 3/3 counting resets")
     agent = load_agent(out, step_budget=None)
     assert agent.metadata["training"]["reward"].endswith("centerline.py")
     assert main(["train", *tiny, "--reward", str(REWARD_FILES / "bad_raises.py"),

@@ -35,7 +35,7 @@ import torch
 from ..racing.agentfile import load_agent
 from ..racing.graphnet import GRAPH_FIELD, GraphNet
 from ..racing.nets import AveragePool, CameraNet
-from ..racing.runner import resolve_agent_path
+from ..resources import resolve_agent_path
 from .tfgraph import DT_FLOAT, DT_INT32, GraphBuilder
 
 CAMERA_SIZE = (120, 160)  # (height, width) the car's inference feeds

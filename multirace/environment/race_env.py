@@ -21,6 +21,7 @@ from pettingzoo import ParallelEnv
 from pettingzoo.utils import OrderEnforcingWrapper, parallel_to_aec
 
 from .actions import load_action_space
+from .kernels import announce_compile
 from .bots import parse_bot
 from ..sensors.camera import CameraSpec, camera_poses, observation_shape, stereo_poses
 from ..sensors.renderers import make_renderer
@@ -197,6 +198,7 @@ class RaceEnv(ParallelEnv):
 
     # ------------------------------------------------------------- reset
     def reset(self, seed=None, options=None):
+        announce_compile()  # once per process, and only if the kernels are not cached yet
         if seed is not None:
             self._rng = np.random.default_rng(seed)
             self._randomizer_rng = np.random.default_rng([seed, 3])  # its own stream: same grid either way
@@ -561,11 +563,12 @@ class RaceEnv(ParallelEnv):
 
     def ranks(self) -> list[int]:
         """Current position (1 = leading) of every car, learning cars then bots."""
-        order = self.rules.ranking(self.races, self.track.length)
-        positions = [0] * len(order)
-        for place, i in enumerate(order):
-            positions[i] = place + 1
-        return positions
+        return _positions(self.rules.ranking(self.races, self.track.length))
+
+    def standings(self) -> list[int]:
+        """Every car's position with penalties counted while it races (`RaceRules.standings`; the race view's
+        panel): the result's positions once the race is over."""
+        return _positions(self.rules.standings(self.races, self.track.length, self.sim_time))
 
     def _info(self, i: int, params: dict, touched: set, ranks: list[int], events=()) -> dict:
         """Car i's info: its reward params (the same dict, extended) plus its race state."""
@@ -611,3 +614,11 @@ class RaceEnv(ParallelEnv):
         if self._renderer is not None:
             self._renderer.close()
         self.world.close()
+
+
+def _positions(order: list[int]) -> list[int]:
+    """Positions (1 = first) of the cars listed in `order` (car indices, first first)."""
+    positions = [0] * len(order)
+    for place, i in enumerate(order):
+        positions[i] = place + 1
+    return positions

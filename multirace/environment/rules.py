@@ -30,6 +30,7 @@ import numbers
 
 FORMATS = ("time_trial", "reset_rule", "object_avoidance", "head_to_head")
 STATUSES = ("finished", "out_of_resets", "timed_out", "forfeit", "not_finished")
+STANDINGS_MIN_SHARE = 0.05  # share of the race every racing car drives before standings project finishing times
 
 
 @dataclasses.dataclass
@@ -209,6 +210,30 @@ class RaceRules:
         def key(i):
             car = cars[i]
             return (car.status == "forfeit",) + self.rank_key(car, track_length)
+
+        return sorted(range(len(cars)), key=key)
+
+    def standings(self, cars: list[CarRace], track_length: float, sim_time: float) -> list[int]:
+        """Indices of `cars` in the order the race stands now, penalties counted (the race view's panel).
+
+        `ranking` ranks a car still racing by the road (laps, then distance) and counts its penalties only
+        when it finishes; here each racing car's finishing time is projected instead: its race clock at
+        its average pace so far (sim time over the share of the race driven, plus its penalties). So a car
+        that leads on the road with 10 s of penalties stands where it will finish, and once no car is
+        racing the order is `ranking`'s, the result's. Before every racing car has driven
+        `STANDINGS_MIN_SHARE` of the race (the grid, the first metres) and under the reset rule (scored on
+        the best lap, no time penalties) it is `ranking`'s throughout."""
+        shares = {i: car.race_progress(track_length, self.laps) / 100.0 for i, car in enumerate(cars) if car.racing}
+        if self.name == "reset_rule" or not shares or min(shares.values()) < STANDINGS_MIN_SHARE:
+            return self.ranking(cars, track_length)
+
+        def key(i):
+            car = cars[i]
+            if i not in shares:
+                return (car.status == "forfeit",) + self.rank_key(car, track_length)
+            projected = sim_time / shares[i] + car.penalty_time
+            return (False,) + ((-self.laps, projected, 0.0) if self.name == "head_to_head"
+                               else (0, projected, -self.laps, 0.0))
 
         return sorted(range(len(cars)), key=key)
 

@@ -6,9 +6,11 @@ import sqlite3
 import sys
 from pathlib import Path
 
+from ..resources import agent_argument
 from .config import DB, TOML, LeagueError
 from .runner import run_league
 from .submissions import init_league, submit
+from .table import FORMATS as TABLE_FORMATS
 
 
 def add_league_commands(sub) -> None:
@@ -26,7 +28,7 @@ def add_league_commands(sub) -> None:
                                              "inference within the league's step budget) in a subprocess, then "
                                              "stores it by sha256. Duplicates and bad files are refused.")
     sub_.add_argument("dir", help="the league folder")
-    sub_.add_argument("file", help="agent file (.pt)")
+    sub_.add_argument("file", type=agent_argument, help="agent file (.pt) or a shipped agent's name")
     sub_.add_argument("--name", required=True, help="the entrant's name in the league")
     sub_.set_defaults(func=_cmd_submit)
     run = league_sub.add_parser("run", help="run every pending match (resumable)",
@@ -42,7 +44,8 @@ def add_league_commands(sub) -> None:
                                   description="Ratings (OpenSkill Plackett-Luce ordinal), time-trial standings "
                                               "and clean driving; also writes DIR/ratings.png.")
     table.add_argument("dir", help="the league folder")
-    table.add_argument("--format", dest="table_format", default="md", choices=("md", "csv", "json", "html"))
+    table.add_argument("--format", dest="table_format", default="text", choices=TABLE_FORMATS,
+                       help="text (terminal tables, the default), md, csv, json or html (a self-contained page)")
     table.add_argument("--out", metavar="FILE", help="write the table to FILE instead of printing it")
     table.set_defaults(func=_cmd_table)
 

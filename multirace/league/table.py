@@ -25,6 +25,12 @@ from .store import connect
 
 COLUMNS = ["rank", "entrant", "rating", "mu", "sigma", "heats", "wins", "avg_position", "tt_best_lap",
            "tt_completion", "tt_avg_lap", "collisions_caused_per_lap", "forfeits"]
+# what people read (text, Markdown, HTML); CSV and JSON keep the identifiers above
+HEADERS = {"rank": "#", "entrant": "entrant", "rating": "rating", "mu": "mu", "sigma": "sigma", "heats": "heats",
+           "wins": "wins", "avg_position": "avg place", "tt_best_lap": "TT best lap (s)",
+           "tt_completion": "TT finish rate", "tt_avg_lap": "TT avg lap (s)",
+           "collisions_caused_per_lap": "collisions caused / lap", "forfeits": "forfeits"}
+TEXT_COLUMNS = {"entrant"}  # left-aligned; numbers right-aligned
 
 
 def _mean(values):
@@ -185,12 +191,13 @@ def to_markdown(table: dict) -> str:
              f"{table['recorded']} of {table['scheduled']} matches recorded"
              + (f", {len(table['failed'])} failed" if table["failed"] else "")
              + (f", {table['pending']} pending" if table["pending"] else ""), "",
-             "| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+             "| " + " | ".join(HEADERS[c] for c in COLUMNS) + " |",
+             "|" + "".join("---|" if c in TEXT_COLUMNS else "---:|" for c in COLUMNS)]
     for s in table["standings"]:
         lines.append("| " + " | ".join(_cell(s[c]) for c in COLUMNS) + " |")
     if table["time_trials"]:
-        lines += ["", "## Time trials (reset rule)", "", "| rank | entrant | best lap | completion | avg lap |",
-                  "|---|---|---|---|---|"]
+        lines += ["", "## Time trials (reset rule)", "", "| # | entrant | best lap (s) | finish rate | avg lap (s) |",
+                  "|---:|---|---:|---:|---:|"]
         for s in table["time_trials"]:
             lines.append(f"| {s['rank']} | {_md(s['entrant'])} | {_cell(s['tt_best_lap'])} | "
                          f"{_cell(s['tt_completion'])} | {_cell(s['tt_avg_lap'])} |")
@@ -215,6 +222,39 @@ def to_csv(table: dict) -> str:
 
 def to_json(table: dict) -> str:
     return json.dumps(table, indent=2, sort_keys=True) + "\n"
+
+
+def to_text(table: dict, width: int | None = None) -> str:
+    """The standings and time trials as terminal tables (what `multirace league table` prints by default)."""
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console(width=width or 250, record=True, file=io.StringIO(), color_system=None)  # natural widths
+    summary = (f"{table['recorded']} of {table['scheduled']} matches recorded"
+               + (f", {len(table['failed'])} failed" if table["failed"] else "")
+               + (f", {table['pending']} pending" if table["pending"] else ""))
+    standings = Table(title=f"{display_name(table['league'])}: {summary}", title_justify="left")
+    for column in COLUMNS:  # long headers on two lines; values never wrapped
+        header = HEADERS[column] if len(HEADERS[column]) <= 9 else HEADERS[column].replace(" ", "\n", 1)
+        standings.add_column(header, justify="left" if column in TEXT_COLUMNS else "right", no_wrap=True)
+    for row in table["standings"]:
+        standings.add_row(*(_text(row[c]) for c in COLUMNS))
+    console.print(standings)
+    if table["time_trials"]:
+        trials = Table(title="time trials (reset rule)", title_justify="left")
+        for header in ("#", "entrant", "best lap (s)", "finish rate", "avg lap (s)"):
+            trials.add_column(header, justify="left" if header == "entrant" else "right")
+        for row in table["time_trials"]:
+            trials.add_row(str(row["rank"]), _text(row["entrant"]), _text(row["tt_best_lap"]),
+                           _text(row["tt_completion"]), _text(row["tt_avg_lap"]))
+        console.print(trials)
+    notes = [f"forfeit: {display_name(s['entrant'])}: {display_name(r, TEXT_LENGTH)}"
+             for s in table["standings"] for r in s["forfeit_reasons"]]
+    notes += [f"failed match {f['match_id']} ({f['kind']}): {display_name(f['reason'], TEXT_LENGTH)}"
+              for f in table["failed"]]
+    for note in notes:
+        console.print(note, markup=False, highlight=False)
+    return "\n".join(line.rstrip() for line in console.export_text().splitlines()) + "\n"
 
 
 # ------------------------------------------------------------------ plots and HTML
@@ -283,11 +323,15 @@ def to_html(table: dict, replay_base: str = "") -> str:
     def e(value) -> str:
         return html.escape(_text(value))
 
-    head = "".join(f"<th>{e(c)}</th>" for c in COLUMNS)
-    body = "".join("<tr>" + "".join(f"<td>{e(s[c])}</td>" for c in COLUMNS) + "</tr>"
-                   for s in table["standings"])
-    tt = "".join(f"<tr><td>{s['rank']}</td><td>{e(s['entrant'])}</td><td>{_cell(s['tt_best_lap'])}</td>"
-                 f"<td>{_cell(s['tt_completion'])}</td><td>{_cell(s['tt_avg_lap'])}</td></tr>"
+    def num(value) -> str:
+        return f'<td class="num">{e(value)}</td>'
+
+    head = "".join(f'<th{"" if c in TEXT_COLUMNS else " class=num"} title="{c}">{e(HEADERS[c])}</th>'
+                   for c in COLUMNS)
+    body = "".join("<tr>" + "".join(f"<td>{e(s[c])}</td>" if c in TEXT_COLUMNS else num(s[c]) for c in COLUMNS)
+                   + "</tr>" for s in table["standings"])
+    tt = "".join(f"<tr>{num(s['rank'])}<td>{e(s['entrant'])}</td>{num(s['tt_best_lap'])}"
+                 f"{num(s['tt_completion'])}{num(s['tt_avg_lap'])}</tr>"
                  for s in table["time_trials"])
     maps = "".join(f"<figure>{_img(track_map_png(t['name']), t['name'])}<figcaption>{e(t['name'])} "
                    f"({e(', '.join(t['directions']))})</figcaption></figure>" for t in table["tracks"])
@@ -296,8 +340,8 @@ def to_html(table: dict, replay_base: str = "") -> str:
         replay = f'<a href="{html.escape(replay_base + m["replay"])}">replay</a>' if m.get("replay") else "-"
         outcome = " &gt; ".join(e(name) for name in m["order"]) if "order" in m else e(f"failed: {m.get('reason', '')}")
         direction = "reverse" if m["reverse"] else "forward"
-        match_rows.append(f"<tr><td>{m['seq']}</td><td>{e(m['kind'])}</td><td>{e(m['track'])} {direction}</td>"
-                          f"<td>{m['seed']}</td><td>{outcome}</td><td>{replay}</td></tr>")
+        match_rows.append(f"<tr>{num(m['seq'])}<td>{e(m['kind'].replace('_', ' '))}</td>"
+                          f"<td>{e(m['track'])} {direction}</td>{num(m['seed'])}<td>{outcome}</td><td>{replay}</td></tr>")
     forfeits = "".join(f"<li>{e(s['entrant'])}: {e(r)}</li>" for s in table["standings"]
                        for r in s["forfeit_reasons"])
     summary = (f"{table['recorded']} of {table['scheduled']} matches recorded, {len(table['failed'])} failed, "
@@ -307,36 +351,43 @@ def to_html(table: dict, replay_base: str = "") -> str:
 <style>
 body {{ font-family: system-ui, sans-serif; margin: 2em; color: #222; }}
 table {{ border-collapse: collapse; margin: 1em 0; }}
-th, td {{ border: 1px solid #ccc; padding: 4px 8px; text-align: right; }}
-th {{ background: #eee; }} td:nth-child(2) {{ text-align: left; }}
+th, td {{ border: 1px solid #ccc; padding: 4px 7px; text-align: left; max-width: 18em; overflow-wrap: anywhere; }}
+th {{ background: #eee; vertical-align: bottom; max-width: 7em; overflow-wrap: normal; }}
+.num {{ text-align: right; }}
 figure {{ display: inline-block; margin: 0 1em 1em 0; }}
 </style></head><body>
 <h1>{e(table['league'])}</h1>
 <p>{e(summary)}. Rating: OpenSkill Plackett-Luce ordinal (mu - 3 sigma) from head-to-head finishing orders;
-time trials under the reset rule; collisions caused per lap driven.</p>
+TT: time trials under the reset rule (finish rate: the share of trials that completed every lap); collisions
+caused per lap driven.</p>
 <h2>Standings</h2>
 <table><tr>{head}</tr>{body}</table>
 <h2>Ratings over rounds</h2>
 {_img(rating_plot_png(table), 'ratings over rounds')}
 <h2>Time trials (reset rule)</h2>
-<table><tr><th>rank</th><th>entrant</th><th>best lap (s)</th><th>completion</th><th>avg lap (s)</th></tr>{tt}</table>
+<table><tr><th class=num>#</th><th>entrant</th><th class=num>best lap (s)</th><th class=num>finish rate</th>
+<th class=num>avg lap (s)</th></tr>{tt}</table>
 <h2>Tracks</h2>
 {maps}
 {'<h2>Forfeits</h2><ul>' + forfeits + '</ul>' if forfeits else ''}
 <h2>Matches</h2>
 <p>Replays open with <code>rerun FILE.rrd</code> or <code>multirace replay FILE.rrd</code>.</p>
-<table><tr><th>#</th><th>format</th><th>track</th><th>seed</th><th>finishing order</th><th>replay</th></tr>
+<table><tr><th class=num>#</th><th>format</th><th>track</th><th class=num>seed</th><th>finishing order</th>
+<th>replay</th></tr>
 {''.join(match_rows)}</table>
 </body></html>
 """
 
 
-def write_table(folder, fmt: str = "md", out=None) -> str:
-    """Render the league table in `fmt` (md, csv, json, html); writes `out` if given, and always the
-    rating plot `ratings.png` in the league folder. Returns the text."""
+FORMATS = ("text", "md", "csv", "json", "html")
+
+
+def write_table(folder, fmt: str = "text", out=None) -> str:
+    """Render the league table in `fmt` (one of FORMATS; text: terminal tables); writes `out` if given, and
+    always the rating plot `ratings.png` in the league folder. Returns the text."""
     folder = Path(folder)
     table = compute_table(folder)
-    renderers = {"md": to_markdown, "csv": to_csv, "json": to_json, "html": to_html}
+    renderers = {"text": to_text, "md": to_markdown, "csv": to_csv, "json": to_json, "html": to_html}
     if fmt not in renderers:
         raise ValueError(f"--format: unknown table format {fmt!r}; choose one of {', '.join(renderers)}")
     if fmt == "html":

@@ -44,6 +44,7 @@ import math
 import os
 import pickle
 import pickletools
+import re
 import stat
 import subprocess
 import sys
@@ -136,7 +137,7 @@ def write_agent_file(path, metadata: dict, net) -> Path:
     path = Path(path)
     state = {k: v.detach().cpu().contiguous().clone() for k, v in net.state_dict().items()}
     payload = {"format": FORMAT, "format_version": FORMAT_VERSION,
-               "metadata": json.dumps(metadata, indent=2, sort_keys=True), "state_dict": state}
+               "metadata": json.dumps(without_machine_paths(metadata), indent=2, sort_keys=True), "state_dict": state}
     path.parent.mkdir(parents=True, exist_ok=True)
     buffer = io.BytesIO()
     torch.save(payload, buffer)
@@ -329,7 +330,23 @@ def parse_metadata(payload: dict, source: str) -> dict:
         raise AgentFileError(f"{source}: field 'metadata' is nested too deeply") from None
     if not isinstance(metadata, dict):
         raise AgentFileError(f"{source}: field 'metadata' must be a JSON object")
-    return metadata
+    return without_machine_paths(metadata)
+
+
+_ABSOLUTE_PATH = re.compile(r"(?<![\w.:/~-])(?:/|~/|[A-Za-z]:[\\/])(?:[^\s/\\'\"]+[/\\])+(?=[^\s/\\'\"]+)")
+
+
+def without_machine_paths(value):
+    """`value` (metadata: dicts, lists, strings) with every absolute path cut to its file name: a training
+    command run on one machine (`--action-space /home/me/agents/space.json`) must not carry that machine's
+    folders into `agent inspect`, an exported model_metadata.json or another machine's files."""
+    if isinstance(value, str):
+        return _ABSOLUTE_PATH.sub("", value)
+    if isinstance(value, dict):
+        return {key: without_machine_paths(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [without_machine_paths(item) for item in value]
+    return value
 
 
 def metadata_sensors(metadata: dict, source: str) -> SensorSuite:
@@ -610,6 +627,28 @@ def inspect_agent(path) -> dict:
                 parameters=parameter_count(agent.net), outputs=agent.net.num_outputs,
                 value_head=agent.net.has_value, metadata=agent.metadata)
     return info
+
+
+def agent_summary(path) -> dict:
+    """One line's worth of an agent file (what `multirace agent list` shows): name, network, parameters,
+    sensors, action space, how it was made, size and path. Loads the metadata and weights safely, builds
+    no net."""
+    path = Path(path)
+    payload = read_payload(path)
+    metadata = parse_metadata(payload, str(path))
+    space = ActionSpace(metadata, str(path))
+    speeds = [speed for _, speed in space.actions] if space.discrete else [space.low[1], space.high[1]]
+    training = metadata.get("training") if isinstance(metadata.get("training"), dict) else {}
+    made = " ".join(str(training[key]) for key in ("method", "expert") if training.get(key))
+    if training.get("minutes"):
+        made += f", {training['minutes']:g} min"
+    state = payload.get("state_dict") or {}
+    return {"name": metadata.get("name", path.stem), "network": metadata.get("neural_network"),
+            "parameters": sum(int(t.numel()) for t in state.values() if isinstance(t, torch.Tensor)),
+            "sensor": metadata_sensors(metadata, str(path)).names,
+            "actions": (f"{len(space.actions)} discrete" if space.discrete else "continuous")
+                       + f", {min(speeds):g}-{max(speeds):g} m/s",
+            "made_by": made or "-", "size_bytes": path.stat().st_size, "path": str(path)}
 
 
 def inference_clock():

@@ -11,7 +11,7 @@ mean of a continuous one) as DeepRacer's (steering degrees, speed m/s).
 from __future__ import annotations
 
 from .agentfile import load_agent as load_agent_file
-from .runner import resolve_agent_path
+from ..resources import resolve_agent_path
 
 
 class Policy:

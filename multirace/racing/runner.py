@@ -10,10 +10,9 @@ actions to commands. A controller that fails forfeits; the race goes on.
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 from ..environment.race_env import RaceEnv
-from ..resources import agents_dir
+from ..resources import resolve_agent_path
 from ..sensors.suite import race_suite
 from .entrant import COMMAND_SPACE, BotController, Controller, Forfeit
 
@@ -25,15 +24,6 @@ def make_controller(spec: str, **agent_options) -> Controller:
     from .agentfile import AgentController  # torch is only needed for agent files
 
     return AgentController(resolve_agent_path(spec), **agent_options)
-
-
-def resolve_agent_path(spec: str) -> Path:
-    """The agent file `spec` names: a path, or else the name of an agent shipped with multirace."""
-    path = Path(spec)
-    shipped = agents_dir() / f"{spec}.pt"
-    if not path.is_file() and path.name == spec and shipped.exists():  # a bare name: a folder of that name does not
-        return shipped                                                 # shadow the shipped agent
-    return path
 
 
 @dataclasses.dataclass

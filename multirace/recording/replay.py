@@ -15,7 +15,9 @@ it writes, headless (no viewer needed), with rerun-sdk 0.41:
 - ``world/lidar/car_<i>`` (races with a LIDAR): the echoes of the car's scan
   (beams that met something within range) as `Points3D` in the world, with
   the camera images;
-- ``plots/{speed,progress,reward,rank}/car_<i>``: `Scalars` per step
+- ``plots/{speed,progress,reward,rank,standing}/car_<i>``: `Scalars` per step
+  (``rank``: the rules' order, the agents' info; ``standing``: with penalties
+  counted while cars race, as the race video's panel, `RaceRules.standings`)
   (speed is the drive train's actual speed in m/s, progress the lap progress
   in % as in DeepRacer's params);
 - ``events/car_<i>``: `TextLog` entries (lap with lap time, off_track, reset,
@@ -44,7 +46,7 @@ from ..sim.world import CAR_COLOURS, OBSTACLE_SIZE
 
 APPLICATION_ID = "multirace"
 DEFAULT_IMAGE_EVERY = 5  # 3 Hz camera frames: keeps recording under 30 % of race speed
-SCALARS = ("speed", "progress", "reward", "rank")
+SCALARS = ("speed", "progress", "reward", "rank", "standing")
 END_TEXT = {
     "finished": "finished",
     "forfeit": "forfeit",
@@ -194,6 +196,7 @@ class ReplayRecorder:
         for name in ("progress", "rank"):
             self._buf_scalar[name].append([float(infos[a][name]) if a in infos else math.nan for a in agents])
         self._buf_scalar["reward"].append([float(rewards[a]) if a in rewards else math.nan for a in agents])
+        self._buf_scalar["standing"].append([float(p) for p in env.standings()[:n]])
         take_image = bool(self.image_every) and observations is not None and step % self.image_every == 0
         self._time_set = False
         cameras = []  # (car, image) to encode this step

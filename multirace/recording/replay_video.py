@@ -12,8 +12,10 @@ holds per step:
 - parked: a car whose run ended (finish / forfeit / out of resets / time up /
   did not finish event) is no longer drawn from the step after its last pose;
 - laps and status per car from the event log (lap events, end events);
-- ranks from the recorded ``plots/rank`` scalars (falling back to laps, then
-  car order);
+- ranks from the recorded ``plots/rank`` scalars and standings (the panel's
+  order, penalties counted) from ``plots/standing`` (a replay without them:
+  the ranks; falling back to laps, then car order); penalty seconds and
+  resets from the penalty and reset events;
 - boxes from ``world/obstacles``; the track and its texture from the track
   name and direction in ``race/info``.
 
@@ -24,6 +26,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import types
 from pathlib import Path
 
@@ -36,6 +39,8 @@ from ..sim.texture import TrackTexture
 from ..sensors.topdown import DEFAULT_SIZE, render_topdown
 from ..sim.tracks import load_track
 from .video import write_video
+
+PENALTY_TEXT = re.compile(r"penalty \+([0-9.]+) s")  # the replay's penalty event text (`replay.ReplayRecorder`)
 
 
 class _World:
@@ -80,6 +85,9 @@ class ReplayScene:
         self.possible_agents = list(self.ids)
         self._poses = [summary["poses"].get(cid, np.zeros((0, 4))) for cid in self.ids]
         self._ranks = [_scalar_series(chunks, f"plots/rank/{cid}") for cid in self.ids]
+        self._standings = [_scalar_series(chunks, f"plots/standing/{cid}") for cid in self.ids]
+        self._marks = [[(e["step"], e["kind"], e["text"]) for e in summary["events"]
+                        if e["car"] == cid and e["kind"] in ("penalty", "reset")] for cid in self.ids]
         # per car: sorted lap-event steps and the (step, status) of its end
         self._lap_steps = [sorted(e["step"] for e in summary["events"] if e["car"] == cid and e["kind"] == "lap")
                            for cid in self.ids]
@@ -88,7 +96,8 @@ class ReplayScene:
             ends = [(e["step"], e["kind"]) for e in summary["events"] if e["car"] == cid and e["kind"] in END_TEXT]
             self._end.append(ends[-1] if ends else None)
         self.last_step = int(max([summary["steps"]] + [int(p[-1, 0]) for p in self._poses if len(p)]))
-        self.races = [types.SimpleNamespace(racing=True, laps=0, status="racing") for _ in range(n)]
+        self.races = [types.SimpleNamespace(racing=True, laps=0, status="racing", penalty_time=0.0, resets=0)
+                      for _ in range(n)]
         self.steps = 0
         self.sim_time = 0.0
         self.at(0)
@@ -112,16 +121,28 @@ class ReplayScene:
             ended = end is not None and step >= end[0]
             race.racing = not ended
             race.status = end[1] if ended else "racing"
+            marks = [(kind, text) for at, kind, text in self._marks[i] if at <= step]
+            race.resets = sum(kind == "reset" for kind, _ in marks)
+            race.penalty_time = sum(float(m.group(1)) for kind, text in marks if kind == "penalty"
+                                    for m in [PENALTY_TEXT.search(text)] if m)
             # a car is drawn on the step its run ends (its last pose), parked after
             self.world.parked[i] = ended and step > max(end[0], last_pose_step)
         return self
 
     def ranks(self) -> list[int]:
         """Positions at the current step: recorded ranks where there are any, else by laps then car order."""
+        return self._positions(self._ranks)
+
+    def standings(self) -> list[int]:
+        """The race video panel's positions at the current step (penalties counted): the recorded standings,
+        or the ranks in a replay recorded before standings were."""
+        return self._positions(self._standings if any(len(s) for s in self._standings) else self._ranks)
+
+    def _positions(self, recorded: list) -> list[int]:
         step = self.steps
         keys = []
         for i in range(self.total_cars):
-            series = self._ranks[i]
+            series = recorded[i]
             rank = math.inf
             if len(series):
                 k = int(np.searchsorted(series[:, 0], step, side="right")) - 1

@@ -2,8 +2,9 @@
 
 ``write_video(frames, path, fps=15) -> int`` writes RGB uint8 frames (a list
 or any iterator; all the size of the first) as H.264 (avc1, yuv420p) in an
-MP4 container with PyAV's libx264, the format every browser plays, and
-returns how many it wrote. ``VideoRecorder(path, fps=15, size=(540, 960))``
+MP4 container with PyAV's libx264, the format every browser plays, written
+faststart (the index first, so a browser starts playing while it loads), and
+returns how many it wrote; a name that does not end in .mp4 is refused. ``VideoRecorder(path, fps=15, size=(540, 960))``
 follows `racing.runner.run_race`'s recorder interface (``start(env)``,
 ``step(env, observations, rewards, infos)``, ``finish(env, result)``) and
 writes one top-down frame (`sensors.topdown.render_topdown`) at the start and
@@ -21,6 +22,16 @@ from ..sensors.topdown import DEFAULT_SIZE, render_topdown
 CODEC = "libx264"
 PIXEL_FORMAT = "yuv420p"  # 4:2:0, what browsers decode; it needs even frame sizes
 QUALITY = "20"  # x264's constant rate factor: lower is better (18-23 looks clean on these scenes)
+CONTAINER_OPTIONS = {"movflags": "faststart"}  # the index (moov) before the frames: a browser plays it while loading
+
+
+def check_video_path(path) -> Path:
+    """`path` if it names an MP4 (the one container written); a ValueError naming it otherwise, before any
+    race runs (a `.avi` or `.gif` would get an MP4 under a name that says something else)."""
+    path = Path(path)
+    if path.suffix.lower() != ".mp4":
+        raise ValueError(f"{path}: videos are written as H.264 MP4 only; give a name ending in .mp4")
+    return path
 
 
 class _Writer:
@@ -40,7 +51,7 @@ class _Writer:
         if self.path.parent and not self.path.parent.exists():
             self.path.parent.mkdir(parents=True, exist_ok=True)
         try:
-            self.container = av.open(str(self.path), mode="w", format="mp4")
+            self.container = av.open(str(self.path), mode="w", format="mp4", options=CONTAINER_OPTIONS)
         except (OSError, av.FFmpegError) as exc:
             raise OSError(f"cannot open {self.path} for writing an MP4 video ({exc})") from None
         self.stream = self.container.add_stream(CODEC, rate=Fraction(self.fps).limit_denominator(1000),
@@ -78,7 +89,7 @@ class _Writer:
 
 def write_video(frames, path, fps: float = 15) -> int:
     """Write RGB uint8 frames (a sequence or an iterator) to an MP4 at `path`; returns the frame count."""
-    writer = _Writer(path, fps)
+    writer = _Writer(check_video_path(path), fps)
     try:
         for frame in frames:
             writer.write(frame)
@@ -93,7 +104,7 @@ class VideoRecorder:
     """A `run_race` recorder that writes the top-down race view to an MP4."""
 
     def __init__(self, path, fps: float = 15, size=DEFAULT_SIZE):
-        self.path = Path(path)
+        self.path = check_video_path(path)
         self.fps = fps
         self.size = tuple(size)
         self._writer: _Writer | None = None

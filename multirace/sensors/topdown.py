@@ -4,8 +4,11 @@
 track (the env's top-down texture, downscaled once per env and size) on the
 left, cars as oriented rectangles in their `CAR_COLOURS` with a white heading
 mark and a short trail (the last `TRAIL_SECONDS` of positions), the boxes, and
-a panel on the right: race time and, per car in race order, position, name,
-lap k/N and status. Parked cars (finished or forfeited runs) are not drawn.
+a panel on the right: race time and, per car in the order the race stands
+(`panel_order`: penalties counted, the result's order once the race is over),
+position, name, lap k/N, status, penalty seconds and resets. A car that is
+penalised or put back is ringed in white for `MARK_SECONDS` with what it got
+("+5s", "reset"). Parked cars (finished or forfeited runs) are not drawn.
 
 Per-env state (the scaled background and the trails) lives in the attribute
 `env._topdown_state`; a new episode (the env's step counter going back) clears
@@ -30,6 +33,8 @@ OUTLINE = (10, 10, 10)
 FONT = cv2.FONT_HERSHEY_SIMPLEX
 CROP_MARGIN = 0.4  # metres of floor shown around the track
 MIN_CAR_PIXELS = 9.0  # cars are drawn at least this long so they stay visible on small frames
+MARK_SECONDS = 2.0  # how long a penalty or reset mark stays on the car
+MARK_COLOUR = (255, 255, 255)  # white on a black outline: no car's colour
 
 
 class _State:
@@ -39,6 +44,8 @@ class _State:
         self.layouts: dict = {}  # (texture id, size) -> _Layout
         self.trails: list[collections.deque] = []
         self.last_step = -1
+        self.seen: list[tuple[float, int]] = []  # per car: (penalty seconds, resets) at the last frame
+        self.marks: list[tuple[float, str] | None] = []  # per car: (sim time the mark ends, its text)
 
 
 class _Layout:
@@ -126,6 +133,30 @@ def _update_trails(env, state: _State) -> None:
     state.last_step = steps
 
 
+def _update_marks(env, state: _State) -> None:
+    """Start a mark on every car whose penalties or resets went up since the last frame."""
+    now = float(getattr(env, "sim_time", 0.0))
+    counts = [(float(getattr(race, "penalty_time", 0.0)), int(getattr(race, "resets", 0))) for race in env.races]
+    if len(state.seen) != len(counts) or any(c < s for c, s in zip(counts, state.seen)):  # a new episode
+        state.seen, state.marks = counts, [None] * len(counts)
+    for i, ((penalty, resets), (seen_penalty, seen_resets)) in enumerate(zip(counts, state.seen)):
+        if penalty > seen_penalty:
+            state.marks[i] = (now + MARK_SECONDS, f"+{penalty - seen_penalty:g}s")
+        elif resets > seen_resets:
+            state.marks[i] = (now + MARK_SECONDS, "reset")
+        if state.marks[i] is not None and now > state.marks[i][0]:
+            state.marks[i] = None
+    state.seen = counts
+
+
+def panel_order(env) -> list[int]:
+    """Car indices in the order the panel lists them: the race's standings with penalties counted
+    (`env.standings()`, the result's order once the race is over); a stand-in without standings (a replay's
+    scene) gives its recorded ranks."""
+    positions = env.standings() if hasattr(env, "standings") else env.ranks()
+    return sorted(range(len(positions)), key=lambda k: positions[k])
+
+
 def render_topdown(env, size=DEFAULT_SIZE) -> np.ndarray:
     """The top-down race view of `env` now: uint8 RGB (height, width, 3); `size` is (height, width)."""
     height, width = (int(v) for v in size)
@@ -138,6 +169,7 @@ def render_topdown(env, size=DEFAULT_SIZE) -> np.ndarray:
     started = bool(getattr(env, "races", None))
     if started:
         _update_trails(env, state)
+        _update_marks(env, state)
     ppm = layout.pixels_per_metre
     spec = env.car_spec
     grow = max(1.0, MIN_CAR_PIXELS / max(spec.length * ppm, 1e-9))
@@ -174,16 +206,27 @@ def render_topdown(env, size=DEFAULT_SIZE) -> np.ndarray:
             right = (x + c * back + s * width * 0.35, y + s * back - c * width * 0.35)
             mark = _fixed(layout.to_frame(np.array([tip, left, right])))
             cv2.fillPoly(frame, [mark], (255, 255, 255), cv2.LINE_AA, shift=4)
+            if state.marks[i] is not None:  # just penalised or put back: a ring and what it got
+                centre = layout.to_frame(np.array([[x, y]]))[0]
+                radius = max(6, int(round(length * ppm * 0.8)))
+                col, row = int(round(centre[0])), int(round(centre[1]))
+                for colour, width in ((OUTLINE, 4), (MARK_COLOUR, 2)):
+                    cv2.circle(frame, (col, row), radius, colour, width, cv2.LINE_AA)
+                    cv2.putText(frame, state.marks[i][1], (col + radius, row - radius), FONT, 0.5, colour,
+                                width - 1, cv2.LINE_AA)
 
     _draw_panel(env, frame, layout, started)
     return frame
 
 
-def _status_text(race, laps_total: int) -> tuple[str, str]:
+def _status_text(race, laps_total: int) -> str:
+    """A car's second panel line: lap k/N, status, and its penalty seconds and resets if any."""
     lap = min(race.laps + (1 if race.racing else 0), laps_total) if laps_total else race.laps
     lap_text = f"lap {lap}/{laps_total}" if laps_total else f"lap {lap}"
-    status = race.status if race.status != "not_finished" else "unfinished"
-    return lap_text, status.replace("_", " ")
+    status = (race.status if race.status != "not_finished" else "unfinished").replace("_", " ")
+    penalty, resets = float(getattr(race, "penalty_time", 0.0)), int(getattr(race, "resets", 0))
+    marks = (f" +{penalty:g}s" if penalty else "") + (f" {resets} reset{'s' if resets > 1 else ''}" if resets else "")
+    return f"{lap_text} {status}{marks}"
 
 
 def _fit(text: str, max_width: int, font: float) -> str:
@@ -210,18 +253,16 @@ def _draw_panel(env, frame: np.ndarray, layout: _Layout, started: bool) -> None:
     if not started:
         cv2.putText(frame, "not started", (x0, y), FONT, font, DIM_TEXT, thick, cv2.LINE_AA)
         return
-    ranks = env.ranks()
     laps_total = int(getattr(env.rules, "laps", 0) or 0)
-    for i in sorted(range(n), key=lambda k: ranks[k]):
+    for place, i in enumerate(panel_order(env), start=1):
         race = env.races[i]
         colour = CAR_COLOURS[i % len(CAR_COLOURS)]
         sw = int(line * 0.6)
         cv2.rectangle(frame, (x0, y - sw), (x0 + sw, y), colour, -1)
-        text = _fit(f"{ranks[i]}. {env.car_names[i]}", panel_w - sw - 6, font)
+        text = _fit(f"{place}. {env.car_names[i]}", panel_w - sw - 6, font)
         cv2.putText(frame, text, (x0 + sw + 6, y), FONT, font, TEXT_COLOUR, thick, cv2.LINE_AA)
         y += line
-        lap_text, status = _status_text(race, laps_total)
         text_colour = TEXT_COLOUR if race.racing else DIM_TEXT
-        cv2.putText(frame, f"{lap_text}  {status}", (x0 + sw + 6, y), FONT, font * 0.9, text_colour, thick,
-                    cv2.LINE_AA)
+        cv2.putText(frame, _fit(_status_text(race, laps_total), panel_w - sw - 6, font * 0.9), (x0 + sw + 6, y),
+                    FONT, font * 0.9, text_colour, thick, cv2.LINE_AA)
         y += line

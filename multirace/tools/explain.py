@@ -280,6 +280,8 @@ def explain(agent_file, track: str = "reinvent_base", steps: int = DEFAULT_STEPS
     pixels over their area share, per frame, averaged), "shares" (mean per-label heat and area
     shares), "status"} and, with `keep_frames`, "images", "heats", "labels" (lists, one per frame).
     """
+    if out is not None and Path(out).suffix.lower() not in (".mp4", ".png"):
+        raise ValueError(f"explain: --out must end in .mp4 or .png, got {out}")
     agent = load_agent(agent_file, step_budget=None)
     if agent.sensors.names != ["FRONT_FACING_CAMERA"]:
         raise ValueError(f"{agent_file}: explain computes Grad-CAM of single-camera agents; this agent reads "
@@ -347,5 +349,4 @@ def _write(out, overlays, images, heats, scale: int, strip_frames: int, fps: flo
         out.parent.mkdir(parents=True, exist_ok=True)
         if not cv2.imwrite(str(out), cv2.cvtColor(strip, cv2.COLOR_RGB2BGR)):
             raise OSError(f"explain: cannot write {out}")
-        return str(out)
-    raise ValueError(f"explain: --out must end in .mp4 or .png, got {out}")
+    return str(out)

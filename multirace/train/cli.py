@@ -6,6 +6,8 @@ import shlex
 import sys
 from pathlib import Path
 
+from ..resources import agent_argument
+
 PARTS = ("held-out", "perturbations", "traffic", "heats")  # the parts of `multirace evaluate`'s report
 
 
@@ -35,7 +37,8 @@ def add_train_parser(sub) -> None:
     p.add_argument("--network", default=None, help="MULTIRACE_SMALL_CNN or DEEP_CONVOLUTIONAL_NETWORK_SHALLOW")
     p.add_argument("--envs", type=int, default=None, help="worker processes (default 2)")
     p.add_argument("--cars", type=int, default=None, help="learning cars per env (default 4)")
-    p.add_argument("--init", default=None, metavar="AGENT.pt", help="initialise the policy from an agent file")
+    p.add_argument("--init", default=None, metavar="AGENT.pt", type=agent_argument,
+                   help="initialise the policy from an agent file (or a shipped agent's name)")
     p.add_argument("--resume", default=None, metavar="CKPT", help="resume from FILE.ckpt/checkpoint.pt")
     p.add_argument("--robust", action="store_true",
                    help="domain randomisation with a curriculum, opponent pool (PFSP), nature adversary and "
@@ -108,13 +111,15 @@ def cmd_train(args) -> int:
     from .ppo import train
 
     summary = train(config, args.out, init=args.init, resume=args.resume, command=command)
-    first = summary["first_success_seconds"]
+    def when(seconds):
+        return f"{seconds} s" if seconds is not None else "none"
+
+    laps = f"{config.eval_laps}/{config.eval_laps}"
     print(f"wrote {summary['out']}: {summary['iterations']} iterations, {summary['agent_steps']} agent-steps in "
           f"{summary['wall_seconds']} s ({summary['steps_per_s']} agent-steps/s, sampling "
-          f"{summary['sample_seconds']} s, updates {summary['update_seconds']} s); first "
-          f"{config.eval_laps}/{config.eval_laps} evaluation: "
-          + (f"{first} s" if first is not None else "none") + ", first with no off-track: "
-          + (f"{summary['first_clean_seconds']} s" if summary["first_clean_seconds"] is not None else "none"))
+          f"{summary['sample_seconds']} s, updates {summary['update_seconds']} s); first clean {laps} evaluation "
+          f"(no off-track): {when(summary['first_clean_seconds'])}; first {laps} counting resets: "
+          f"{when(summary['first_success_seconds'])}")
     print(f"learning curve: {Path(args.out).with_suffix('.png')}")
     return 0
 
@@ -147,7 +152,8 @@ def add_evaluate_parser(sub) -> None:
                        description="Race an agent over held-out tracks and a grid of perturbations and report lap "
                                    "completion, mean best lap, off-tracks per lap and collisions per lap in "
                                    "traffic, as a table and a PNG.")
-    p.add_argument("agents", nargs="+", metavar="FILE.pt", help="agent file(s) to evaluate")
+    p.add_argument("agents", nargs="+", metavar="FILE.pt", type=agent_argument,
+                   help="agent file(s) or shipped agents' names to evaluate")
     p.add_argument("--json", metavar="FILE", help="write the report as JSON")
     p.add_argument("--png", metavar="FILE.png",
                    help="write the report plot (default: next to --json, else AGENT.eval.png in the working folder)")

@@ -192,6 +192,19 @@ def summarise(report: dict) -> dict:
     return summary
 
 
+SUMMARY_LABELS = {  # the summary's keys (JSON) as the printed table names them
+    "held_out_runs": "held-out runs", "held_out_completion": "held-out lap completion",
+    "held_out_clean_share": "held-out clean share", "held_out_lap_ratio": "held-out best lap / racing line",
+    "held_out_clean_within_1_25_share": "held-out clean and within 1.25x share",
+    "held_out_tracks_completed": "held-out tracks with a lap", "held_out_best_lap": "held-out mean best lap (s)",
+    "held_out_off_tracks_per_lap": "held-out off-tracks / lap", "nominal_completion": "nominal lap completion",
+    "perturbed_completion": "perturbed lap completion", "perturbed_off_tracks_per_lap": "perturbed off-tracks / lap",
+    "nominal_off_tracks_per_lap": "nominal off-tracks / lap", "traffic_completion": "traffic lap completion",
+    "traffic_collisions_per_lap": "traffic collisions / lap",
+    "traffic_collisions_caused_per_lap": "traffic collisions caused / lap", "traffic_position": "traffic position",
+    "completion_drop_points": "completion drop under perturbations (points)"}
+
+
 def _fmt(value, digits=2):
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return "-"
@@ -202,8 +215,10 @@ def print_report(reports: list, console) -> None:
     from rich.table import Table
 
     for report in reports:
-        table = Table(title=f"{Path(report['agent']).name}: held-out tracks, perturbations (on "
-                            f"{report['reference_track']}), traffic; {report['laps']} laps per race")
+        reference = report["reference_track"] + (", trained on" if report["reference_track"] in report.get(
+            "trained_on", ()) else "")
+        table = Table(title=f"{Path(report['agent']).name}: held-out tracks, perturbations (on {reference}), "
+                            f"traffic; {report['laps']} laps per race")
         for column in ("part", "track / perturbation", "laps", "lap completion", "best lap", "x racing line",
                        "off-tracks/lap", "collisions/lap", "status"):
             table.add_column(column)
@@ -223,7 +238,7 @@ def print_report(reports: list, console) -> None:
         summary.add_column(Path(report["agent"]).stem, justify="right")
     keys = [key for key in reports[0]["summary"] if key != "heats"]
     for key in keys:
-        summary.add_row(key, *[_fmt(r["summary"].get(key)) if not isinstance(r["summary"].get(key), list)
+        summary.add_row(SUMMARY_LABELS.get(key, key), *[_fmt(r["summary"].get(key)) if not isinstance(r["summary"].get(key), list)
                                else str(len(r["summary"][key])) for r in reports])
     console.print(summary)
     for report in reports:
@@ -244,36 +259,70 @@ def print_heats(agent_name: str, heats: dict, console) -> None:
     console.print(table)
 
 
+def _bar_panel(ax, series: list, title: str, ceiling: float) -> None:
+    """Grouped bars of `series` ([(label, [(name, value or None), ...]), ...]) on `ax`. The y axis starts at 0
+    and reaches at least `ceiling`, so counts that are all zero draw as zero, not as an empty panel; a panel
+    with nothing to draw (a part not run) says so."""
+    names = list(dict.fromkeys(name for _, bars in series for name, _ in bars))
+    ax.set_title(title, fontsize=10)
+    if not names:
+        ax.text(0.5, 0.5, "not run", ha="center", va="center", transform=ax.transAxes, color="grey")
+        ax.set_xticks([])
+        ax.set_yticks([])
+        return
+    width = 0.8 / len(series)
+    top = ceiling
+    for k, (label, bars) in enumerate(series):
+        values = dict(bars)
+        heights = [values.get(name) or 0.0 for name in names]
+        top = max(top, *heights)
+        bars = ax.bar(np.arange(len(names)) + k * width, heights, width, label=label)
+        ax.bar_label(bars, fmt="%.3g", fontsize=6)  # a zero reads as 0, not as a missing bar
+    ax.set_xticks(np.arange(len(names)) + 0.4 - width / 2, names, rotation=60, ha="right", fontsize=7)
+    ax.set_ylim(0, top * 1.1)
+    ax.grid(alpha=0.3, axis="y")
+
+
 def plot_report(reports: list, path) -> None:
+    """Write `report_figure(reports)` as a PNG at `path`."""
+    import matplotlib.pyplot as plt
+
+    fig = report_figure(reports)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def report_figure(reports: list):
+    """The report as a matplotlib figure: lap completion on held-out tracks and under perturbations,
+    off-tracks per lap under perturbations, and the traffic race (lap completion, collisions and collisions
+    caused per lap)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
-    width = 0.8 / len(reports)
-    for k, report in enumerate(reports):
-        label = Path(report["agent"]).stem
-        for ax, rows, key in ((axes[0], report["held_out"], "track"),
-                              (axes[1], report["perturbations"], "perturbation")):
-            names = list(dict.fromkeys(r[key] for r in rows))
-            values = [_mean([r["completion"] for r in rows if r[key] == n]) for n in names]
-            ax.bar(np.arange(len(names)) + k * width, [100 * v for v in values], width, label=label)
-            ax.set_xticks(np.arange(len(names)) + 0.4 - width / 2, names, rotation=60, ha="right", fontsize=7)
-        names = list(dict.fromkeys(r["perturbation"] for r in report["perturbations"]))
-        values = [_mean([r["off_tracks_per_lap"] for r in report["perturbations"] if r["perturbation"] == n])
-                  for n in names]
-        axes[2].bar(np.arange(len(names)) + k * width, values, width, label=label)
-        axes[2].set_xticks(np.arange(len(names)) + 0.4 - width / 2, names, rotation=60, ha="right", fontsize=7)
-    axes[0].set_title("lap completion on held-out tracks (%)")
-    axes[1].set_title("lap completion under perturbations (%)")
-    axes[2].set_title("off-tracks per lap under perturbations")
-    for ax in axes:
-        ax.grid(alpha=0.3, axis="y")
+    def by(rows, key, value):
+        names = list(dict.fromkeys(r[key] for r in rows))
+        return [(name, _mean([value(r) for r in rows if r[key] == name])) for name in names]
+
+    def traffic(rows):
+        return [(figure, _mean([value(r) for r in rows])) for figure, value in (
+            ("lap completion", lambda r: r["completion"]), ("collisions/lap", lambda r: r["collisions_per_lap"]),
+            ("caused/lap", lambda r: r["collisions_caused"] / max(r["laps_driven"], 0.25)))] if rows else []
+
+    fig, axes = plt.subplots(1, 4, figsize=(19, 4.4))
+    labels = [Path(report["agent"]).stem for report in reports]
+    _bar_panel(axes[0], [(label, by(r["held_out"], "track", lambda x: 100 * x["completion"]))
+                         for label, r in zip(labels, reports)], "lap completion on held-out tracks (%)", 100)
+    _bar_panel(axes[1], [(label, by(r["perturbations"], "perturbation", lambda x: 100 * x["completion"]))
+                         for label, r in zip(labels, reports)], "lap completion under perturbations (%)", 100)
+    _bar_panel(axes[2], [(label, by(r["perturbations"], "perturbation", lambda x: x["off_tracks_per_lap"]))
+                         for label, r in zip(labels, reports)], "off-tracks per lap under perturbations", 1.0)
+    _bar_panel(axes[3], [(label, traffic(r["traffic"])) for label, r in zip(labels, reports)],
+               "traffic race (completion 0-1; per lap driven)", 1.0)
     axes[0].legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    return fig
 
 
 def _names(text):

@@ -36,7 +36,7 @@ def default_field(agent_path) -> list[str]:
 def check_heats(tracks, field) -> None:
     """Refuse, before any race runs, a heat track or an entrant that cannot race (naming the option)."""
     from ..environment.bots import parse_bot
-    from ..racing.runner import resolve_agent_path
+    from ..resources import resolve_agent_path
     from ..sim.tracks import TrackError, resolve_track_path
 
     for track in tracks or ():

@@ -307,16 +307,17 @@ def run_dagger(config: ImitationConfig) -> dict:
                 optimiser.step()
                 losses.append(loss.item())
             loss_value = float(np.mean(losses))
-            off_rate = 1000.0 * learner_resets / learner_steps if learner_steps else float("nan")
-            history.append({"iteration": iteration, "beta": round(beta, 4), "samples": data.seen,
+            off_rate = round(1000.0 * learner_resets / learner_steps, 2) if learner_steps else None  # None: the
+            history.append({"iteration": iteration, "beta": round(beta, 4), "samples": data.seen,  # expert drove
                             "loss": round(loss_value, 4), "learner_steps": learner_steps,
-                            "learner_resets_per_1000_steps": round(off_rate, 2)})
+                            "learner_resets_per_1000_steps": off_rate})
             iteration += 1
             elapsed = time.perf_counter() - started
             if progress is not None:
                 progress.n = min(int(elapsed), progress.total)
                 progress.set_postfix_str(f"iter {iteration} beta {beta:.2f} samples {data.seen} "
-                                         f"loss {loss_value:.3f} learner resets/1k steps {off_rate:.1f}")
+                                         f"loss {loss_value:.3f} learner resets/1k steps "
+                                         + (f"{off_rate:.1f}" if off_rate is not None else "- (expert drove)"))
                 progress.refresh()
             if elapsed >= budget:
                 break

@@ -142,7 +142,8 @@ class TrainingRun:
                "return": float(np.mean([ep["return"] for ep in mine])) if mine else last.get("return", 0.0),
                "laps_per_episode": (float(np.mean([ep["laps"] for ep in mine])) if mine
                                     else last.get("laps_per_episode", 0.0)),
-               "lap_completion": float(np.mean([ep["laps"] >= 1.0 for ep in mine])) if mine else 0.0,
+               "lap_completion": (float(np.mean([ep["laps"] >= 1.0 for ep in mine])) if mine
+                                  else last.get("lap_completion", 0.0)),
                "caused_per_lap": (float(sum(ep["caused"] for ep in mine) / max(sum(ep["laps"] for ep in mine), 0.25))
                                   if mine else 0.0),
                "mean_reward": env_reward, **stats,
@@ -151,10 +152,14 @@ class TrainingRun:
         self.history.append(row)
         if self.progress is not None:
             self.progress.n = min(int(self.elapsed()), self.progress.total)
-            self.progress.set_postfix_str(
-                f"it {self.iteration} ret {row['return']:.1f} laps/ep {row['laps_per_episode']:.2f} "
-                f"lap% {100 * row['lap_completion']:.0f} {row['steps_per_s']:.0f} steps/s"
-                + (f" eval {self.evals[-1]['laps']}/{self.evals[-1]['target']}" if self.evals else ""))
+            last_eval = self.evals[-1] if self.evals else None
+            training = (f"ret {row['return']:.1f} laps/ep {row['laps_per_episode']:.2f} episodes with a lap "
+                        f"{100 * row['lap_completion']:.0f}%" if any(h["episodes"] for h in self.history)
+                        else "no episode ended yet")
+            self.progress.set_postfix_str(  # training episodes (exploring) beside the greedy evaluation
+                f"it {self.iteration} {row['steps_per_s']:.0f} steps/s | training: {training}"
+                + (f" | eval {last_eval['laps']}/{last_eval['target']} laps, {last_eval['resets']} resets"
+                   if last_eval else ""))
             self.progress.refresh()
         return row
 
