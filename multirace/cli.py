@@ -11,6 +11,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from .atomic import OutputError, write_text
 from .environment.rules import FORMATS
 from .text import display_name
 from .resources import list_agents, list_tracks
@@ -85,8 +86,7 @@ def cmd_race(args) -> int:
     result = run_race(controllers, config, recorders=recorders)
     print_result(result, Console(width=120))
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)  # as the other outputs do
-        Path(args.json).write_text(json.dumps(result, indent=2))
+        write_text(args.json, json.dumps(result, indent=2))
     return 0
 
 
@@ -105,7 +105,7 @@ def cmd_replay(args) -> int:
     summary = replay_summary(args.file, poses=False)
     print(format_summary(summary))
     if args.json:
-        Path(args.json).write_text(json.dumps(summary, indent=2))
+        write_text(args.json, json.dumps(summary, indent=2))
     return 0
 
 
@@ -121,7 +121,7 @@ def cmd_explain(args) -> int:
           f"on {100 * result['track_fraction']:.1f}% of the image; on the lines {result['lines_lift']:.2f}x "
           "their area share")
     if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=2))
+        write_text(args.json, json.dumps(result, indent=2))
     return 0
 
 
@@ -241,7 +241,7 @@ def cmd_bench(args) -> int:
         table.add_row(label, value)
     console.print(table)
     if args.json:
-        Path(args.json).write_text(json.dumps(figures, indent=2))
+        write_text(args.json, json.dumps(figures, indent=2))
     return 0
 
 
@@ -410,7 +410,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (ValueError, FileNotFoundError, RewardFunctionError) as exc:  # TrackError, AgentFileError... are ValueErrors
+    except (ValueError, FileNotFoundError, OutputError, RewardFunctionError) as exc:  # TrackError... are ValueErrors
         print(f"multirace {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

@@ -40,10 +40,12 @@ def add_league_commands(sub) -> None:
     run.set_defaults(func=_cmd_run)
     table = league_sub.add_parser("table", help="print or export the league table",
                                   description="Ratings (OpenSkill Plackett-Luce ordinal), time-trial standings "
-                                              "and clean driving; also writes DIR/ratings.png.")
+                                              "and clean driving. Only reads the league folder (a read-only "
+                                              "one works); writes only the files asked for.")
     table.add_argument("dir", help="the league folder")
     table.add_argument("--format", dest="table_format", default="md", choices=("md", "csv", "json", "html"))
     table.add_argument("--out", metavar="FILE", help="write the table to FILE instead of printing it")
+    table.add_argument("--plot", metavar="FILE.png", help="also write the ratings-over-rounds plot as a PNG")
     table.set_defaults(func=_cmd_table)
 
 
@@ -93,9 +95,10 @@ def _cmd_run(args) -> int:
 def _cmd_table(args) -> int:
     from .table import write_table
 
-    text = write_table(args.dir, args.table_format, args.out)
-    if args.out:
-        print(f"wrote {args.out}")
+    text = write_table(args.dir, args.table_format, args.out, args.plot)
+    for written in (args.out, args.plot):
+        if written:
+            print(f"wrote {written}")
     else:
         sys.stdout.write(text)
     return 0

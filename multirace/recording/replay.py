@@ -33,6 +33,7 @@ Per-step data is buffered and sent in columns (`send_columns`) every
 from __future__ import annotations
 
 import json
+import os
 from concurrent.futures import ThreadPoolExecutor
 import math
 from pathlib import Path
@@ -40,6 +41,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ..atomic import AtomicOutput
 from ..sim.world import CAR_COLOURS, OBSTACLE_SIZE
 
 APPLICATION_ID = "multirace"
@@ -54,10 +56,27 @@ END_TEXT = {
 }
 
 
+RRD_END, RRD_END_BYTES = b"FOOT", 8  # a complete .rrd (rerun 0.41 save()) ends with b"FOOT" + a 4-byte version
+
+
 def _rr():
+    # rerun's own log lines about a failed write would come on top of the one-line error multirace gives
+    # (a recording that failed is detected and reported here); RUST_LOG set by the user still wins
+    os.environ.setdefault("RUST_LOG", "off")
     import rerun as rr
 
     return rr
+
+
+def _check_footer(path: Path) -> None:
+    """Raise RuntimeError unless the .rrd at `path` ends with rerun's footer: rerun reports a footer it could
+    not write (a disk that filled as the recording ended) only in its log, so the file is checked."""
+    with open(path, "rb") as f:
+        f.seek(0, 2)
+        f.seek(max(f.tell() - RRD_END_BYTES, 0))
+        tail = f.read()
+    if RRD_END not in tail:
+        raise RuntimeError("the recording lacks rerun's footer: it was not written completely")
 
 
 def car_id(i: int) -> str:
@@ -83,10 +102,11 @@ class ReplayRecorder:
     # --------------------------------------------------------------- recorder
     def start(self, env) -> None:
         rr = _rr()
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._output = AtomicOutput(self.path)  # recorded beside the target, put in place by `close()`
         self._encoder = ThreadPoolExecutor(max_workers=1)
         self.rec = rec = rr.RecordingStream(self.application_id, make_default=False, make_thread_default=False)
-        rec.save(str(self.path))
+        with self._output.guard(RuntimeError):  # rerun reports a write that failed as a RuntimeError
+            rec.save(str(self._output.tmp))
         rec.set_log_time_enabled(False)  # wall-clock time says nothing about a simulated race
         self.n = n = env.total_cars if hasattr(env, "total_cars") else len(env.races)
         self.ids = [car_id(i) for i in range(n)]
@@ -126,13 +146,31 @@ class ReplayRecorder:
         self.close()
 
     def close(self) -> None:
+        """Finish the recording and put the .rrd in place (atomically: a recording that could not be written
+        completely, e.g. on a full disk, is an OutputError and leaves any previous file as it was)."""
         if getattr(self, "_encoder", None) is not None:
             self._encoder.shutdown()
             self._encoder = None
         if self.rec is not None:
-            self.rec.flush()
-            self.rec.disconnect()
+            rec, self.rec = self.rec, None
+            with self._output.guard(RuntimeError):  # rerun writes from its own thread: a failed write shows here
+                rec.flush()
+                rec.disconnect()
+                _check_footer(self._output.tmp)
+            self._output.commit()
+
+    def discard(self) -> None:
+        """Drop the recording of a race that failed; the target is untouched."""
+        if getattr(self, "_encoder", None) is not None:
+            self._encoder.shutdown()
+            self._encoder = None
+        if self.rec is not None:
+            try:
+                self.rec.disconnect()
+            except (RuntimeError, OSError):
+                pass
             self.rec = None
+            self._output.discard()
 
     # --------------------------------------------------------------- helpers
     @staticmethod
