@@ -19,7 +19,7 @@ import os
 from pathlib import Path
 
 from ..atomic import write_bytes, write_text
-from ..text import display_name
+from ..text import TEXT_LENGTH, display_name
 from .config import load_config
 from .schedule import build_schedule, entrants
 from .store import connect
@@ -148,7 +148,6 @@ def compute_table(folder) -> dict:
 
 
 # ------------------------------------------------------------------ text formats
-TEXT_LENGTH = 400  # names are at most 64 characters; forfeit and failure reasons get more room
 
 
 def _text(value) -> str:
