@@ -14,7 +14,7 @@ from pathlib import Path
 from ..atomic import write_bytes
 from .config import REPLAYS, SUBMISSIONS, WORKER_STARTUP_TIMEOUT, LeagueConfig, LeagueError, load_config
 from .schedule import sync_schedule
-from .store import connect, pending_matches, record_attempt_failure, record_result
+from .store import check_writable, connect, pending_matches, record_attempt_failure, record_result
 from .worker import _worker_command, _worker_env, run_match
 
 RUN_LOCK = "run.lock"
@@ -93,6 +93,7 @@ def run_league(folder, workers: int | None = None, ray_address: str | None = Non
             import ray  # noqa: F401
         except ImportError:
             raise LeagueError("--ray: Ray is not installed; install it with: pip install 'multirace[ray]'") from None
+    check_writable(folder)  # before the lock file is made
     lock = _exclusive_run(folder)
     try:
         conn = connect(folder)

@@ -55,8 +55,8 @@ READ_ONLY = ("make the folder and its files writable, or copy the league to a wr
 
 
 def _open(path: Path, readonly: bool = False) -> sqlite3.Connection:
-    if readonly:  # a folder nobody may write to cannot hold SQLite's lock files: read it as immutable
-        immutable = not _writable(path.parent) and not path.with_name(path.name + "-wal").exists()
+    if readonly and not _writable(path.parent):  # a folder nobody may write to cannot hold SQLite's lock files
+        immutable = not path.with_name(path.name + "-wal").exists()  # nor be written meanwhile
         uri = f"{path.resolve().as_uri()}?mode=ro" + ("&immutable=1" if immutable else "")
         return sqlite3.connect(uri, uri=True, timeout=BUSY_TIMEOUT, isolation_level=None)
     conn = sqlite3.connect(path, timeout=BUSY_TIMEOUT, isolation_level=None)
@@ -77,6 +77,13 @@ def _writable(path: Path) -> bool:
     return os.access(path, os.W_OK)
 
 
+def check_writable(folder) -> None:
+    """Raise LeagueError, saying so, if the league folder or its store is read-only."""
+    folder = Path(folder)
+    if not (_writable(folder) and (not (folder / DB).exists() or _writable(folder / DB))):
+        raise LeagueError(f"{folder}: read-only: this command records to the league's store; {READ_ONLY}")
+
+
 def connect(folder, readonly: bool = False) -> sqlite3.Connection:
     """The league's SQLite store, in WAL mode with a generous busy timeout, checked first: it exists, is
     intact (SQLite's quick_check), has the expected tables, agrees with the submissions folder, and every
@@ -88,8 +95,8 @@ def connect(folder, readonly: bool = False) -> sqlite3.Connection:
     if not path.is_file() or path.stat().st_size == 0:
         state = "missing" if not path.exists() else "empty (truncated)"
         raise LeagueError(f"{path}: {state}: the league's history is gone; {RECOVER}")
-    if not readonly and not (_writable(folder) and _writable(path)):
-        raise LeagueError(f"{folder}: read-only: this command records to the league's store; {READ_ONLY}")
+    if not readonly:
+        check_writable(folder)
     conn = None
     try:
         conn = _open(path, readonly)
