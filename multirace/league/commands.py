@@ -6,6 +6,7 @@ import sqlite3
 import sys
 from pathlib import Path
 
+from ..options import POSITIVE_INT, output_file
 from .config import DB, TOML, LeagueError
 from .runner import run_league
 from .submissions import init_league, submit
@@ -33,7 +34,7 @@ def add_league_commands(sub) -> None:
                                 description="Builds the schedule and runs the matches without a result, in "
                                             "worker processes; safe to kill and run again.")
     run.add_argument("dir", help="the league folder")
-    run.add_argument("--workers", type=int, default=None, help="worker processes (default: one per core)")
+    run.add_argument("--workers", type=POSITIVE_INT, default=None, help="worker processes (default: one per core)")
     run.add_argument("--ray", metavar="ADDRESS", default=None,
                      help="run matches as Ray tasks on this cluster (e.g. auto or ray://host:10001)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -44,8 +45,8 @@ def add_league_commands(sub) -> None:
                                               "one works); writes only the files asked for.")
     table.add_argument("dir", help="the league folder")
     table.add_argument("--format", dest="table_format", default="md", choices=("md", "csv", "json", "html"))
-    table.add_argument("--out", metavar="FILE", help="write the table to FILE instead of printing it")
-    table.add_argument("--plot", metavar="FILE.png", help="also write the ratings-over-rounds plot as a PNG")
+    table.add_argument("--out", metavar="FILE", type=output_file, help="write the table to FILE instead of printing it")
+    table.add_argument("--plot", metavar="FILE.png", type=output_file, help="also write the ratings-over-rounds plot as a PNG")
     table.set_defaults(func=_cmd_table)
 
 
@@ -83,8 +84,6 @@ def _cmd_submit(args) -> int:
 
 @_store_errors
 def _cmd_run(args) -> int:
-    if args.workers is not None and args.workers < 1:
-        raise LeagueError("--workers: must be at least 1")
     stats = run_league(args.dir, workers=args.workers, ray_address=args.ray, progress=not args.quiet)
     print(f"league run: {stats['ran']} matches run, {stats['failed']} failed, {stats['scheduled']} scheduled, "
           f"{stats['wall_seconds']:.1f} s")
