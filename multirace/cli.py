@@ -184,6 +184,11 @@ def cmd_imitate(args) -> int:
     if args.name:
         command += ["--name", args.name]
     traffic = tuple(b.strip() for b in (args.traffic or "").split(",") if b.strip())
+    for bot in traffic:
+        try:
+            parse_bot(bot)
+        except ValueError as exc:
+            raise ValueError(f"--traffic: {exc}") from None
     if traffic:
         command += ["--traffic", ",".join(traffic)]
     if args.traffic_share != 1.0:

@@ -7,6 +7,7 @@ import sys
 import pytest
 
 import multirace
+from multirace.resources import agents_dir
 
 
 def run_cli(*args, cwd=None):
@@ -60,11 +61,15 @@ def assert_refused(done, *words):
     (["bench", "--replay-seconds", "-5"], ["--replay-seconds"]),
     (["league", "run", "{tmp}", "--workers", "0"], ["--workers"]),
     (["league", "table", "{tmp}", "--out", "/proc/table.md"], ["--out", "/proc/table.md"]),
+    (["league", "init", "/proc/league"], ["/proc/league", "cannot create"]),
+    (["evaluate", "{agent}", "--tracks", "Oval_track,nowhere"], ["--tracks", "nowhere"]),
+    (["imitate", "--traffic", "zoom@1", "--out", "{tmp}/a.pt"], ["--traffic", "zoom@1"]),
     (["plot", "{tmp}/missing.csv"], ["TRACE.csv", "missing.csv", "no such file"]),
     (["replay", "{tmp}/missing.rrd", "--summary"], ["missing.rrd", "no such file"]),
 ])
 def test_a_bad_argument_is_one_line_naming_the_option_before_any_work(tmp_path, argv, words):
-    assert_refused(run_cli(*[a.format(tmp=tmp_path) for a in argv]), *words)
+    agent = agents_dir() / "dagger_small.pt"
+    assert_refused(run_cli(*[a.format(tmp=tmp_path, agent=agent) for a in argv]), *words)
 
 
 @pytest.mark.skipif(os.geteuid() != 0, reason="a read-only mount needs root (file modes alone do not stop root)")

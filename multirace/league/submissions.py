@@ -40,9 +40,11 @@ def init_league(folder, template=None) -> Path:
     except (OSError, UnicodeDecodeError) as exc:
         raise LeagueError(f"{template}: unreadable ({exc})") from None
     parse_config(text, str(template))
-    folder.mkdir(parents=True, exist_ok=True)
-    (folder / SUBMISSIONS).mkdir(exist_ok=True)
-    (folder / REPLAYS).mkdir(exist_ok=True)
+    try:
+        for made in (folder, folder / SUBMISSIONS, folder / REPLAYS):
+            made.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise LeagueError(f"{folder}: cannot create the league folder here ({exc.strerror or exc})") from None
     write_text(folder / TOML, text)
     create_store(folder)
     return folder

@@ -88,15 +88,10 @@ def check_inputs(config) -> None:
     load: one line naming the option (in the worker processes they would end in a traceback)."""
     from ..environment.actions import load_action_space
     from ..racing.nets import NETWORKS
-    from ..sim.tracks import load_track
 
     if config.network not in NETWORKS:
         raise ValueError(f"--network: unknown network {config.network!r}; choose from {', '.join(NETWORKS)}")
-    for track in config.tracks:
-        try:
-            load_track(track)
-        except (ValueError, OSError) as exc:
-            raise ValueError(f"--track: {exc}") from None
+    check_tracks(config.tracks, "--track")
     try:
         load_action_space(config.action_space)
     except (ValueError, OSError) as exc:
@@ -132,6 +127,18 @@ def cmd_train(args) -> int:
           + (f"{summary['first_clean_seconds']} s" if summary["first_clean_seconds"] is not None else "none"))
     print(f"learning curve: {Path(args.out).with_suffix('.png')}")
     return 0
+
+
+def check_tracks(tracks, option: str) -> None:
+    """Load every track named (a bundled name or a .npy path); the first that does not load is a ValueError
+    naming `option`."""
+    from ..sim.tracks import load_track
+
+    for track in tracks:
+        try:
+            load_track(track)
+        except (ValueError, OSError) as exc:
+            raise ValueError(f"{option}: {exc}") from None
 
 
 def add_evaluate_parser(sub) -> None:
@@ -174,6 +181,8 @@ def cmd_evaluate(args) -> int:
     unknown = [p for p in parts if p not in PARTS]
     if unknown or not parts:
         raise ValueError(f"--parts: {', '.join(unknown) or 'nothing'} is not a part; choose from {', '.join(PARTS)}")
+    if args.tracks:
+        check_tracks([t.strip() for t in args.tracks.split(",") if t.strip()], "--tracks")
     from .evaluate import run_evaluation
 
     return run_evaluation(args)
