@@ -42,13 +42,16 @@ class AtomicOutput:
         self.tmp = self.target.with_name(f".{self.target.name}.{secrets.token_hex(4)}.tmp")
 
     def commit(self) -> Path:
-        """Flush the finished temporary file to disk and rename it over the target."""
+        """Flush the finished temporary file to disk and rename it over the target (keeping the permissions
+        of a file it replaces)."""
         try:
             fd = os.open(self.tmp, os.O_RDONLY)
             try:
                 os.fsync(fd)
             finally:
                 os.close(fd)
+            if self.target.is_file():
+                os.chmod(self.tmp, self.target.stat().st_mode & 0o7777)
             os.replace(self.tmp, self.target)
         except OSError as exc:
             self.discard()

@@ -76,6 +76,14 @@ def test_an_error_inside_the_block_keeps_the_target_and_removes_the_temporary(tm
     assert target.read_text() == "old" and leftovers(tmp_path, {"out.txt"}) == []
 
 
+def test_a_replaced_file_keeps_its_permissions(tmp_path):
+    target = tmp_path / "private.json"
+    target.write_text("old")
+    target.chmod(0o600)
+    write_bytes(target, b"new")
+    assert target.read_bytes() == b"new" and target.stat().st_mode & 0o777 == 0o600
+
+
 def test_export_onto_a_full_disk_keeps_the_previous_archive(small_disk):
     archive = small_disk / "model.tar.gz"
     assert run_cli("agent", "export", "dagger_small", "--out", archive).returncode == 0
