@@ -40,6 +40,7 @@ def assert_refused(done, *words):
     (["train", "--network", "NOPE", "--out", "{tmp}/a.pt"], ["--network", "NOPE"]),
     (["train", "--action-space", "{tmp}/missing.json", "--out", "{tmp}/a.pt"], ["--action-space", "missing.json"]),
     (["train", "--init", "{tmp}/missing.pt", "--out", "{tmp}/a.pt"], ["--init", "missing.pt"]),
+    (["train", "--reward", "{tmp}/missing.py", "--out", "{tmp}/a.pt"], ["--reward", "missing.py"]),
     (["imitate", "--traffic-share", "2", "--out", "{tmp}/a.pt"], ["--traffic-share"]),
     (["imitate", "--minutes", "-1", "--out", "{tmp}/a.pt"], ["--minutes"]),
     (["imitate", "--max-samples", "0", "--out", "{tmp}/a.pt"], ["--max-samples"]),

@@ -85,13 +85,16 @@ def config_from_args(args):
 
 def check_inputs(config) -> None:
     """Refuse, before any work starts, a network that does not exist, a track or action space that does not
-    load: one line naming the option (in the worker processes they would end in a traceback)."""
+    load, a reward file that is not there: one line naming the option (in the worker processes they would
+    end in a traceback)."""
     from ..environment.actions import load_action_space
     from ..racing.nets import NETWORKS
 
     if config.network not in NETWORKS:
         raise ValueError(f"--network: unknown network {config.network!r}; choose from {', '.join(NETWORKS)}")
     check_tracks(config.tracks, "--track")
+    if config.reward not in ("progress", "centre") and not Path(config.reward).is_file():
+        raise ValueError(f"--reward: {config.reward}: no such file (give progress, centre or a reward .py file)")
     try:
         load_action_space(config.action_space)
     except (ValueError, OSError) as exc:
