@@ -33,7 +33,6 @@ Per-step data is buffered and sent in columns (`send_columns`) every
 from __future__ import annotations
 
 import json
-import os
 from concurrent.futures import ThreadPoolExecutor
 import math
 from pathlib import Path
@@ -56,27 +55,10 @@ END_TEXT = {
 }
 
 
-RRD_END, RRD_END_BYTES = b"FOOT", 8  # a complete .rrd (rerun 0.41 save()) ends with b"FOOT" + a 4-byte version
-
-
 def _rr():
-    # rerun's own log lines about a failed write would come on top of the one-line error multirace gives
-    # (a recording that failed is detected and reported here); RUST_LOG set by the user still wins
-    os.environ.setdefault("RUST_LOG", "off")
     import rerun as rr
 
     return rr
-
-
-def _check_footer(path: Path) -> None:
-    """Raise RuntimeError unless the .rrd at `path` ends with rerun's footer: rerun reports a footer it could
-    not write (a disk that filled as the recording ended) only in its log, so the file is checked."""
-    with open(path, "rb") as f:
-        f.seek(0, 2)
-        f.seek(max(f.tell() - RRD_END_BYTES, 0))
-        tail = f.read()
-    if RRD_END not in tail:
-        raise RuntimeError("the recording lacks rerun's footer: it was not written completely")
 
 
 def car_id(i: int) -> str:
@@ -105,8 +87,11 @@ class ReplayRecorder:
         self._output = AtomicOutput(self.path)  # recorded beside the target, put in place by `close()`
         self._encoder = ThreadPoolExecutor(max_workers=1)
         self.rec = rec = rr.RecordingStream(self.application_id, make_default=False, make_thread_default=False)
-        with self._output.guard(RuntimeError):  # rerun reports a write that failed as a RuntimeError
-            rec.save(str(self._output.tmp))
+        # the .rrd bytes come to this process (rerun's binary stream) and are written here: a write that fails
+        # (a full disk) is an error of this call, not a log line of rerun's writer thread
+        self._stream = rec.binary_stream()
+        with self._output.guard():
+            self._file = open(self._output.tmp, "wb")
         rec.set_log_time_enabled(False)  # wall-clock time says nothing about a simulated race
         self.n = n = env.total_cars if hasattr(env, "total_cars") else len(env.races)
         self.ids = [car_id(i) for i in range(n)]
@@ -137,6 +122,7 @@ class ReplayRecorder:
         self._record_step(env, observations, rewards, infos)
         if len(self._buf_steps) >= self.flush_every:
             self._flush()
+            self._drain(flush=False)
 
     def finish(self, env, result) -> None:
         rr = _rr()
@@ -152,11 +138,12 @@ class ReplayRecorder:
             self._encoder.shutdown()
             self._encoder = None
         if self.rec is not None:
-            rec, self.rec = self.rec, None
-            with self._output.guard(RuntimeError):  # rerun writes from its own thread: a failed write shows here
-                rec.flush()
-                rec.disconnect()
-                _check_footer(self._output.tmp)
+            self._drain(flush=True)
+            self.rec.disconnect()
+            self._drain(flush=False)  # the end of the stream (rerun's footer)
+            self.rec = None
+            with self._output.guard():
+                self._file.close()
             self._output.commit()
 
     def discard(self) -> None:
@@ -165,12 +152,20 @@ class ReplayRecorder:
             self._encoder.shutdown()
             self._encoder = None
         if self.rec is not None:
-            try:
-                self.rec.disconnect()
-            except (RuntimeError, OSError):
-                pass
+            self.rec.disconnect()
             self.rec = None
+            try:
+                self._file.close()
+            except OSError:
+                pass
             self._output.discard()
+
+    def _drain(self, flush: bool) -> None:
+        """Write what the recording stream holds to the file (all of it, after a flush, with `flush`)."""
+        data = self._stream.read(flush=flush)
+        if data:
+            with self._output.guard():
+                self._file.write(data)
 
     # --------------------------------------------------------------- helpers
     @staticmethod
