@@ -245,7 +245,8 @@ def build_parser() -> Parser:
     race.add_argument("--format", default=None, choices=FORMATS,
                       help="race format (default: time_trial for one car, head_to_head for more)")
     race.add_argument("--laps", type=POSITIVE_INT, default=3, help="laps to race (default 3)")
-    race.add_argument("--obstacles", type=number(int, minimum=0, maximum=6), default=None, help="boxes on track (0-6; format default)")
+    race.add_argument("--obstacles", type=number(int, minimum=0, maximum=6), default=None,
+                      help="boxes on track (0-6; format default)")
     race.add_argument("--seed", type=SEED, default=0, help="seed for grid, obstacles and noise")
     race.add_argument("--max-steps", type=POSITIVE_INT, default=None, help="stop the race after this many 15 Hz steps")
     race.add_argument("--json", metavar="FILE", type=output_file, help="write the result record as JSON")
@@ -254,7 +255,8 @@ def build_parser() -> Parser:
                       help="write a DeepRacer sim-trace CSV (one row per car per step, episode = car slot)")
     race.add_argument("--eval-metrics", metavar="FILE.json", type=output_file,
                       help="write DeepRacer's evaluation metrics JSON of the first car (one trial per lap)")
-    race.add_argument("--video", metavar="FILE.mp4", type=output_file, help="write the top-down race view as an MP4 (15 fps)")
+    race.add_argument("--video", metavar="FILE.mp4", type=output_file,
+                      help="write the top-down race view as an MP4 (15 fps)")
     race.set_defaults(func=cmd_race)
 
     agent = sub.add_parser("agent", help="inspect agent files",
@@ -334,9 +336,11 @@ def build_parser() -> Parser:
     replay = sub.add_parser("replay", help="open a race replay (.rrd) in the rerun viewer, or summarise it",
                             description="Open a race replay in the rerun viewer where one is available; "
                                         "--summary prints what the recording holds.")
-    replay.add_argument("file", metavar="FILE.rrd", type=input_file, help="a replay written by `multirace race --replay`")
+    replay.add_argument("file", metavar="FILE.rrd", type=input_file,
+                        help="a replay written by `multirace race --replay`")
     replay.add_argument("--summary", action="store_true", help="print cars, laps, events and duration")
-    replay.add_argument("--json", metavar="FILE", type=output_file, help="with --summary: also write the summary as JSON")
+    replay.add_argument("--json", metavar="FILE", type=output_file,
+                        help="with --summary: also write the summary as JSON")
     replay.add_argument("--video", metavar="FILE.mp4", type=output_file,
                         help="render the top-down race view from the recorded poses to an MP4 (no viewer needed)")
     replay.set_defaults(func=cmd_replay)
@@ -350,11 +354,13 @@ def build_parser() -> Parser:
     explain.add_argument("--out", metavar="FILE.mp4|FILE.png", type=output_file,
                          help="an MP4 of every frame, or a PNG strip of a few (default AGENT_gradcam.mp4)")
     explain.add_argument("--steps", type=POSITIVE_INT, default=150, help="steps to drive (default 150, 10 s)")
-    explain.add_argument("--replay", metavar="FILE.rrd", type=output_file, help="also record the run with the heat maps as a replay")
+    explain.add_argument("--replay", metavar="FILE.rrd", type=output_file,
+                         help="also record the run with the heat maps as a replay")
     explain.add_argument("--seed", type=SEED, default=0)
     explain.add_argument("--target", choices=("steer", "speed"), default="steer",
                          help="continuous action spaces: explain the steering or the speed mean (default steer)")
-    explain.add_argument("--scale", type=number(int, minimum=1, maximum=16), default=3, help="upscale the camera frames this many times (default 3)")
+    explain.add_argument("--scale", type=number(int, minimum=1, maximum=16), default=3,
+                         help="upscale the camera frames this many times (default 3)")
     explain.add_argument("--json", metavar="FILE", type=output_file, help="write the figures as JSON")
     explain.set_defaults(func=cmd_explain)
 

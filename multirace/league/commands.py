@@ -46,7 +46,8 @@ def add_league_commands(sub) -> None:
     table.add_argument("dir", help="the league folder")
     table.add_argument("--format", dest="table_format", default="md", choices=("md", "csv", "json", "html"))
     table.add_argument("--out", metavar="FILE", type=output_file, help="write the table to FILE instead of printing it")
-    table.add_argument("--plot", metavar="FILE.png", type=output_file, help="also write the ratings-over-rounds plot as a PNG")
+    table.add_argument("--plot", metavar="FILE.png", type=output_file,
+                       help="also write the ratings-over-rounds plot as a PNG")
     table.set_defaults(func=_cmd_table)
 
 

@@ -31,14 +31,18 @@ def add_train_parser(sub) -> None:
                    help="override one setting (JSON value), e.g. --set epochs=4 --set gamma=0.995; "
                         "see `multirace train --list-settings`")
     p.add_argument("--list-settings", action="store_true", help="print every setting with its doc and exit")
-    p.add_argument("--action-space", default=None, metavar="JSON", type=input_file, help="model_metadata.json with the action space")
+    p.add_argument("--action-space", default=None, metavar="JSON", type=input_file,
+                   help="model_metadata.json with the action space")
     p.add_argument("--reward", default=None,
                    help="'progress' (built-in, default), 'centre' (DeepRacer default) or a reward .py file")
     p.add_argument("--network", default=None, help="MULTIRACE_SMALL_CNN or DEEP_CONVOLUTIONAL_NETWORK_SHALLOW")
     p.add_argument("--envs", type=POSITIVE_INT, default=None, help="worker processes (default 2)")
-    p.add_argument("--cars", type=number(int, minimum=1, maximum=8), default=None, help="learning cars per env (default 4)")
-    p.add_argument("--init", default=None, metavar="AGENT.pt", type=input_file, help="initialise the policy from an agent file")
-    p.add_argument("--resume", default=None, metavar="CKPT", type=input_file, help="resume from FILE.ckpt/checkpoint.pt")
+    p.add_argument("--cars", type=number(int, minimum=1, maximum=8), default=None,
+                   help="learning cars per env (default 4)")
+    p.add_argument("--init", default=None, metavar="AGENT.pt", type=input_file,
+                   help="initialise the policy from an agent file")
+    p.add_argument("--resume", default=None, metavar="CKPT", type=input_file,
+                   help="resume from FILE.ckpt/checkpoint.pt")
     p.add_argument("--robust", action="store_true",
                    help="domain randomisation with a curriculum, opponent pool (PFSP), nature adversary and "
                         "procedural tracks")
