@@ -28,7 +28,9 @@ images, the plots and the event log is sent with the recording, so
 ``rerun race.rrd`` opens on a useful screen.
 
 Per-step data is buffered and sent in columns (`send_columns`) every
-`flush_every` steps, which keeps the recording cost low.
+`flush_every` steps, which keeps the recording cost low; the encoded bytes
+(rerun's binary stream) are then written by this module to a file beside the
+target, which becomes the target only when the race ends well (`multirace.atomic`).
 """
 from __future__ import annotations
 
