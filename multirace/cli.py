@@ -1,9 +1,7 @@
 """The `multirace` command line."""
 from __future__ import annotations
 
-import argparse
 import json
-import os
 import sys
 from pathlib import Path
 
@@ -11,7 +9,10 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from .atomic import OutputError, write_text
 from .environment.rules import FORMATS
+from .options import (COUNT, NON_NEGATIVE, POSITIVE, POSITIVE_INT, SEED, SHARE, Parser, input_file, number,
+                      output_file)
 from .text import display_name, laps_text
 from .resources import agent_argument, list_agents, list_tracks
 
@@ -37,30 +38,9 @@ def print_result(result: dict, console: Console) -> None:
     console.print(table)
 
 
-def check_output_paths(args, options=("json", "replay", "video", "simtrace")) -> None:
-    """Refuse, before anything runs, an output file that cannot be written (a folder, a missing or
-    read-only folder): the race should not run only to fail at the end."""
-    for option in options:
-        value = getattr(args, option, None)
-        if not value:
-            continue
-        path = Path(value)
-        where = f"--{option} {value}"
-        if path.is_dir():
-            raise ValueError(f"{where}: is a folder; give a file name")
-        ancestor = path.absolute().parent  # the nearest existing folder (missing ones are created)
-        while not ancestor.exists():
-            ancestor = ancestor.parent
-        if not ancestor.is_dir():
-            raise ValueError(f"{where}: {ancestor} is a file, not a folder")
-        if not os.access(ancestor, os.W_OK | os.X_OK) or (path.exists() and not os.access(path, os.W_OK)):
-            raise ValueError(f"{where}: cannot be written (permission denied)")
-
-
 def cmd_race(args) -> int:
     from .racing.runner import RaceConfig, make_controller, run_race
 
-    check_output_paths(args)
     controllers = [make_controller(spec) for spec in args.entrants]
     race_format = args.format or ("time_trial" if len(controllers) == 1 else "head_to_head")
     config = RaceConfig(track=args.track, reverse=args.reverse, race=race_format, laps=args.laps,
@@ -85,8 +65,7 @@ def cmd_race(args) -> int:
     result = run_race(controllers, config, recorders=recorders)
     print_result(result, Console(width=120))
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)  # as the other outputs do
-        Path(args.json).write_text(json.dumps(result, indent=2))
+        write_text(args.json, json.dumps(result, indent=2))
     for option, what in (("json", "the result record"), ("replay", "the replay (`multirace replay FILE`)"),
                          ("simtrace", "the DeepRacer sim-trace"), ("eval_metrics", "DeepRacer's evaluation metrics"),
                          ("video", "the top-down race video")):
@@ -110,7 +89,7 @@ def cmd_replay(args) -> int:
     summary = replay_summary(args.file, poses=False)
     print(format_summary(summary))
     if args.json:
-        Path(args.json).write_text(json.dumps(summary, indent=2))
+        write_text(args.json, json.dumps(summary, indent=2))
     return 0
 
 
@@ -129,7 +108,7 @@ def cmd_explain(args) -> int:
           f"on {100 * result['track_fraction']:.1f}% of the image; on the lines {result['lines_lift']:.2f}x "
           "their area share")
     if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=2))
+        write_text(args.json, json.dumps(result, indent=2))
     return 0
 
 
@@ -237,6 +216,11 @@ def cmd_imitate(args) -> int:
     if args.name:
         command += ["--name", args.name]
     traffic = tuple(b.strip() for b in (args.traffic or "").split(",") if b.strip())
+    for bot in traffic:
+        try:
+            parse_bot(bot)
+        except ValueError as exc:
+            raise ValueError(f"--traffic: {exc}") from None
     if traffic:
         command += ["--traffic", ",".join(traffic)]
     if args.traffic_share != 1.0:
@@ -273,12 +257,12 @@ def cmd_bench(args) -> int:
         table.add_row(label, value)
     console.print(table)
     if args.json:
-        Path(args.json).write_text(json.dumps(figures, indent=2))
+        write_text(args.json, json.dumps(figures, indent=2))
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="multirace", description=__doc__)
+def build_parser() -> Parser:
+    parser = Parser(prog="multirace", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
 
     race = sub.add_parser("race", help="race agent files and bots against each other",
@@ -292,17 +276,19 @@ def build_parser() -> argparse.ArgumentParser:
     race.add_argument("--reverse", action="store_true", help="race the track in the other direction")
     race.add_argument("--format", default=None, choices=FORMATS,
                       help="race format (default: time_trial for one car, head_to_head for more)")
-    race.add_argument("--laps", type=int, default=3, help="laps to race (default 3)")
-    race.add_argument("--obstacles", type=int, default=None, help="boxes on track (0-6; format default)")
-    race.add_argument("--seed", type=int, default=0, help="seed for grid, obstacles and noise")
-    race.add_argument("--max-steps", type=int, default=None, help="stop the race after this many 15 Hz steps")
-    race.add_argument("--json", metavar="FILE", help="write the result record as JSON")
-    race.add_argument("--replay", metavar="FILE.rrd", help="record the race to a rerun replay file")
-    race.add_argument("--simtrace", metavar="FILE.csv",
+    race.add_argument("--laps", type=POSITIVE_INT, default=3, help="laps to race (default 3)")
+    race.add_argument("--obstacles", type=number(int, minimum=0, maximum=6), default=None,
+                      help="boxes on track (0-6; format default)")
+    race.add_argument("--seed", type=SEED, default=0, help="seed for grid, obstacles and noise")
+    race.add_argument("--max-steps", type=POSITIVE_INT, default=None, help="stop the race after this many 15 Hz steps")
+    race.add_argument("--json", metavar="FILE", type=output_file, help="write the result record as JSON")
+    race.add_argument("--replay", metavar="FILE.rrd", type=output_file, help="record the race to a rerun replay file")
+    race.add_argument("--simtrace", metavar="FILE.csv", type=output_file,
                       help="write a DeepRacer sim-trace CSV (one row per car per step, episode = car slot)")
-    race.add_argument("--eval-metrics", metavar="FILE.json",
+    race.add_argument("--eval-metrics", metavar="FILE.json", type=output_file,
                       help="write DeepRacer's evaluation metrics JSON of the first car (one trial per lap)")
-    race.add_argument("--video", metavar="FILE.mp4", help="write the top-down race view as an MP4 (15 fps)")
+    race.add_argument("--video", metavar="FILE.mp4", type=output_file,
+                      help="write the top-down race view as an MP4 (15 fps)")
     race.set_defaults(func=cmd_race)
 
     agent = sub.add_parser("agent", help="list, inspect, export and import agent files",
@@ -323,14 +309,14 @@ def build_parser() -> argparse.ArgumentParser:
                                   description="Write the car's archive: one frozen TensorFlow graph (agent/model.pb, "
                                               "the car's node names) and model_metadata.json.")
     export.add_argument("file", type=agent_argument, help="agent file (.pt) or a shipped agent's name")
-    export.add_argument("--out", required=True, metavar="MODEL.tar.gz", help="archive to write")
+    export.add_argument("--out", required=True, metavar="MODEL.tar.gz", type=output_file, help="archive to write")
     export.set_defaults(func=cmd_agent_export)
     imported = agent_sub.add_parser("import", help="turn a DeepRacer model into an agent file",
                                     description="Read a car archive (.tar.gz), a folder, a frozen .pb with its "
                                                 "model_metadata.json, or a training checkpoint folder (model/ with "
                                                 ".ckpt files), and write an equivalent agent file.")
     imported.add_argument("path", help="DeepRacer model: .tar.gz, folder, model.pb or checkpoint folder")
-    imported.add_argument("--out", required=True, metavar="FILE.pt", help="agent file to write")
+    imported.add_argument("--out", required=True, metavar="FILE.pt", type=output_file, help="agent file to write")
     imported.add_argument("--name", default=None, help="agent name in the metadata (default: file stem)")
     imported.set_defaults(func=cmd_agent_import)
 
@@ -338,25 +324,25 @@ def build_parser() -> argparse.ArgumentParser:
                              description="Train a camera CNN by DAgger: the learner drives, the scripted "
                                          "pure-pursuit driver labels every image with the nearest action, "
                                          "the data is aggregated and the net retrained; writes an agent file.")
-    imitate.add_argument("--out", required=True, metavar="FILE.pt", help="agent file to write")
+    imitate.add_argument("--out", required=True, metavar="FILE.pt", type=output_file, help="agent file to write")
     imitate.add_argument("--tracks", nargs="+", default=None, metavar="TRACK",
                          help="tracks to train on; the word train-split names every bundled track outside "
                               "the held-out split (default: reinvent_base reInvent2019_track Oval_track "
                               "Bowtie_track)")
-    imitate.add_argument("--procedural-tracks", type=int, default=0, metavar="N",
+    imitate.add_argument("--procedural-tracks", type=COUNT, default=0, metavar="N",
                          help="also drive N seeded generated tracks (default 0)")
     imitate.add_argument("--one-direction", action="store_true",
                          help="train on each track forwards only (default: both directions)")
-    imitate.add_argument("--minutes", type=float, default=4.0, help="wall-clock training budget (default 4)")
-    imitate.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    imitate.add_argument("--minutes", type=POSITIVE, default=4.0, help="wall-clock training budget (default 4)")
+    imitate.add_argument("--seed", type=SEED, default=0, help="random seed (default 0)")
     imitate.add_argument("--network", default="MULTIRACE_SMALL_CNN", metavar="NAME",
                          help="MULTIRACE_SMALL_CNN (default, under 1 MB) or DEEP_CONVOLUTIONAL_NETWORK_SHALLOW "
                               "(DeepRacer's shallow net, about 23 MB at 120x160)")
-    imitate.add_argument("--action-space", default=None, metavar="JSON",
+    imitate.add_argument("--action-space", default=None, metavar="JSON", type=input_file,
                          help="DeepRacer model_metadata.json with the action space (default: 10 actions, "
                               "steering -30..30 by 15 x speed 0.5, 1.0; with --init: the init file's, and a new "
                               "one must fit its net: any continuous range, or as many discrete actions)")
-    imitate.add_argument("--speed", type=float, default=1.0,
+    imitate.add_argument("--speed", type=number(float, minimum=0.1, maximum=4.0), default=1.0,
                          help="the default pass expert's speed in m/s (default 1.0)")
     imitate.add_argument("--expert", default=None, metavar="BOT",
                          help="the expert as a bot spec, e.g. racingline@0.9 (default: pass@SPEED)")
@@ -367,30 +353,32 @@ def build_parser() -> argparse.ArgumentParser:
                               "follow@1.0,lanes@1.0), started ahead of the learner")
     imitate.add_argument("--init", default=None, metavar="AGENT.pt", type=agent_argument,
                          help="start from this agent file's net (its network, image size, action space)")
-    imitate.add_argument("--max-samples", type=int, default=40000, metavar="N",
+    imitate.add_argument("--max-samples", type=POSITIVE_INT, default=40000, metavar="N",
                          help="dataset cap; beyond it new samples replace random old ones (default 40000; "
                               "each 120x160 sample is 19 kB)")
     imitate.add_argument("--sensor", nargs="+", default=None, metavar="NAME",
                          help="DeepRacer's sensor list the agent reads: FRONT_FACING_CAMERA (default) or "
                               "STEREO_CAMERAS, and optionally LIDAR or SECTOR_LIDAR "
                               "(e.g. --sensor FRONT_FACING_CAMERA SECTOR_LIDAR)")
-    imitate.add_argument("--traffic-share", type=float, default=1.0, metavar="F",
+    imitate.add_argument("--traffic-share", type=SHARE, default=1.0, metavar="F",
                          help="share of the envs that hold the --traffic bots (default 1; the rest drive alone)")
     imitate.add_argument("--lidar", action="store_true",
                          help="the agent also reads DeepRacer's 64-beam LIDAR (shorthand for --sensor "
                               "FRONT_FACING_CAMERA LIDAR)")
     imitate.add_argument("--name", default=None, help="agent name in the metadata (default: file stem)")
-    imitate.add_argument("--threads", type=int, default=None,
+    imitate.add_argument("--threads", type=POSITIVE_INT, default=None,
                          help="torch threads (default: all cores on an idle machine, 1 on a busy one)")
     imitate.set_defaults(func=cmd_imitate)
 
     replay = sub.add_parser("replay", help="open a race replay (.rrd) in the rerun viewer, or summarise it",
                             description="Open a race replay in the rerun viewer where one is available; "
                                         "--summary prints what the recording holds.")
-    replay.add_argument("file", metavar="FILE.rrd", help="a replay written by `multirace race --replay`")
+    replay.add_argument("file", metavar="FILE.rrd", type=input_file,
+                        help="a replay written by `multirace race --replay`")
     replay.add_argument("--summary", action="store_true", help="print cars, laps, events and duration")
-    replay.add_argument("--json", metavar="FILE", help="with --summary: also write the summary as JSON")
-    replay.add_argument("--video", metavar="FILE.mp4",
+    replay.add_argument("--json", metavar="FILE", type=output_file,
+                        help="with --summary: also write the summary as JSON")
+    replay.add_argument("--video", metavar="FILE.mp4", type=output_file,
                         help="render the top-down race view from the recorded poses to an MP4 (no viewer needed)")
     replay.set_defaults(func=cmd_replay)
 
@@ -400,23 +388,25 @@ def build_parser() -> argparse.ArgumentParser:
     explain.add_argument("agent", metavar="AGENT.pt", type=agent_argument, help="an agent file or a shipped agent's name")
     explain.add_argument("--track", default="reinvent_base", help="track name or .npy (default reinvent_base)")
     explain.add_argument("--reverse", action="store_true", help="drive the track the other way round")
-    explain.add_argument("--out", metavar="FILE.mp4|FILE.png",
+    explain.add_argument("--out", metavar="FILE.mp4|FILE.png", type=output_file,
                          help="an MP4 of every frame, or a PNG strip of a few (default AGENT_gradcam.mp4)")
-    explain.add_argument("--steps", type=int, default=150,
+    explain.add_argument("--steps", type=POSITIVE_INT, default=150,
                          help="steps to drive at most (default 150, 10 s); the run ends after one lap")
-    explain.add_argument("--replay", metavar="FILE.rrd", help="also record the run with the heat maps as a replay")
-    explain.add_argument("--seed", type=int, default=0)
+    explain.add_argument("--replay", metavar="FILE.rrd", type=output_file,
+                         help="also record the run with the heat maps as a replay")
+    explain.add_argument("--seed", type=SEED, default=0)
     explain.add_argument("--target", choices=("steer", "speed"), default="steer",
                          help="continuous action spaces: explain the steering or the speed mean (default steer)")
-    explain.add_argument("--scale", type=int, default=3, help="upscale the camera frames this many times (default 3)")
-    explain.add_argument("--json", metavar="FILE", help="write the figures as JSON")
+    explain.add_argument("--scale", type=number(int, minimum=1, maximum=16), default=3,
+                         help="upscale the camera frames this many times (default 3)")
+    explain.add_argument("--json", metavar="FILE", type=output_file, help="write the figures as JSON")
     explain.set_defaults(func=cmd_explain)
 
     plot = sub.add_parser("plot", help="plot a sim-trace CSV: the path coloured by speed and reward",
                           description="Draw the track with the driven path coloured by speed and by reward: a "
                                       "row of panels per episode (in a race's sim-trace, per car), up to 8.")
-    plot.add_argument("trace", metavar="TRACE.csv", help="a DeepRacer sim-trace CSV")
-    plot.add_argument("--out", metavar="FILE.png", help="PNG to write (default: TRACE.png)")
+    plot.add_argument("trace", metavar="TRACE.csv", type=input_file, help="a DeepRacer sim-trace CSV")
+    plot.add_argument("--out", metavar="FILE.png", type=output_file, help="PNG to write (default: TRACE.png)")
     plot.add_argument("--track", default=None, help="track name or .npy (default: guessed from track_len)")
     plot.set_defaults(func=cmd_plot)
 
@@ -424,9 +414,9 @@ def build_parser() -> argparse.ArgumentParser:
                            description="Benchmark (not a test): agent-steps/s for 1-8 cars with the fast and "
                                        "PyBullet renderers, the physics+warp floor, two workers over one, peak "
                                        "memory and replay cost, all from one run.")
-    bench.add_argument("--json", metavar="FILE", help="write the figures as JSON")
-    bench.add_argument("--seconds", type=float, default=3.0, help="time per measurement (default 3)")
-    bench.add_argument("--replay-seconds", type=float, default=240.0,
+    bench.add_argument("--json", metavar="FILE", type=output_file, help="write the figures as JSON")
+    bench.add_argument("--seconds", type=POSITIVE, default=3.0, help="time per measurement (default 3)")
+    bench.add_argument("--replay-seconds", type=NON_NEGATIVE, default=240.0,
                        help="race time of the replay-cost race (0 skips it; default 240, the reset-rule window)")
     bench.set_defaults(func=cmd_bench)
 
@@ -442,14 +432,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    """Run the command line; bad input is a one-line error and exit code 2."""
+    """Run the command line; bad input is a one-line error (naming the option, file or field) and exit code 2."""
     from .environment.rewards import RewardFunctionError  # light: the reward module imports no heavy library
 
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)  # every argument is checked here, before any work
+    except SystemExit as exc:  # --help, or a bad argument (one line, from options.Parser)
+        return exc.code
     try:
         return args.func(args)
-    except (ValueError, FileNotFoundError, RewardFunctionError) as exc:  # TrackError, AgentFileError... are ValueErrors
+    except (ValueError, FileNotFoundError, OutputError, RewardFunctionError) as exc:  # TrackError... are ValueErrors
         print(f"multirace {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except BrokenPipeError:  # the output piped into a reader that stopped (`| head`): stop quietly

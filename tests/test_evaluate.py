@@ -81,7 +81,7 @@ def test_evaluate_refuses_bad_parts_heats_entrants_and_heat_tracks_up_front(caps
     assert main(["evaluate", str(AGENT), "--parts", "held-out,laps"]) == 2
     assert "--parts: laps is not a part" in capsys.readouterr().err
     assert main(["evaluate", str(AGENT), "--heats", "-1"]) == 2
-    assert "--heats: -1" in capsys.readouterr().err
+    assert "--heats: must be at least 0, got -1" in capsys.readouterr().err
     # a bad heat entrant or track is refused before the held-out part spends minutes racing
     assert main(["evaluate", str(AGENT), "--heats", "1", "--field", "bot:follow@1.0,nosuch"]) == 2
     assert "--field: nosuch: no such agent file" in capsys.readouterr().err

@@ -103,7 +103,7 @@ def test_cli_refuses_a_zero_step_limit_before_racing(capsys):
     from multirace.cli import main
 
     assert main(["race", "bot:follow@1.0", "--max-steps", "0"]) == 2
-    assert "max_steps" in capsys.readouterr().err
+    assert "--max-steps" in capsys.readouterr().err
 
 
 # ------------------------------------------------------------------ agent files

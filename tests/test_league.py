@@ -290,7 +290,9 @@ def test_league_runs_to_completion_and_ranks(reference, tmp_path, capsys):
     page = (tmp_path / "table.html").read_text()
     assert page.count("data:image/png;base64,") == 2  # rating plot and the track map
     assert f"{folder.name}/replays/" in page and "<script" not in page
-    assert (folder / "ratings.png").read_bytes()[:4] == b"\x89PNG"
+    assert not (folder / "ratings.png").exists()  # the table writes only what was asked, where asked
+    assert cli_main(["league", "table", str(folder), "--plot", str(tmp_path / "ratings.png")]) == 0
+    assert (tmp_path / "ratings.png").read_bytes()[:4] == b"\x89PNG"
 
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..atomic import AtomicOutput
 from ..racing.agentfile import load_agent
 from ..racing.graphnet import GRAPH_FIELD, GraphNet
 from ..racing.nets import AveragePool, CameraNet
@@ -239,8 +240,7 @@ def export_agent(path, out) -> Path:
     else:
         graph = policy_graph(agent.net, agent.action_space, lidar_sensor_of(agent.metadata))
         metadata = car_metadata(agent.metadata, agent.action_space, channels, bool(agent.lidar_samples))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with tarfile.open(out, "w:gz", compresslevel=6) as tar:
+    with AtomicOutput(out) as tmp, tarfile.open(tmp, "w:gz", compresslevel=6) as tar:
         for name, data in (("agent/model.pb", graph),
                            ("model_metadata.json", json.dumps(metadata, indent=4).encode())):
             info = tarfile.TarInfo(name)

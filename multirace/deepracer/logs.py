@@ -19,6 +19,7 @@ import json
 import time
 from pathlib import Path
 
+from ..atomic import write_text
 from ..environment.actions import ActionSpace
 from ..recording.simtrace import SimTraceWriter, read_simtrace, simtrace_row
 
@@ -36,9 +37,7 @@ DEFAULT_HYPERPARAMETERS = {  # DeepRacer-for-Cloud's defaults (defaults/hyperpar
 
 
 def _write_json(path: Path, data) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(data, indent=4))
-    return path
+    return write_text(path, json.dumps(data, indent=4))
 
 
 def evaluation_metrics(rows: list[dict], episode: int = 0) -> dict:

@@ -96,7 +96,7 @@ class RaceEnv(ParallelEnv):
         self.track: Track = track if isinstance(track, Track) else load_track(track, reverse=reverse)
         self.rules = make_rules(race, laps, obstacles)
         self.bots = [parse_bot(b) for b in bots]
-        if not 1 <= int(num_cars) + len(self.bots) <= MAX_CARS or int(num_cars) < 1:
+        if positive_int(num_cars, "num_cars") + len(self.bots) > MAX_CARS:
             raise ValueError(f"num_cars: need 1 to {MAX_CARS} cars in all, got {num_cars} "
                              f"learning cars and {len(self.bots)} bots")
         self.num_cars = int(num_cars)
@@ -200,6 +200,8 @@ class RaceEnv(ParallelEnv):
     def reset(self, seed=None, options=None):
         announce_compile()  # once per process, and only if the kernels are not cached yet
         if seed is not None:
+            if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+                raise ValueError(f"seed: expected a whole number of at least 0, got {seed!r}")
             self._rng = np.random.default_rng(seed)
             self._randomizer_rng = np.random.default_rng([seed, 3])  # its own stream: same grid either way
             self._lidar_rng = np.random.default_rng([seed, 5])

@@ -6,6 +6,7 @@ import sqlite3
 import sys
 from pathlib import Path
 
+from ..options import POSITIVE_INT, output_file
 from ..resources import agent_argument
 from .config import DB, TOML, LeagueError
 from .runner import run_league
@@ -35,18 +36,21 @@ def add_league_commands(sub) -> None:
                                 description="Builds the schedule and runs the matches without a result, in "
                                             "worker processes; safe to kill and run again.")
     run.add_argument("dir", help="the league folder")
-    run.add_argument("--workers", type=int, default=None, help="worker processes (default: one per core)")
+    run.add_argument("--workers", type=POSITIVE_INT, default=None, help="worker processes (default: one per core)")
     run.add_argument("--ray", metavar="ADDRESS", default=None,
                      help="run matches as Ray tasks on this cluster (e.g. auto or ray://host:10001)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     run.set_defaults(func=_cmd_run)
     table = league_sub.add_parser("table", help="print or export the league table",
                                   description="Ratings (OpenSkill Plackett-Luce ordinal), time-trial standings "
-                                              "and clean driving; also writes DIR/ratings.png.")
+                                              "and clean driving. Only reads the league folder (a read-only "
+                                              "one works); writes only the files asked for.")
     table.add_argument("dir", help="the league folder")
     table.add_argument("--format", dest="table_format", default="text", choices=TABLE_FORMATS,
                        help="text (terminal tables, the default), md, csv, json or html (a self-contained page)")
-    table.add_argument("--out", metavar="FILE", help="write the table to FILE instead of printing it")
+    table.add_argument("--out", metavar="FILE", type=output_file, help="write the table to FILE instead of printing it")
+    table.add_argument("--plot", metavar="FILE.png", type=output_file,
+                       help="also write the ratings-over-rounds plot as a PNG")
     table.set_defaults(func=_cmd_table)
 
 
@@ -84,8 +88,6 @@ def _cmd_submit(args) -> int:
 
 @_store_errors
 def _cmd_run(args) -> int:
-    if args.workers is not None and args.workers < 1:
-        raise LeagueError("--workers: must be at least 1")
     stats = run_league(args.dir, workers=args.workers, ray_address=args.ray, progress=not args.quiet)
     print(f"league run: {stats['ran']} matches run, {stats['failed']} failed, {stats['scheduled']} scheduled, "
           f"{stats['wall_seconds']:.1f} s")
@@ -96,9 +98,10 @@ def _cmd_run(args) -> int:
 def _cmd_table(args) -> int:
     from .table import write_table
 
-    text = write_table(args.dir, args.table_format, args.out)
-    if args.out:
-        print(f"wrote {args.out}")
+    text = write_table(args.dir, args.table_format, args.out, args.plot)
+    for written in (args.out, args.plot):
+        if written:
+            print(f"wrote {written}")
     else:
         sys.stdout.write(text)
     return 0

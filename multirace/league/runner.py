@@ -11,9 +11,10 @@ import threading
 import time
 from pathlib import Path
 
+from ..atomic import write_bytes
 from .config import REPLAYS, SUBMISSIONS, WORKER_STARTUP_TIMEOUT, LeagueConfig, LeagueError, load_config
 from .schedule import sync_schedule
-from .store import connect, pending_matches, record_attempt_failure, record_result
+from .store import check_writable, connect, pending_matches, record_attempt_failure, record_result
 from .worker import _worker_command, _worker_env, run_match
 
 RUN_LOCK = "run.lock"
@@ -92,6 +93,7 @@ def run_league(folder, workers: int | None = None, ray_address: str | None = Non
             import ray  # noqa: F401
         except ImportError:
             raise LeagueError("--ray: Ray is not installed; install it with: pip install 'multirace[ray]'") from None
+    check_writable(folder)  # before the lock file is made
     lock = _exclusive_run(folder)
     try:
         conn = connect(folder)
@@ -277,10 +279,7 @@ def _run_on_ray(folder: Path, config: LeagueConfig, conn, todo, address: str, st
                     if answer["ok"]:
                         replay = None
                         if replay_bytes is not None:
-                            final = folder / REPLAYS / f"{match_id}.rrd"
-                            tmp = final.with_name(f"{final.name}.{os.getpid()}.tmp")
-                            tmp.write_bytes(replay_bytes)
-                            os.replace(tmp, final)
+                            final = write_bytes(folder / REPLAYS / f"{match_id}.rrd", replay_bytes)
                             replay = f"{REPLAYS}/{final.name}"
                         record_result(conn, match_id, answer["result"], replay, answer["wall_seconds"])
                         stats["ran"] += 1

@@ -1,7 +1,9 @@
 """The league's results store: one SQLite file, written in transactions; results and retries."""
 from __future__ import annotations
 
+import hashlib
 import json
+import os
 import sqlite3
 import time
 from pathlib import Path
@@ -48,7 +50,15 @@ RECOVER = ("restore results.sqlite from a backup, or start a new league with `mu
            "submit the agents again (their files are in submissions/)")
 
 
-def _open(path: Path) -> sqlite3.Connection:
+READ_ONLY = ("make the folder and its files writable, or copy the league to a writable folder (`multirace "
+             "league table` reads a read-only league)")
+
+
+def _open(path: Path, readonly: bool = False) -> sqlite3.Connection:
+    if readonly and not _writable(path.parent):  # a folder nobody may write to cannot hold SQLite's lock files
+        immutable = not path.with_name(path.name + "-wal").exists()  # nor be written meanwhile
+        uri = f"{path.resolve().as_uri()}?mode=ro" + ("&immutable=1" if immutable else "")
+        return sqlite3.connect(uri, uri=True, timeout=BUSY_TIMEOUT, isolation_level=None)
     conn = sqlite3.connect(path, timeout=BUSY_TIMEOUT, isolation_level=None)
     conn.execute("PRAGMA journal_mode=WAL")
     conn.execute("PRAGMA synchronous=FULL")
@@ -63,19 +73,34 @@ def create_store(folder) -> None:
     conn.close()
 
 
-def connect(folder) -> sqlite3.Connection:
+def _writable(path: Path) -> bool:
+    return os.access(path, os.W_OK)
+
+
+def check_writable(folder) -> None:
+    """Raise LeagueError, saying so, if the league folder or its store is read-only."""
+    folder = Path(folder)
+    if not (_writable(folder) and (not (folder / DB).exists() or _writable(folder / DB))):
+        raise LeagueError(f"{folder}: read-only: this command records to the league's store; {READ_ONLY}")
+
+
+def connect(folder, readonly: bool = False) -> sqlite3.Connection:
     """The league's SQLite store, in WAL mode with a generous busy timeout, checked first: it exists, is
-    intact (SQLite's quick_check), has the expected tables, and agrees with the submissions folder.
-    A damaged or missing store is a LeagueError that says how to recover; nothing is recreated silently."""
+    intact (SQLite's quick_check), has the expected tables, agrees with the submissions folder, and every
+    stored submission still has the sha256 it was stored under.
+    A damaged or missing store is a LeagueError that says how to recover; nothing is recreated silently.
+    `readonly`: only read (works on a read-only folder); otherwise a read-only folder is a LeagueError saying so."""
     folder = Path(folder)
     path = folder / DB
     if not path.is_file() or path.stat().st_size == 0:
         state = "missing" if not path.exists() else "empty (truncated)"
         raise LeagueError(f"{path}: {state}: the league's history is gone; {RECOVER}")
+    if not readonly:
+        check_writable(folder)
     conn = None
     try:
-        conn = _open(path)
-        _check(conn, folder)
+        conn = _open(path, readonly)
+        _check(conn, folder, readonly)
     except sqlite3.DatabaseError as exc:
         if conn is not None:
             conn.close()
@@ -83,6 +108,8 @@ def connect(folder) -> sqlite3.Connection:
             raise LeagueError(f"{path}: busy: another process has held the store for over {BUSY_TIMEOUT:.0f} s "
                               "(a stopped or hung `multirace league` command?); try again once it has finished"
                               ) from None
+        if isinstance(exc, sqlite3.OperationalError) and "readonly" in str(exc).replace("-", "").replace(" ", ""):
+            raise LeagueError(f"{folder}: read-only ({exc}); {READ_ONLY}") from None
         raise LeagueError(f"{path}: damaged ({exc}); {RECOVER}") from None
     except LeagueError:
         conn.close()
@@ -90,11 +117,12 @@ def connect(folder) -> sqlite3.Connection:
     return conn
 
 
-def _check(conn: sqlite3.Connection, folder: Path) -> None:
-    """Raise LeagueError unless the store is intact, has the expected tables and agrees with submissions/.
+def _check(conn: sqlite3.Connection, folder: Path, readonly: bool = False) -> None:
+    """Raise LeagueError unless the store is intact, has the expected tables and agrees with submissions/
+    (every stored file there, with the sha256 it was stored under).
 
-    Runs in an IMMEDIATE transaction, as `submit` stores a file and its row, so it never sees a submission
-    half made by a concurrent submit."""
+    Runs in an IMMEDIATE transaction (a plain one when `readonly`), as `submit` stores a file and its row, so
+    it never sees a submission half made by a concurrent submit."""
     path = folder / DB
     check = conn.execute("PRAGMA quick_check").fetchone()[0]
     if check != "ok":
@@ -104,8 +132,9 @@ def _check(conn: sqlite3.Connection, folder: Path) -> None:
         if not wanted <= found:
             lack = "is missing" if not found else "lacks " + ", ".join(sorted(wanted - found))
             raise LeagueError(f"{path}: not a multirace league store (table {table!r} {lack}); {RECOVER}")
-    with _Tx(conn):
-        stored = {Path(row[0]).name for row in conn.execute("SELECT file FROM submissions")}
+    with _Tx(conn, "DEFERRED" if readonly else "IMMEDIATE"):
+        rows = conn.execute("SELECT name, sha256, file FROM submissions ORDER BY name").fetchall()
+        stored = {Path(row[2]).name for row in rows}
         on_disk = {p.name for p in (folder / SUBMISSIONS).glob("*.pt")}
     missing, unknown = sorted(stored - on_disk), sorted(on_disk - stored)
     if missing:
@@ -115,16 +144,40 @@ def _check(conn: sqlite3.Connection, folder: Path) -> None:
         raise LeagueError(f"{folder}: the store and the submissions folder disagree: {len(unknown)} file(s) in "
                           f"submissions/ that the store does not know ({', '.join(unknown[:3])}): remove them (a "
                           f"file left by an interrupted submit) or {RECOVER}")
+    for name, sha, file in rows:
+        problem = submission_problem(folder, name, sha, file)
+        if problem:
+            raise LeagueError(f"{folder}: {problem}")
+
+
+def submission_problem(folder, name: str, sha: str, file: str) -> str | None:
+    """Why entrant `name`'s stored file cannot be trusted (unreadable, or bytes whose sha256 is not the one
+    it was stored under), or None if it can. Submissions are named by their sha256, so a file replaced or
+    damaged after it was submitted shows here."""
+    path = Path(folder) / file
+    digest = hashlib.sha256()
+    try:
+        with open(path, "rb") as f:
+            while chunk := f.read(1 << 20):
+                digest.update(chunk)
+    except OSError as exc:
+        return f"entrant {name!r}: its stored file {file} cannot be read ({exc.strerror or exc})"
+    if digest.hexdigest() != sha:
+        return (f"entrant {name!r}: its stored file {file} was replaced or damaged after submission (sha256 "
+                f"{digest.hexdigest()[:12]}, submitted as {sha[:12]}); put the submitted file back (its sha256 is "
+                "its name) or submit the agent again in a new league")
+    return None
 
 
 class _Tx:
-    """`with _Tx(conn):` one IMMEDIATE transaction, committed on success, rolled back on error."""
+    """`with _Tx(conn):` one IMMEDIATE transaction (or `kind`), committed on success, rolled back on error."""
 
-    def __init__(self, conn):
+    def __init__(self, conn, kind: str = "IMMEDIATE"):
         self.conn = conn
+        self.kind = kind
 
     def __enter__(self):
-        self.conn.execute("BEGIN IMMEDIATE")
+        self.conn.execute(f"BEGIN {self.kind}")
         return self.conn
 
     def __exit__(self, kind, exc, tb):

@@ -11,6 +11,7 @@ import subprocess
 import time
 from pathlib import Path
 
+from ..atomic import AtomicOutput, output_error, write_text
 from .config import (DB, DEFAULT_TOML, REPLAYS, SUBMISSIONS, SUBMIT_TIMEOUT, TOML, LeagueError, load_config,
                      parse_config)
 from .store import _Tx, connect, create_store
@@ -39,10 +40,12 @@ def init_league(folder, template=None) -> Path:
     except (OSError, UnicodeDecodeError) as exc:
         raise LeagueError(f"{template}: unreadable ({exc})") from None
     parse_config(text, str(template))
-    folder.mkdir(parents=True, exist_ok=True)
-    (folder / SUBMISSIONS).mkdir(exist_ok=True)
-    (folder / REPLAYS).mkdir(exist_ok=True)
-    (folder / TOML).write_text(text)
+    try:
+        for made in (folder, folder / SUBMISSIONS, folder / REPLAYS):
+            made.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise LeagueError(f"{folder}: cannot create the league folder here ({exc.strerror or exc})") from None
+    write_text(folder / TOML, text)
     create_store(folder)
     return folder
 
@@ -112,10 +115,13 @@ def submit(folder, path, name: str, step_budget: float | None = None, validate: 
             raise LeagueError(f"--name: refused: an entrant named {name!r} is already submitted")
         metadata = {}
         stored = folder / SUBMISSIONS / f"{sha}.pt"
-        stored.parent.mkdir(exist_ok=True)
-        copy = stored.resolve().with_name(f".{sha}.{os.getpid()}.tmp")  # the copy is what is validated and stored
-        copy.write_bytes(data)
+        output = AtomicOutput(stored.resolve())
+        copy = output.tmp  # the copy is what is validated and stored
         try:
+            try:
+                copy.write_bytes(data)
+            except OSError as exc:
+                raise output_error(stored, exc) from None
             if validate:
                 check = validate_in_subprocess(copy, step_budget or config.step_budget)
                 if not check.get("ok"):
@@ -127,12 +133,12 @@ def submit(folder, path, name: str, step_budget: float | None = None, validate: 
                                  "submitted_at) VALUES (?, ?, ?, ?, ?, ?)",
                                  (name, sha, f"{SUBMISSIONS}/{sha}.pt", json.dumps(metadata, sort_keys=True),
                                   step_budget, time.time()))
-                    os.replace(copy, stored)
+                    output.commit()
             except sqlite3.IntegrityError:
                 raise LeagueError(f"--name: refused: {name!r} or this file (sha256 {sha[:12]}) was submitted "
                                   "meanwhile by another submit") from None
         finally:
-            copy.unlink(missing_ok=True)
+            output.discard()
         return {"name": name, "sha256": sha, "file": str(stored), "metadata": metadata}
     finally:
         conn.close()

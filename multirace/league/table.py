@@ -18,9 +18,10 @@ import math
 import os
 from pathlib import Path
 
-from ..text import display_name
+from ..atomic import write_bytes, write_text
+from ..text import TEXT_LENGTH, display_name
 from .config import load_config
-from .schedule import entrants, sync_schedule
+from .schedule import build_schedule, entrants
 from .store import connect
 
 COLUMNS = ["rank", "entrant", "rating", "mu", "sigma", "heats", "wins", "avg_position", "tt_best_lap",
@@ -38,22 +39,25 @@ def _mean(values):
 
 
 def compute_table(folder) -> dict:
-    """Everything a league table shows, from the SQLite store (deterministic for the same results)."""
+    """Everything a league table shows, from the SQLite store (deterministic for the same results). It only
+    reads the store (a read-only league folder works): matches not yet in the store's schedule count as
+    pending."""
     from openskill.models import PlackettLuce
 
     folder = Path(folder)
     config = load_config(folder)
-    conn = connect(folder)
+    conn = connect(folder, readonly=True)
     try:
-        schedule = sync_schedule(folder, config, conn)
-        current = {row["match_id"] for row in schedule}
+        league_entrants = entrants(folder, config, conn)
+        current = {row["match_id"] for row in build_schedule(config, league_entrants)}
         rows = conn.execute(
             "SELECT s.match_id, s.seq, s.kind, s.round, s.spec, r.status, r.result, r.reason, r.replay "
             "FROM schedule s LEFT JOIN results r USING (match_id) ORDER BY s.seq").fetchall()
-        names = [e["name"] for e in entrants(folder, config, conn)]
+        names = [e["name"] for e in league_entrants]
     finally:
         conn.close()
     rows = [r for r in rows if r[0] in current]
+    unscheduled = len(current) - len(rows)  # new entrants' matches, scheduled by the next `league run`
     model = PlackettLuce()
     ratings = {name: model.rating(name=name) for name in names}
     stats = {name: {"heats": 0, "wins": 0, "positions": [], "tt_trials": 0, "tt_finished": 0, "tt_best": [],
@@ -140,7 +144,8 @@ def compute_table(folder) -> dict:
     time_trials = sorted((s for s in standings if s["tt_completion"] is not None),
                          key=lambda s: (s["tt_best_lap"] if s["tt_best_lap"] is not None else math.inf,
                                         -s["tt_completion"], s["entrant"]))
-    return {"league": config.name, "scheduled": len(rows), "recorded": len(rows) - pending, "pending": pending,
+    pending += unscheduled
+    return {"league": config.name, "scheduled": len(current), "recorded": len(current) - pending, "pending": pending,
             "failed": failed, "standings": standings,
             "time_trials": [{"rank": i, **{k: s[k] for k in ("entrant", "tt_best_lap", "tt_completion", "tt_avg_lap")}}
                             for i, s in enumerate(time_trials, 1)],
@@ -149,7 +154,6 @@ def compute_table(folder) -> dict:
 
 
 # ------------------------------------------------------------------ text formats
-TEXT_LENGTH = 400  # names are at most 64 characters; forfeit and failure reasons get more room
 
 
 def _text(value) -> str:
@@ -382,9 +386,10 @@ caused per lap driven.</p>
 FORMATS = ("text", "md", "csv", "json", "html")
 
 
-def write_table(folder, fmt: str = "text", out=None) -> str:
-    """Render the league table in `fmt` (one of FORMATS; text: terminal tables); writes `out` if given, and
-    always the rating plot `ratings.png` in the league folder. Returns the text."""
+def write_table(folder, fmt: str = "text", out=None, plot=None) -> str:
+    """Render the league table in `fmt` (one of FORMATS; text: terminal tables); writes it to `out` if given
+    and the rating plot (PNG) to `plot` if given, each atomically, and nothing else (the league folder is
+    only read). Returns the text."""
     folder = Path(folder)
     table = compute_table(folder)
     renderers = {"text": to_text, "md": to_markdown, "csv": to_csv, "json": to_json, "html": to_html}
@@ -395,9 +400,10 @@ def write_table(folder, fmt: str = "text", out=None) -> str:
         text = to_html(table, "" if base == "." else base.replace(os.sep, "/") + "/")
     else:
         text = renderers[fmt](table)
-    (folder / "ratings.png").write_bytes(rating_plot_png(table))
+    if plot:
+        write_bytes(plot, rating_plot_png(table))
     if out:
-        Path(out).write_text(text)
+        write_text(out, text)
     return text
 
 

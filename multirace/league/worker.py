@@ -11,6 +11,9 @@ import sys
 import time
 from pathlib import Path
 
+from .config import LeagueError
+from .store import submission_problem
+
 
 def _worker_command() -> list[str]:
     return [sys.executable, "-m", "multirace.league", "worker"]
@@ -27,18 +30,29 @@ def _worker_env() -> dict:
 
 def _entrant_controller(entrant: dict, folder: Path):
     """The controller of one scheduled entrant. An agent file that cannot be loaded for any reason forfeits
-    its races (with the reason) rather than failing the match: one entrant never voids its opponents' heats."""
+    its races (with the reason) rather than failing the match: one entrant never voids its opponents' heats.
+    A stored file that is not the one submitted (its sha256 differs) fails the match, naming the entrant:
+    that is the league's storage at fault, not the entrant."""
     from ..racing.entrant import Controller, Forfeit
     from ..racing.runner import make_controller
 
     if entrant["spec"].startswith("bot:"):
         return make_controller(entrant["spec"])
+    problem = submission_problem(folder, entrant["name"], entrant["sha256"], entrant["spec"])
+    if problem:
+        raise LeagueError(problem)
     try:
-        return make_controller(str(folder / entrant["spec"]), step_budget=entrant["step_budget"])
+        controller = make_controller(str(folder / entrant["spec"]), step_budget=entrant["step_budget"])
     except FileNotFoundError:  # the league lost the file: the match fails with the reason, nobody forfeits
         raise
     except Exception as exc:  # noqa: BLE001 - whatever a stranger's file makes the loader raise
         reason = f"agent file cannot be loaded ({type(exc).__name__}: {str(exc)[:200]})"
+    else:
+        if controller.file_sha256 != entrant["sha256"]:  # the bytes loaded, if the file changed since
+            raise LeagueError(submission_problem(folder, entrant["name"], entrant["sha256"], entrant["spec"])
+                              or f"entrant {entrant['name']!r}: its stored file {entrant['spec']} changed while "
+                                 "it was loaded")
+        return controller
 
     class Unloadable(Controller):
         file_sha256 = entrant.get("sha256")
@@ -49,7 +63,7 @@ def _entrant_controller(entrant: dict, folder: Path):
     return Unloadable()
 
 
-def run_match(spec: dict, folder, replay_tmp: str | None, image_every: int = 0) -> dict:
+def run_match(spec: dict, folder, replay: str | None, image_every: int = 0) -> dict:
     """Run one scheduled match (in a worker process); returns the race result record."""
     from ..racing.runner import RaceConfig, run_race
 
@@ -62,10 +76,10 @@ def run_match(spec: dict, folder, replay_tmp: str | None, image_every: int = 0) 
     config = RaceConfig(track=spec["track"], reverse=spec["reverse"], race=spec["race"], laps=spec["laps"],
                         seed=spec["seed"], max_steps=spec["max_steps"])
     recorders = []
-    if replay_tmp:
+    if replay:
         from ..recording.replay import ReplayRecorder
 
-        recorders.append(ReplayRecorder(replay_tmp, image_every=image_every))
+        recorders.append(ReplayRecorder(replay, image_every=image_every))
     return run_race(controllers, config, recorders=recorders)
 
 
@@ -80,12 +94,8 @@ def _handle(request: dict) -> dict:
         return {"ok": True, "name": agent.name, "sha256": agent.sha256, "metadata": agent.metadata}
     if request.get("op") == "match":
         spec = request["spec"]
-        final = request.get("replay")
-        tmp = f"{final}.{os.getpid()}.tmp" if final else None
-        start = time.perf_counter()
-        result = run_match(spec, request["folder"], tmp, request.get("image_every", 0))
-        if tmp:
-            os.replace(tmp, final)
+        start = time.perf_counter()  # the replay is written atomically: complete, or not at all
+        result = run_match(spec, request["folder"], request.get("replay"), request.get("image_every", 0))
         return {"ok": True, "result": result, "wall_seconds": time.perf_counter() - start}
     return {"ok": False, "error": f"unknown request {request.get('op')!r}"}
 

@@ -56,6 +56,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..atomic import write_bytes
 from ..environment.actions import ActionSpace, ActionSpaceError
 from ..sensors.camera import observation_shape
 from ..sensors.lidar import LidarSpec, sector_lidar
@@ -138,13 +139,9 @@ def write_agent_file(path, metadata: dict, net) -> Path:
     state = {k: v.detach().cpu().contiguous().clone() for k, v in net.state_dict().items()}
     payload = {"format": FORMAT, "format_version": FORMAT_VERSION,
                "metadata": json.dumps(without_machine_paths(metadata), indent=2, sort_keys=True), "state_dict": state}
-    path.parent.mkdir(parents=True, exist_ok=True)
     buffer = io.BytesIO()
     torch.save(payload, buffer)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(buffer.getvalue())
-    tmp.replace(path)
-    return path
+    return write_bytes(path, buffer.getvalue())
 
 
 # ------------------------------------------------------------------ loading

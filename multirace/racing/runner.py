@@ -84,6 +84,10 @@ def run_race(controllers: list[Controller], config: RaceConfig, recorders=()) ->
         for recorder in recorders:
             recorder.finish(env, result)
         return result
+    except BaseException:  # a race that failed (or was interrupted) leaves no half-written recording
+        for recorder in recorders:
+            getattr(recorder, "discard", lambda: None)()
+        raise
     finally:
         env.close()
 

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic import AtomicOutput
 from .simtrace import read_simtrace
 from ..sim.tracks import Track, list_tracks, load_track
 
@@ -96,6 +97,7 @@ def plot_simtrace(csv_path, out=None, track: str | Track | None = None, episodes
     name = track.name if track is not None else "unknown track"
     fig.suptitle(f"{csv_path.name}: {name}, {len(episodes_here)} episode(s), {len(rows)} steps")
     fig.tight_layout()
-    fig.savefig(out, format="png")
+    with AtomicOutput(out) as tmp:
+        fig.savefig(tmp, format="png")
     plt.close(fig)
     return out

@@ -30,7 +30,9 @@ images, the plots and the event log is sent with the recording, so
 ``rerun race.rrd`` opens on a useful screen.
 
 Per-step data is buffered and sent in columns (`send_columns`) every
-`flush_every` steps, which keeps the recording cost low.
+`flush_every` steps, which keeps the recording cost low; the encoded bytes
+(rerun's binary stream) are then written by this module to a file beside the
+target, which becomes the target only when the race ends well (`multirace.atomic`).
 """
 from __future__ import annotations
 
@@ -42,6 +44,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ..atomic import AtomicOutput
 from ..sim.world import CAR_COLOURS, OBSTACLE_SIZE
 
 APPLICATION_ID = "multirace"
@@ -85,10 +88,14 @@ class ReplayRecorder:
     # --------------------------------------------------------------- recorder
     def start(self, env) -> None:
         rr = _rr()
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._output = AtomicOutput(self.path)  # recorded beside the target, put in place by `close()`
         self._encoder = ThreadPoolExecutor(max_workers=1)
         self.rec = rec = rr.RecordingStream(self.application_id, make_default=False, make_thread_default=False)
-        rec.save(str(self.path))
+        # the .rrd bytes come to this process (rerun's binary stream) and are written here: a write that fails
+        # (a full disk) is an error of this call, not a log line of rerun's writer thread
+        self._stream = rec.binary_stream()
+        with self._output.guard():
+            self._file = open(self._output.tmp, "wb")
         rec.set_log_time_enabled(False)  # wall-clock time says nothing about a simulated race
         self.n = n = env.total_cars if hasattr(env, "total_cars") else len(env.races)
         self.ids = [car_id(i) for i in range(n)]
@@ -119,6 +126,7 @@ class ReplayRecorder:
         self._record_step(env, observations, rewards, infos)
         if len(self._buf_steps) >= self.flush_every:
             self._flush()
+            self._drain(flush=False)
 
     def finish(self, env, result) -> None:
         rr = _rr()
@@ -128,13 +136,40 @@ class ReplayRecorder:
         self.close()
 
     def close(self) -> None:
+        """Finish the recording and put the .rrd in place (atomically: a recording that could not be written
+        completely, e.g. on a full disk, is an OutputError and leaves any previous file as it was)."""
         if getattr(self, "_encoder", None) is not None:
             self._encoder.shutdown()
             self._encoder = None
         if self.rec is not None:
-            self.rec.flush()
+            self._drain(flush=True)
+            self.rec.disconnect()
+            self._drain(flush=False)  # the end of the stream (rerun's footer)
+            self.rec = None
+            with self._output.guard():
+                self._file.close()
+            self._output.commit()
+
+    def discard(self) -> None:
+        """Drop the recording of a race that failed; the target is untouched."""
+        if getattr(self, "_encoder", None) is not None:
+            self._encoder.shutdown()
+            self._encoder = None
+        if self.rec is not None:
             self.rec.disconnect()
             self.rec = None
+            try:
+                self._file.close()
+            except OSError:
+                pass
+            self._output.discard()
+
+    def _drain(self, flush: bool) -> None:
+        """Write what the recording stream holds to the file (all of it, after a flush, with `flush`)."""
+        data = self._stream.read(flush=flush)
+        if data:
+            with self._output.guard():
+                self._file.write(data)
 
     # --------------------------------------------------------------- helpers
     @staticmethod

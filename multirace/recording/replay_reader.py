@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..text import laps_text
+from ..text import TEXT_LENGTH, display_name, laps_text
 from .replay import END_TEXT
 
 
@@ -150,19 +150,22 @@ def static_text(chunks: dict, entity: str) -> str | None:
 
 
 def format_summary(summary: dict) -> str:
-    """A short human-readable text of a replay summary."""
-    lines = [f"{summary['file']} ({summary['size_mb']:.2f} MB): {summary['format']} on {summary['track']}"
+    """A short human-readable text of a replay summary. Every text from the file (names, events, track,
+    format, status) is shown as plain text: a replay is anyone's file, and its words must not reach the
+    terminal as escapes."""
+    lines = [f"{display_name(summary['file'], TEXT_LENGTH)} ({summary['size_mb']:.2f} MB): "
+             f"{display_name(summary['format'])} on {display_name(summary['track'])}"
              f"{' (reverse)' if summary['reverse'] else ''}, {laps_text(summary['laps'])}, "
              f"{summary['steps']} steps, {summary['duration']:.2f} s of sim time",
              "(sim time: steps x 1/15 s since the start; lap and finish times: the race clock, which adds "
              "penalties)"]
     for c in summary["cars"]:
         laps = ", ".join(f"{t:.2f}" for t in c["lap_times"]) or "-"
-        lines.append(f"  {c['id']} {c['name']}: {laps_text(c['laps'])} (race clock {laps}), {c['status']}, "
-                     f"{c['pose_steps']} poses, {c['images']} images")
+        lines.append(f"  {display_name(c['id'])} {display_name(c['name'])}: {laps_text(c['laps'])} (race clock "
+                     f"{laps}), {display_name(c['status'])}, {c['pose_steps']} poses, {c['images']} images")
     lines.append(f"  {len(summary['events'])} events (at sim time):")
     for e in summary["events"]:
-        lines.append(f"    sim {e['race_time']:8.3f} s  step {e['step']:5d}  {e['text']}")
+        lines.append(f"    sim {e['race_time']:8.3f} s  step {e['step']:5d}  {display_name(e['text'], TEXT_LENGTH)}")
     return "\n".join(lines)
 
 

@@ -39,6 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic import AtomicOutput
+
 SIMTRACE_COLUMNS = ("episode", "steps", "X", "Y", "yaw", "steer", "throttle", "action", "reward", "done",
                     "all_wheels_on_track", "progress", "closest_waypoint", "track_len", "tstamp",
                     "episode_status", "pause_duration")
@@ -110,8 +112,9 @@ class SimTraceWriter:
 
     def __init__(self, path):
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = open(self.path, "w", newline="")
+        self._output = AtomicOutput(self.path)  # the rows go beside the target; `close()` puts the file in place
+        with self._output.guard():
+            self._file = open(self._output.tmp, "w", newline="")
         self._csv = csv.writer(self._file)
         self._csv.writerow(SIMTRACE_COLUMNS)
         self._penalty: dict = {}  # episode -> penalty_time seen so far
@@ -126,8 +129,10 @@ class SimTraceWriter:
         self._penalty[episode] = penalty
         if done is None:
             done = info.get("status", "racing") != "racing"
-        self._csv.writerow(simtrace_row(info, episode=episode, reward=reward, action=action, done=done,
-                                        pause_duration=round(pause, 6), command=command))
+        row = simtrace_row(info, episode=episode, reward=reward, action=action, done=done,
+                           pause_duration=round(pause, 6), command=command)
+        with self._output.guard():
+            self._csv.writerow(row)
         self.rows += 1
 
     def new_episode(self, episode: int) -> None:
@@ -138,14 +143,30 @@ class SimTraceWriter:
         self._file.flush()
 
     def close(self) -> None:
-        if not self._file.closed:
+        """Finish the file and put it in place (atomically)."""
+        if self._file.closed:
+            return
+        with self._output.guard():
             self._file.close()
+        self._output.commit()
+
+    def discard(self) -> None:
+        """Drop the file being written (a failed run); the target is untouched."""
+        if not self._file.closed:
+            try:
+                self._file.close()
+            except OSError:
+                pass
+        self._output.discard()
 
     def __enter__(self):
         return self
 
-    def __exit__(self, *exc):
-        self.close()
+    def __exit__(self, kind, exc, tb):
+        if kind is None:
+            self.close()
+        else:
+            self.discard()
 
 
 class CommandTap:
@@ -215,6 +236,11 @@ class SimTraceRecorder:
     def finish(self, env, result) -> None:
         if self.writer is not None:
             self.writer.close()
+
+    def discard(self) -> None:
+        """Drop the sim-trace of a race that failed."""
+        if self.writer is not None:
+            self.writer.discard()
 
 
 def read_simtrace(path) -> list[dict]:

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic import AtomicOutput, output_error
 from ..sensors.topdown import DEFAULT_SIZE, render_topdown
 
 CODEC = "libx264"
@@ -35,11 +36,13 @@ def check_video_path(path) -> Path:
 
 
 class _Writer:
-    """An H.264 MP4 stream opened on the first frame, fed RGB frames."""
+    """An H.264 MP4 stream opened on the first frame, fed RGB frames; written beside the target and put in
+    place by `close()` (atomically: a failed video leaves any previous file of that name as it was)."""
 
     def __init__(self, path, fps: float):
         self.path = Path(path)
         self.fps = float(fps)
+        self.output = None
         self.container = None
         self.stream = None
         self.size = None
@@ -48,12 +51,12 @@ class _Writer:
     def _open(self, width: int, height: int) -> None:
         import av
 
-        if self.path.parent and not self.path.parent.exists():
-            self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.output = AtomicOutput(self.path)
         try:
-            self.container = av.open(str(self.path), mode="w", format="mp4", options=CONTAINER_OPTIONS)
+            self.container = av.open(str(self.output.tmp), mode="w", format="mp4", options=CONTAINER_OPTIONS)
         except (OSError, av.FFmpegError) as exc:
-            raise OSError(f"cannot open {self.path} for writing an MP4 video ({exc})") from None
+            self.output.discard()
+            raise output_error(self.path, exc) from None
         self.stream = self.container.add_stream(CODEC, rate=Fraction(self.fps).limit_denominator(1000),
                                                 options={"crf": QUALITY})
         self.stream.width, self.stream.height = width + width % 2, height + height % 2
@@ -75,16 +78,41 @@ class _Writer:
             raise ValueError(f"video frame size {w}x{h} differs from the first frame's {self.size[0]}x{self.size[1]}")
         if w % 2 or h % 2:  # yuv420p: pad odd sizes by one edge pixel
             frame = np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
-        for packet in self.stream.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(frame), format="rgb24")):
-            self.container.mux(packet)
+        try:
+            for packet in self.stream.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(frame),
+                                                                        format="rgb24")):
+                self.container.mux(packet)
+        except (OSError, av.FFmpegError) as exc:
+            self.discard()
+            raise output_error(self.path, exc) from None
         self.count += 1
 
     def close(self) -> None:
-        if self.container is not None:
+        """Finish the video and put it in place."""
+        import av
+
+        if self.container is None:
+            return
+        try:
             for packet in self.stream.encode():  # flush the encoder
                 self.container.mux(packet)
             self.container.close()
+        except (OSError, av.FFmpegError) as exc:
+            self.discard()
+            raise output_error(self.path, exc) from None
+        self.container = None
+        self.output.commit()
+
+    def discard(self) -> None:
+        """Drop the video being written (a failed or abandoned one); the target is untouched."""
+        if self.container is not None:
+            try:
+                self.container.close()
+            except Exception:  # noqa: BLE001 - the file is dropped whatever state it is in
+                pass
             self.container = None
+        if self.output is not None:
+            self.output.discard()
 
 
 def write_video(frames, path, fps: float = 15) -> int:
@@ -93,8 +121,10 @@ def write_video(frames, path, fps: float = 15) -> int:
     try:
         for frame in frames:
             writer.write(frame)
-    finally:
-        writer.close()
+    except BaseException:
+        writer.discard()
+        raise
+    writer.close()
     if writer.count == 0:
         raise ValueError("write_video: no frames to write")
     return writer.count
@@ -127,6 +157,11 @@ class VideoRecorder:
         if self._writer is not None:
             self._writer.close()
 
-    def __del__(self):
+    def discard(self) -> None:
+        """Drop the video of a race that failed: the target is untouched."""
+        if self._writer is not None:
+            self._writer.discard()
+
+    def __del__(self):  # a recorder never finished leaves nothing behind
         if getattr(self, "_writer", None) is not None:
-            self._writer.close()
+            self._writer.discard()

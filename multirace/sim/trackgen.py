@@ -21,6 +21,7 @@ import math
 
 import numpy as np
 
+from ..atomic import AtomicOutput
 from .tracks import Track, TrackError
 
 WIDTHS = (0.762, 0.914, 1.067)  # metres: DeepRacer track widths (reinvent_base; 36 in; 42 in)
@@ -94,4 +95,5 @@ def generate_track(seed: int = 0, width: float | None = None, length: float | No
 def save_track(track: Track, path) -> None:
     """Write a generated track as a DeepRacer .npy file (usable as --track PATH)."""
     rows = track.rows[::-1] if track.reverse else track.rows
-    np.save(path, np.asarray(rows, dtype=np.float64))
+    with AtomicOutput(path) as tmp, open(tmp, "wb") as f:
+        np.save(f, np.asarray(rows, dtype=np.float64))

@@ -41,6 +41,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from ..atomic import write_bytes
 from ..environment.race_env import ACTION_HZ
 from ..racing.agentfile import load_agent
 from ..racing.entrant import Controller
@@ -346,7 +347,8 @@ def _write(out, overlays, images, heats, scale: int, strip_frames: int, fps: flo
                                      up(overlays[k])], axis=0)
             tiles += [column, np.full((column.shape[0], gap, 3), 255, np.uint8)]
         strip = np.concatenate(tiles[:-1], axis=1)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        if not cv2.imwrite(str(out), cv2.cvtColor(strip, cv2.COLOR_RGB2BGR)):
-            raise OSError(f"explain: cannot write {out}")
-    return str(out)
+        ok, png = cv2.imencode(".png", cv2.cvtColor(strip, cv2.COLOR_RGB2BGR))
+        if not ok:
+            raise ValueError(f"explain: cannot encode the PNG strip for {out}")
+        return str(write_bytes(out, png.tobytes()))
+    raise ValueError(f"explain: --out must end in .mp4 or .png, got {out}")

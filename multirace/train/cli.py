@@ -6,6 +6,7 @@ import shlex
 import sys
 from pathlib import Path
 
+from ..options import COUNT, POSITIVE, POSITIVE_INT, SEED, input_file, number, output_file
 from ..resources import agent_argument
 
 PARTS = ("held-out", "perturbations", "traffic", "heats")  # the parts of `multirace evaluate`'s report
@@ -21,9 +22,9 @@ def add_train_parser(sub) -> None:
                    help="track(s), comma-separated (bundled names or .npy paths; train-split: every bundled "
                         "track outside the held-out split; default reinvent_base)")
     p.add_argument("--reverse", default="no", choices=("no", "yes", "both"), help="direction(s) (default no)")
-    p.add_argument("--minutes", type=float, default=10.0, help="wall-clock budget (default 10)")
-    p.add_argument("--out", metavar="FILE.pt", help="agent file to write (required)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--minutes", type=POSITIVE, default=10.0, help="wall-clock budget (default 10)")
+    p.add_argument("--out", metavar="FILE.pt", type=output_file, help="agent file to write (required)")
+    p.add_argument("--seed", type=SEED, default=0, help="random seed (default 0)")
     p.add_argument("--config", default="fast", metavar="PRESET",
                    help="hyperparameter preset: fast (default), deepracer (the console's PPO defaults), "
                         "race (traffic, opponent pool, collision penalty; use with --init), tiny")
@@ -31,15 +32,18 @@ def add_train_parser(sub) -> None:
                    help="override one setting (JSON value), e.g. --set epochs=4 --set gamma=0.995; "
                         "see `multirace train --list-settings`")
     p.add_argument("--list-settings", action="store_true", help="print every setting with its doc and exit")
-    p.add_argument("--action-space", default=None, metavar="JSON", help="model_metadata.json with the action space")
+    p.add_argument("--action-space", default=None, metavar="JSON", type=input_file,
+                   help="model_metadata.json with the action space")
     p.add_argument("--reward", default=None,
                    help="'progress' (built-in, default), 'centre' (DeepRacer default) or a reward .py file")
     p.add_argument("--network", default=None, help="MULTIRACE_SMALL_CNN or DEEP_CONVOLUTIONAL_NETWORK_SHALLOW")
-    p.add_argument("--envs", type=int, default=None, help="worker processes (default 2)")
-    p.add_argument("--cars", type=int, default=None, help="learning cars per env (default 4)")
+    p.add_argument("--envs", type=POSITIVE_INT, default=None, help="worker processes (default 2)")
+    p.add_argument("--cars", type=number(int, minimum=1, maximum=8), default=None,
+                   help="learning cars per env (default 4)")
     p.add_argument("--init", default=None, metavar="AGENT.pt", type=agent_argument,
                    help="initialise the policy from an agent file (or a shipped agent's name)")
-    p.add_argument("--resume", default=None, metavar="CKPT", help="resume from FILE.ckpt/checkpoint.pt")
+    p.add_argument("--resume", default=None, metavar="CKPT", type=input_file,
+                   help="resume from FILE.ckpt/checkpoint.pt")
     p.add_argument("--robust", action="store_true",
                    help="domain randomisation with a curriculum, opponent pool (PFSP), nature adversary and "
                         "procedural tracks")
@@ -86,7 +90,26 @@ def config_from_args(args):
         from .robust import apply_robust
 
         apply_robust(config, explicit=set(overrides))
+    check_inputs(config)
     return config
+
+
+def check_inputs(config) -> None:
+    """Refuse, before any work starts, a network that does not exist, a track or action space that does not
+    load, a reward file that is not there: one line naming the option (in the worker processes they would
+    end in a traceback)."""
+    from ..environment.actions import load_action_space
+    from ..racing.nets import NETWORKS
+
+    if config.network not in NETWORKS:
+        raise ValueError(f"--network: unknown network {config.network!r}; choose from {', '.join(NETWORKS)}")
+    check_tracks(config.tracks, "--track")
+    if config.reward not in ("progress", "centre") and not Path(config.reward).is_file():
+        raise ValueError(f"--reward: {config.reward}: no such file (give progress, centre or a reward .py file)")
+    try:
+        load_action_space(config.action_space)
+    except (ValueError, OSError) as exc:
+        raise ValueError(f"--action-space: {exc}") from None
 
 
 def cmd_train(args) -> int:
@@ -111,6 +134,7 @@ def cmd_train(args) -> int:
     from .ppo import train
 
     summary = train(config, args.out, init=args.init, resume=args.resume, command=command)
+
     def when(seconds):
         return f"{seconds} s" if seconds is not None else "none"
 
@@ -147,6 +171,18 @@ def report_privileged(config, args, command) -> int:
     return 0
 
 
+def check_tracks(tracks, option: str) -> None:
+    """Load every track named (a bundled name or a .npy path); the first that does not load is a ValueError
+    naming `option`."""
+    from ..sim.tracks import load_track
+
+    for track in tracks:
+        try:
+            load_track(track)
+        except (ValueError, OSError) as exc:
+            raise ValueError(f"{option}: {exc}") from None
+
+
 def add_evaluate_parser(sub) -> None:
     p = sub.add_parser("evaluate", help="robustness report of an agent: held-out tracks, perturbations, traffic",
                        description="Race an agent over held-out tracks and a grid of perturbations and report lap "
@@ -154,8 +190,8 @@ def add_evaluate_parser(sub) -> None:
                                    "traffic, as a table and a PNG.")
     p.add_argument("agents", nargs="+", metavar="FILE.pt", type=agent_argument,
                    help="agent file(s) or shipped agents' names to evaluate")
-    p.add_argument("--json", metavar="FILE", help="write the report as JSON")
-    p.add_argument("--png", metavar="FILE.png",
+    p.add_argument("--json", metavar="FILE", type=output_file, help="write the report as JSON")
+    p.add_argument("--png", metavar="FILE.png", type=output_file,
                    help="write the report plot (default: next to --json, else AGENT.eval.png in the working folder)")
     p.add_argument("--tracks", default=None,
                    help="comma-separated tracks (default: the declared held-out split, less any track the agent "
@@ -164,11 +200,11 @@ def add_evaluate_parser(sub) -> None:
                    help="race the held-out tracks forwards (default), in reverse or both")
     p.add_argument("--randomize", choices=("mild", "strong"), default=None,
                    help="domain randomisation on the held-out tracks (default: none)")
-    p.add_argument("--laps", type=int, default=2, help="laps per run (default 2)")
-    p.add_argument("--seeds", type=int, default=1, help="seeds per cell (default 1)")
+    p.add_argument("--laps", type=POSITIVE_INT, default=2, help="laps per run (default 2)")
+    p.add_argument("--seeds", type=POSITIVE_INT, default=1, help="seeds per cell (default 1)")
     p.add_argument("--quick", action="store_true",
                    help="fewer perturbations, and 3 tracks of the declared held-out split the agent did not train on")
-    p.add_argument("--heats", type=int, default=0, metavar="N",
+    p.add_argument("--heats", type=COUNT, default=0, metavar="N",
                    help="also run N head-to-head heats (seeds 1..N, 3 laps) per heat track against the field and "
                         "report first places and collisions caused per lap (default 0: none)")
     p.add_argument("--heat-tracks", default=None, metavar="TRACKS",
@@ -188,8 +224,8 @@ def cmd_evaluate(args) -> int:
     unknown = [p for p in parts if p not in PARTS]
     if unknown or not parts:
         raise ValueError(f"--parts: {', '.join(unknown) or 'nothing'} is not a part; choose from {', '.join(PARTS)}")
-    if args.heats < 0:
-        raise ValueError(f"--heats: {args.heats}; give 0 or more heats")
+    if args.tracks:
+        check_tracks([t.strip() for t in args.tracks.split(",") if t.strip()], "--tracks")
     from .evaluate import run_evaluation
 
     return run_evaluation(args)

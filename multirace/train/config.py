@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 
 from ..racing.nets import SHALLOW, TINY
 from ..resources import agents_dir
@@ -156,14 +157,44 @@ def make_config(preset: str = "fast", **overrides) -> TrainConfig:
     """A TrainConfig from a preset name plus field overrides (None values are ignored)."""
     if preset not in PRESETS:
         raise ValueError(f"--config: unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
-    fields = {f.name for f in dataclasses.fields(TrainConfig)}
+    fields = {f.name: f for f in dataclasses.fields(TrainConfig)}
     values = dict(PRESETS[preset])
     for key, value in overrides.items():
         if key not in fields:
-            raise ValueError(f"unknown training setting {key!r}")
+            raise ValueError(f"--set {key}: unknown training setting {key!r} (see `multirace train --list-settings`)")
         if value is not None:
-            values[key] = value
+            values[key] = checked_setting(fields[key], value)
     return TrainConfig(**values)
+
+
+KINDS = {"int": int, "float": float, "bool": bool, "str": str, "tuple": tuple}
+RANGES = {  # setting: (lowest, highest), inclusive; None: no bound
+    "num_envs": (1, None), "cars_per_env": (1, 8), "rollout_steps": (1, None), "minibatch_size": (1, None),
+    "epochs": (1, None), "episode_steps": (1, None), "eval_laps": (1, None), "threads": (1, None),
+    "update_threads": (1, None), "procedural_tracks": (0, None), "max_iterations": (0, None), "seed": (0, 2**32 - 1),
+    "value_warmup": (0, None), "minutes": (1e-6, None), "lr": (1e-12, None), "gamma": (0, 1), "gae_lambda": (0, 1),
+    "clip": (1e-6, None), "pool_fraction": (0, 1), "checkpoint_every": (0, None), "eval_every": (0, None),
+    "snapshot_every": (1e-6, None), "nature_temperature": (1e-6, None), "max_grad_norm": (1e-12, None),
+}
+
+
+def checked_setting(field: dataclasses.Field, value):
+    """`value` for the setting `field`, if it is of the setting's kind (a whole number for an int, a number
+    for a float, true/false for a bool, a list for a tuple) and in its range; else a ValueError naming it."""
+    kind = KINDS.get(str(field.type).replace(" | None", ""))
+    ok = {int: lambda v: isinstance(v, int) and not isinstance(v, bool),
+          float: lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v),
+          bool: lambda v: isinstance(v, bool), str: lambda v: isinstance(v, str),
+          tuple: lambda v: isinstance(v, (list, tuple)), None: lambda v: True}[kind]
+    if not ok(value):
+        wanted = {int: "a whole number", float: "a number", bool: "true or false", str: "a string",
+                  tuple: "a list"}[kind]
+        raise ValueError(f"--set {field.name}: expected {wanted}, got {json.dumps(value)}")
+    low, high = RANGES.get(field.name, (None, None))
+    if (low is not None and value < low) or (high is not None and value > high):
+        raise ValueError(f"--set {field.name}: must be from {low} to {high if high is not None else 'any'}, "
+                         f"got {value}")
+    return float(value) if kind is float else tuple(value) if kind is tuple else value
 
 
 def describe() -> str:

@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic import AtomicOutput, write_text
 from ..sim.tracks import list_tracks
 from .heats import check_heats, run_heats, summarise_heats
 from .nature import UNCERTAINTY_SET
@@ -288,7 +289,8 @@ def plot_report(reports: list, path) -> None:
     import matplotlib.pyplot as plt
 
     fig = report_figure(reports)
-    fig.savefig(path, dpi=90)
+    with AtomicOutput(path) as tmp:
+        fig.savefig(tmp, dpi=90, format="png")
     plt.close(fig)
 
 
@@ -353,9 +355,7 @@ def run_evaluation(args) -> int:
     png = Path(args.png) if args.png else (Path(args.json).with_suffix(".png") if args.json
                                            else Path.cwd() / (Path(args.agents[0]).stem + ".eval.png"))
     if args.json:  # the report first: a plot that fails must not lose it
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(reports if len(reports) > 1 else reports[0], indent=1))
-    png.parent.mkdir(parents=True, exist_ok=True)
+        write_text(args.json, json.dumps(reports if len(reports) > 1 else reports[0], indent=1))
     plot_report(reports, png)
     console.print(f"wrote {png}")
     return 0

@@ -39,6 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic import write_text
+
 MODULE_ID = "shared"  # the one policy every car maps to
 ENV_NAME = "multirace_train"
 INSTALL_HINT = 'pip install -e ".[rllib]"'
@@ -426,7 +428,7 @@ def train_rllib(config, out, envs=None, address=None, log=print) -> int:
                "steps_per_s": round(last["agent_steps"] / max(wall, 1e-9), 1), "setup_seconds": round(setup_seconds, 1),
                "config": config.to_dict(), "history": history}
     summary["config"]["runs"] = None
-    out.with_suffix(".train.json").write_text(json.dumps(summary, indent=1, default=str))
+    write_text(out.with_suffix(".train.json"), json.dumps(summary, indent=1, default=str))
     log(f"wrote {out} (agent file) and {checkpoint} (RLlib checkpoint): {last['iteration']} iterations, "
         f"{last['agent_steps']} agent-steps in {wall:.0f} s ({summary['steps_per_s']} agent-steps/s), "
         f"return/car per env episode {training['car_return_first']} (first) -> {training['car_return_last']} (last)")

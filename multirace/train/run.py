@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..atomic import AtomicOutput, write_text
 from ..deepracer.logs import TrainingLog
 from ..racing.agentfile import make_metadata, net_sensors, save_agent
 from .config import TrainConfig
@@ -97,14 +98,13 @@ class TrainingRun:
 
     def save_checkpoint(self, net, optimiser, reward_scale) -> None:
         """Write the resumable checkpoint (atomically)."""
-        self.ckpt_dir.mkdir(parents=True, exist_ok=True)
-        torch.save({"net": net.state_dict(), "optimiser": optimiser.state_dict(), "agent_steps": self.agent_steps,
-                    "reward_scale": json.dumps(reward_scale.state() if reward_scale is not None else None),
-                    "iteration": self.iteration, "history": json.dumps(self.history),
-                    "evals": json.dumps(self.evals), "elapsed": self.spent + self.elapsed(),
-                    "config": json.dumps(self.config.to_dict())},
-                   self.ckpt_dir / "checkpoint.tmp")
-        (self.ckpt_dir / "checkpoint.tmp").replace(self.ckpt_dir / "checkpoint.pt")
+        with AtomicOutput(self.ckpt_dir / "checkpoint.pt") as tmp:
+            torch.save({"net": net.state_dict(), "optimiser": optimiser.state_dict(),
+                        "agent_steps": self.agent_steps,
+                        "reward_scale": json.dumps(reward_scale.state() if reward_scale is not None else None),
+                        "iteration": self.iteration, "history": json.dumps(self.history),
+                        "evals": json.dumps(self.evals), "elapsed": self.spent + self.elapsed(),
+                        "config": json.dumps(self.config.to_dict())}, tmp)
 
     def snapshot_agent(self, path, net, space, image_shape, note=None) -> Path:
         """An agent file of the current weights, with the run's training notes."""
@@ -230,7 +230,7 @@ class TrainingRun:
                 summary["selected_eval"] = final_eval
         self.snapshot_agent(self.out, net, space, image_shape, note)
         plot_history(history, self.evals, self.out.with_suffix(".png"))
-        self.out.with_suffix(".train.json").write_text(json.dumps(
+        write_text(self.out.with_suffix(".train.json"), json.dumps(
             {"summary": summary, "config": config.to_dict(), "history": history, "evals": self.evals}, indent=1))
         summary["evals"] = self.evals
         summary["history"] = history
@@ -325,7 +325,8 @@ def plot_history(history: list, evals: list, path) -> None:
         ax.set_xlabel("agent-steps")
         ax.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    with AtomicOutput(path) as tmp:
+        fig.savefig(tmp, dpi=90, format="png")
     plt.close(fig)
 
 
