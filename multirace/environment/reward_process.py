@@ -6,12 +6,14 @@ the run's clock), the check that each value is a finite number in range
 (with the run's own `math`), and a clear error when the process dies (exit,
 `os._exit`, a crash). The function sees only its params: the env, the
 learner and their call stack are in another process. A call costs one pipe
-round trip per env step for all cars, plus one short JSON line per car; the
-constant params (the waypoints) are sent once per track.
+round trip per env step for all cars (a pickle down, a JSON line back; the
+worker publishes which call it is in through a shared word, so an overrun
+names its car); the constant params (the waypoints) are sent once per track.
 """
 from __future__ import annotations
 
 import json
+import mmap
 import os
 import pickle
 import select
@@ -28,6 +30,7 @@ from .rewards import RewardFunction, RewardFunctionError
 CONSTANT_KEYS = ("waypoints",)  # params that stay the same for a track: sent when they change
 STARTUP_SLACK = 5.0  # seconds for the interpreter to start, on top of the file's load time limit
 REPLY_LIMIT = 1 << 16  # bytes of one reply line; a longer one is malformed
+PROGRESS_BYTES = 4  # the shared word where the worker publishes the index of the call in progress
 PACKAGE_ROOT = str(Path(__file__).resolve().parents[2])
 
 
@@ -41,6 +44,16 @@ def _stop(process: subprocess.Popen, fds: list) -> None:
     if process.poll() is None:
         process.kill()
     process.wait()
+
+
+def _well_formed(reply) -> bool:
+    """A reply the worker may send: loaded, or values (floats), either with an error and its detail."""
+    if not isinstance(reply, dict):
+        return False
+    error = "error" not in reply or isinstance(reply["error"], str) and isinstance(reply.get("detail"), str)
+    values = reply.get("values")
+    return error and ("loaded" in reply or "error" in reply and "values" not in reply or
+                      isinstance(values, list) and all(type(v) is float for v in values))
 
 
 class RewardProcess(RewardFunction):
@@ -57,12 +70,16 @@ class RewardProcess(RewardFunction):
     def _start(self) -> None:
         to_worker, from_run = os.pipe()
         from_worker, to_run = os.pipe()
+        progress = os.memfd_create("multirace-reward-progress")
+        os.ftruncate(progress, PROGRESS_BYTES)
         env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [PACKAGE_ROOT, os.environ.get("PYTHONPATH")])))
         process = subprocess.Popen(
-            [sys.executable, "-m", "multirace.environment.reward_worker", str(to_worker), str(to_run), self.label],
-            pass_fds=(to_worker, to_run), stdin=subprocess.DEVNULL, env=env)
+            [sys.executable, "-m", "multirace.environment.reward_worker", str(to_worker), str(to_run), str(progress),
+             self.label], pass_fds=(to_worker, to_run, progress), stdin=subprocess.DEVNULL, env=env)
         os.close(to_worker)
         os.close(to_run)
+        self._progress = mmap.mmap(progress, PROGRESS_BYTES)
+        os.close(progress)
         self._process, self._pid, self._sent = process, os.getpid(), {}
         self._write_fd, self._read_fd, self._buffer = from_run, from_worker, b""
         self._finalizer = weakref.finalize(self, _stop, process, [from_run, from_worker])
@@ -104,16 +121,31 @@ class RewardProcess(RewardFunction):
                 raise EOFError
             self._buffer += chunk
             if len(self._buffer) > REPLY_LIMIT:
-                return {"error": "wrote a malformed reply", "detail": " (over 64 KiB)"}
+                return {"values": [], "error": "wrote a malformed reply", "detail": " (over 64 KiB)"}
         line, self._buffer = self._buffer.split(b"\n", 1)
         try:
             reply = json.loads(line)
-            if isinstance(reply, dict) and (type(reply.get("value")) is float or "loaded" in reply or
-                                            isinstance(reply.get("error"), str) and isinstance(reply.get("detail"), str)):
+            if _well_formed(reply):
                 return reply
-        except ValueError:
+        except (ValueError, RecursionError):
             pass
-        return {"error": "wrote a malformed reply", "detail": f": {line[:80]!r}"}
+        return {"values": [], "error": "wrote a malformed reply", "detail": f": {line[:80]!r}"}
+
+    def _batch_reply(self) -> dict:
+        """The reply to a batch: each call may take `CALL_TIME_LIMIT` (the worker publishes which call it is
+        in), TimeoutError when one overruns it."""
+        limit = rewards.CALL_TIME_LIMIT
+        current, deadline = 0, time.monotonic() + limit
+        while True:
+            try:
+                return self._reply(deadline - time.monotonic())
+            except TimeoutError:
+                if self._call_in_progress() == current:
+                    raise
+                current, deadline = self._call_in_progress(), time.monotonic() + limit
+
+    def _call_in_progress(self) -> int:
+        return struct.unpack_from(">I", self._progress, 0)[0]
 
     def _send(self, step: int, params_list: list) -> None:
         message = {"step": step, "params": []}
@@ -136,25 +168,25 @@ class RewardProcess(RewardFunction):
         the file, step and car on any failure, the worker killed on a call that overruns the time limit."""
         if self._process is None or self._pid != os.getpid():  # closed, or this is a forked copy of the run
             self._start()
+        struct.pack_into(">I", self._progress, 0, 0)
         try:
             self._send(step, params_list)
-        except OSError:
-            raise self._error(self._death(), step, cars[0]) from None
-        values = []
-        for car in cars:
-            try:
-                reply = self._reply(rewards.CALL_TIME_LIMIT)
-            except TimeoutError:
+            reply = self._batch_reply()
+        except TimeoutError:
+            car = cars[min(self._call_in_progress(), len(cars) - 1)]
+            self.close()
+            raise self._error(f"did not return within {rewards.CALL_TIME_LIMIT:g} s", step, car) from None
+        except (EOFError, OSError):
+            car = cars[min(self._call_in_progress(), len(cars) - 1)]
+            raise self._error(self._death(), step, car) from None
+        values = reply["values"]
+        if "error" not in reply and len(values) != len(cars):
+            reply.update(error="wrote a malformed reply", detail=f" ({len(values)} values for {len(cars)} cars)")
+        if "error" in reply:
+            if reply["error"] == "wrote a malformed reply":
                 self.close()
-                raise self._error(f"did not return within {rewards.CALL_TIME_LIMIT:g} s", step, car) from None
-            except EOFError:
-                raise self._error(self._death(), step, car) from None
-            if "value" not in reply:
-                if reply["error"] == "wrote a malformed reply":
-                    self.close()
-                raise self._error(reply["error"], step, car, reply["detail"])
-            values.append(self._checked(reply["value"], step, car))
-        return values
+            raise self._error(reply["error"], step, cars[min(len(values), len(cars) - 1)], reply["detail"])
+        return [self._checked(value, step, car) for value, car in zip(values, cars)]
 
     def __call__(self, params: dict, step: int, car: str) -> float:
         return self.rewards([params], step, [car])[0]

@@ -1,4 +1,4 @@
-"""The process a reward file runs in: ``python -m multirace.environment.reward_worker READ_FD WRITE_FD FILE``.
+"""The process a reward file runs in (`python -m multirace.environment.reward_worker`, see `serve`).
 
 A reward file is the user's own code: it may read files and open sockets, and
 nothing here stops that. What this process contains is its reach into a run:
@@ -12,14 +12,18 @@ done with it.
 Protocol: the run writes frames (a 4-byte big-endian length, then a pickle of
 ``{"step", "params": [dict, ...], "constant": {key: value} or absent}``; the
 constant params, such as the waypoints, are sent when they change and merged
-into every call's params). This process writes one JSON line per call:
-``{"value": float}`` or ``{"error": what, "detail": text}``; and one line
-after loading the file, ``{"loaded": true}`` or an error.
+into every call's params). This process writes one JSON line per frame,
+``{"values": [float, ...]}`` with, where a call failed (the batch ends there),
+``"error": what, "detail": text``; and one line after loading the file,
+``{"loaded": true}`` or an error. Before each call it writes the car's index
+into the shared progress word (PROGRESS_FD), so the run can name the car whose
+call overran without a message per call.
 """
 from __future__ import annotations
 
 import importlib.util
 import json
+import mmap
 import numbers
 import os
 import pickle
@@ -27,6 +31,7 @@ import struct
 import sys
 
 DETAIL_LIMIT = 300  # characters of an exception's text passed back
+PROGRESS_BYTES = 4  # the shared word holding the index of the call in progress
 
 
 def _die_with_parent() -> None:
@@ -97,11 +102,12 @@ def _call(function, params: dict) -> dict:
         return _failure(exc)
 
 
-def serve(read_fd: int, write_fd: int, path: str) -> None:
-    """Load `path`, then answer each frame of params with one reply line per call, until the run closes the
-    pipe. A copy of this process made by the function (`os.fork`) ends before it can reply."""
+def serve(read_fd: int, write_fd: int, progress_fd: int, path: str) -> None:
+    """Load `path`, then answer each frame of params with one reply line, until the run closes the pipe. A
+    copy of this process made by the function (`os.fork`) ends before it can reply."""
     pid = os.getpid()
     out = os.fdopen(write_fd, "w", buffering=1)
+    progress = mmap.mmap(progress_fd, PROGRESS_BYTES)
 
     def reply(message: dict) -> None:
         if os.getpid() != pid:  # a fork the function made: it must not answer, nor run anything of ours
@@ -120,12 +126,17 @@ def serve(read_fd: int, write_fd: int, path: str) -> None:
         except EOFError:
             return
         constant.update(message.get("constant", {}))
-        for params in message["params"]:
+        values = []
+        result = {"values": values}
+        for k, params in enumerate(message["params"]):
             params.update({key: value[:] if type(value) is list else value for key, value in constant.items()})
-            result = _call(function, params)
-            reply(result)
-            if "error" in result:  # the batch ends at its first error
+            struct.pack_into(">I", progress, 0, k)
+            outcome = _call(function, params)
+            if "error" in outcome:  # the batch ends at its first error
+                result.update(outcome)
                 break
+            values.append(outcome["value"])
+        reply(result)
 
 
 if __name__ == "__main__":
@@ -134,7 +145,7 @@ if __name__ == "__main__":
     _die_with_parent()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the run's to handle; it then ends this process
     try:
-        serve(int(sys.argv[1]), int(sys.argv[2]), sys.argv[3])
+        serve(int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4])
     except BaseException:  # the run is gone (a broken pipe) or the function broke this process: end quietly
         pass
     finally:
