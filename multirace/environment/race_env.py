@@ -29,7 +29,7 @@ from ..sensors.lidar import SECTORS, Lidar, sector_lidar
 from ..sensors.suite import declared_sensors
 from ..sim.objects import objects_seen
 from .randomize import Randomization, apply_command, apply_image
-from .rewards import load_reward_function
+from .reward_process import load_reward_function
 from .rules import CarRace, StepMeasure, make_rules
 from ..sim.texture import DEFAULT_PALETTE, TrackTexture
 from ..sim.tracks import Track, load_track

@@ -1,4 +1,4 @@
-"""A reward file run in a process of its own (`reward_worker`), one batch of calls per env step.
+"""Loading reward functions; a reward file run in a process of its own (`reward_worker`), one batch of calls per env step.
 
 The run keeps everything that decides the outcome: a hard time limit per call
 (the process is killed when a call overruns it: the function cannot disarm
@@ -25,7 +25,7 @@ import weakref
 from pathlib import Path
 
 from . import rewards
-from .rewards import RewardFunction, RewardFunctionError
+from .rewards import RewardFunction, RewardFunctionError, follow_centre_line
 
 CONSTANT_KEYS = ("waypoints",)  # params that stay the same for a track: sent when they change
 STARTUP_SLACK = 5.0  # seconds for the interpreter to start, on top of the file's load time limit
@@ -196,3 +196,17 @@ class RewardProcess(RewardFunction):
 
     def __setstate__(self, state):
         self.__init__(state["label"])
+
+
+def load_reward_function(spec=None) -> RewardFunction:
+    """A RewardFunction from None (the console default), a callable, or a path to a `.py` file."""
+    if spec is None:
+        return RewardFunction(follow_centre_line, "follow_centre_line (default)")
+    if isinstance(spec, RewardFunction):
+        return spec
+    if callable(spec):
+        return RewardFunction(spec, getattr(spec, "__name__", repr(spec)))
+    path = Path(spec)
+    if not path.is_file():
+        raise RewardFunctionError(f"reward function file {path}: no such file")
+    return RewardProcess(path)

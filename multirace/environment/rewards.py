@@ -25,7 +25,6 @@ import signal
 import sys
 import threading
 import time
-from pathlib import Path
 from typing import Callable
 
 REWARD_LIMIT = 1e5
@@ -172,19 +171,3 @@ class RewardFunction:
 
     def _error(self, what: str, step: int, car: str, detail: str = "") -> RewardFunctionError:
         return RewardFunctionError(f"reward function {self.label} {what} at step {step} for {car}{detail}")
-
-
-def load_reward_function(spec=None) -> RewardFunction:
-    """A RewardFunction from None (the console default), a callable, or a path to a `.py` file."""
-    if spec is None:
-        return RewardFunction(follow_centre_line, "follow_centre_line (default)")
-    if isinstance(spec, RewardFunction):
-        return spec
-    if callable(spec):
-        return RewardFunction(spec, getattr(spec, "__name__", repr(spec)))
-    path = Path(spec)
-    if not path.is_file():
-        raise RewardFunctionError(f"reward function file {path}: no such file")
-    from .reward_process import RewardProcess
-
-    return RewardProcess(path)

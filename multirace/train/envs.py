@@ -132,7 +132,7 @@ class TrainEnv:
     def _reward_file(self):
         """The reward file, loaded once for every track this env switches between (it runs in one process)."""
         if self._reward is None:
-            from ..environment.rewards import load_reward_function
+            from ..environment.reward_process import load_reward_function
 
             self._reward = load_reward_function(self.reward)
         return self._reward
