@@ -8,9 +8,9 @@ inference graph uses are declared; unknown fields of other graphs are kept
 by protobuf and ignored.
 
 `GraphBuilder` adds nodes (constants, placeholders, ops) and serialises the
-graph; `read_graph` parses a `.pb` into `{name: Node}` with attributes and
-constant values as NumPy arrays (`parse_graph(..., meta=True)`: the graph of a
-training checkpoint's `.meta`).
+graph; `read_graph` parses a `.pb` into `{name: Node}` with attributes, and
+constants as `Tensor`s decoded to NumPy arrays only when used
+(`parse_graph(..., meta=True)`: the graph of a training checkpoint's `.meta`).
 """
 from __future__ import annotations
 
@@ -187,23 +187,39 @@ class Node:
     attrs: dict = field(default_factory=dict)
 
 
-def _decode_attr(a, where: str):
-    kind = a.WhichOneof("value")
-    if kind == "tensor":
-        t = a.tensor
+class Tensor:
+    """A constant's TensorProto, decoded only when a walk uses it (`decode`): an unused constant costs nothing,
+    and a used one is sized from its shape, against a budget, before anything is allocated."""
+
+    def __init__(self, proto, where: str):
+        self.proto, self.where = proto, where
+
+    def size(self) -> int:
+        """The number of values the constant declares; GraphError for a negative or over-limit shape."""
+        shape = [d.size for d in self.proto.tensor_shape.dim]
+        if any(d < 0 for d in shape) or math.prod(shape) > MAX_CONST_ELEMENTS:
+            raise GraphError(f"{self.where}: a constant of shape {shape} (at most {MAX_CONST_ELEMENTS:,} values)")
+        return math.prod(shape)
+
+    def decode(self):
+        """The constant as a NumPy array (None for a dtype other than float32 and int32)."""
+        t = self.proto
         dtype = _NUMPY.get(t.dtype)
-        shape = [d.size for d in t.tensor_shape.dim]
         if dtype is None:
             return None
-        if any(d < 0 for d in shape) or math.prod(shape) > MAX_CONST_ELEMENTS:
-            raise GraphError(f"{where}: a constant of shape {shape} (at most {MAX_CONST_ELEMENTS:,} values)")
-        count = math.prod(shape)
+        count, shape = self.size(), [d.size for d in t.tensor_shape.dim]
         if t.tensor_content:
             if len(t.tensor_content) != count * np.dtype(dtype).itemsize:
-                raise GraphError(f"{where}: a constant of shape {shape} holds {len(t.tensor_content)} bytes")
+                raise GraphError(f"{self.where}: a constant of shape {shape} holds {len(t.tensor_content)} bytes")
             return np.frombuffer(t.tensor_content, dtype=dtype).reshape(shape).copy()
         values = list(t.float_val) if t.dtype == DT_FLOAT else list(t.int_val)
         return np.resize(np.asarray(values or [0], dtype=dtype), count).reshape(shape)
+
+
+def _decode_attr(a, where: str):
+    kind = a.WhichOneof("value")
+    if kind == "tensor":
+        return Tensor(a.tensor, where)
     if kind == "shape":
         return [d.size for d in a.shape.dim]
     if kind == "list":

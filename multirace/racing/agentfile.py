@@ -59,7 +59,7 @@ from ..environment.actions import ActionSpace, ActionSpaceError
 from ..sensors.camera import observation_shape
 from ..sensors.lidar import LidarSpec, sector_lidar
 from ..sensors.suite import RANGE_INPUTS, SensorSuite, declared_sensors, parse_sensors
-from .graphnet import GRAPH_FIELD, GraphNet
+from .graphnet import GRAPH_FIELD, GraphNet, plan
 from .nets import NETWORKS, CameraNet, num_outputs_for, parameter_count
 from .entrant import Controller, Forfeit
 
@@ -91,11 +91,11 @@ def make_metadata(action_space, network: str, name: str, image_shape=(120, 160, 
     return metadata
 
 
-def save_agent(path, net: CameraNet, metadata: dict) -> Path:
+def save_agent(path, net: CameraNet, metadata: dict, verify: bool = False) -> Path:
     """Write `net`'s weights and `metadata` (a model_metadata dict) as an agent file; returns the path.
 
     The metadata is checked against the net (network name, image shape, outputs)
-    before anything is written.
+    before anything is written; with `verify`, the bytes too, by every check the loader makes.
     """
     path = Path(path)
     metadata = dict(metadata)
@@ -119,7 +119,7 @@ def save_agent(path, net: CameraNet, metadata: dict) -> Path:
     if num_outputs_for(space) != net.num_outputs:
         raise AgentFileError(f"{path}: the net has {net.num_outputs} outputs but the action space needs "
                              f"{num_outputs_for(space)}")
-    return write_agent_file(path, metadata, net)
+    return write_agent_file(path, metadata, net, verify)
 
 
 def net_sensors(net: CameraNet) -> SensorSuite:
@@ -131,17 +131,26 @@ def net_sensors(net: CameraNet) -> SensorSuite:
     return SensorSuite("stereo" if net.image_shape[2] == 2 else "mono", kinds.get(net.lidar_samples))
 
 
-def write_agent_file(path, metadata: dict, net) -> Path:
-    """Write an agent file (atomically) of `net`'s parameters and `metadata`, already checked."""
-    path = Path(path)
+def agent_file_bytes(metadata: dict, net) -> bytes:
+    """The bytes of an agent file of `net`'s parameters and `metadata`."""
     state = {k: v.detach().cpu().contiguous().clone() for k, v in net.state_dict().items()}
     payload = {"format": FORMAT, "format_version": FORMAT_VERSION,
                "metadata": json.dumps(metadata, indent=2, sort_keys=True), "state_dict": state}
-    path.parent.mkdir(parents=True, exist_ok=True)
     buffer = io.BytesIO()
     torch.save(payload, buffer)
+    return buffer.getvalue()
+
+
+def write_agent_file(path, metadata: dict, net, verify: bool = False) -> Path:
+    """Write an agent file (atomically) of `net`'s parameters and `metadata`, already checked; with `verify`,
+    its bytes pass every check of the loader (`agent_from_bytes`) before anything is written."""
+    path = Path(path)
+    data = agent_file_bytes(metadata, net)
+    if verify:
+        agent_from_bytes(data, path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(buffer.getvalue())
+    tmp.write_bytes(data)
     tmp.replace(path)
     return path
 
@@ -457,7 +466,14 @@ def load_agent(path, step_budget: float | None = DEFAULT_STEP_BUDGET, smoke_runs
 
 
 def _load_agent(path: Path, step_budget: float | None, smoke_runs: int) -> Agent:
-    data = read_agent_bytes(path)
+    return agent_from_bytes(read_agent_bytes(path), path, step_budget, smoke_runs)
+
+
+def agent_from_bytes(data: bytes, path: Path, step_budget: float | None = None, smoke_runs: int = 1) -> Agent:
+    """The agent in an agent file's bytes, with every check `load_agent` makes (so a writer can refuse what
+    no loader would read before it writes anything); AgentFileError naming `path` and the field."""
+    if len(data) > MAX_FILE_BYTES:
+        raise AgentFileError(f"{path}: over the {MAX_FILE_BYTES // 2**20} MB limit of an agent file")
     payload = payload_from_bytes(data, path)
     source = str(path)
     metadata, space, network, shape, sensors = check_metadata(parse_metadata(payload, source), source)
@@ -512,6 +528,11 @@ def _build_net(metadata: dict, space: ActionSpace, network: str, shape: tuple, s
 def _graph_net(metadata: dict, space: ActionSpace, shape: tuple, sensors: SensorSuite, source: str) -> GraphNet:
     """A `GraphNet` from metadata field ``deepracer_graph``, checked against fields 'image' and 'sensor'."""
     spec = metadata[GRAPH_FIELD]
+    try:
+        plan(spec)  # its size, from the shapes alone, before anything is built
+    except ValueError as exc:
+        raise AgentFileError(f"{source}: metadata field '{GRAPH_FIELD}' is not a network spec multirace can run "
+                             f"({exc})") from None
     try:
         net = GraphNet(spec, space)
     except (ValueError, KeyError, IndexError, TypeError, AttributeError) as exc:
