@@ -119,7 +119,8 @@ class _Walker:
     def _strip(self, name):
         node = self._follow(name, PASS_THROUGH, packs=True)
         if node is None:
-            raise ModelImportError(f"{self.source}: node {name!r} reads a node that is not in the graph")
+            raise ModelImportError(f"{self.source}: node {name!r} is referenced but not in the graph (or reads "
+                                   "one that is not)")
         return node.name
 
     @staticmethod

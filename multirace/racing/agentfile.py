@@ -336,6 +336,9 @@ def parse_metadata(payload: dict, source: str) -> dict:
         raise AgentFileError(f"{source}: field 'metadata' is not valid JSON ({exc})") from None
     except RecursionError:
         raise AgentFileError(f"{source}: field 'metadata' is nested too deeply") from None
+    except ValueError:  # a number of more digits than Python converts (sys.get_int_max_str_digits)
+        raise AgentFileError(f"{source}: field 'metadata' holds a number of over {sys.get_int_max_str_digits():,} "
+                             "digits") from None
     if not isinstance(metadata, dict):
         raise AgentFileError(f"{source}: field 'metadata' must be a JSON object")
     return metadata
