@@ -31,7 +31,8 @@ MEMORY = 3 * 2**30  # address space of a probe: enough for torch, far below what
 def small_graph(*, shape=(-1, 36, 48, 1), strides=(1, 4, 4, 1), kernel=None, weights=None) -> GraphBuilder:
     """A frozen policy graph small enough to build in a test: /255, one 4x4 convolution, flatten, dense, softmax."""
     g = GraphBuilder()
-    x = g.node("network_0/FRONT_FACING_CAMERA/FRONT_FACING_CAMERA", "Placeholder", dtype=("type", DT_FLOAT), shape=("shape", list(shape)))
+    x = g.node("network_0/FRONT_FACING_CAMERA/FRONT_FACING_CAMERA", "Placeholder", dtype=("type", DT_FLOAT),
+               shape=("shape", list(shape)))
     x = g.op("truediv", "RealDiv", [x, g.const("truediv/y", np.float32(255))])
     kernel = kernel if kernel is not None else np.full((4, 4, 1, 2), 0.1, np.float32)
     x = g.op("conv/Conv2D", "Conv2D", [x, g.const("conv/kernel", kernel)], strides=("ints", list(strides)),

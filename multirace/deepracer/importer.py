@@ -467,8 +467,8 @@ def read_archive(path: Path) -> tuple[bytes, bytes, str]:
                 if kind == "model_meta" and member.size > 2**20:
                     raise ModelImportError(f"{path}: model_metadata.json is larger than 1 MB")
                 if kind in found:
-                    raise ModelImportError(f"{path}: holds at least 2 {'.pb' if kind == '.pb' else 'model_metadata.json'} "
-                                           "files; a car archive holds exactly one")
+                    what = ".pb" if kind == ".pb" else "model_metadata.json"
+                    raise ModelImportError(f"{path}: holds at least 2 {what} files; a car archive holds exactly one")
                 found[kind] = (member.name, tar.extractfile(member).read())
     except (tarfile.TarError, EOFError, OSError, zlib.error) as exc:
         raise ModelImportError(f"{path}: not a readable .tar.gz archive ({type(exc).__name__}: "

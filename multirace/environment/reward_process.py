@@ -1,4 +1,5 @@
-"""Loading reward functions; a reward file run in a process of its own (`reward_worker`), one batch of calls per env step.
+"""Loading reward functions; a reward file runs in a process of its own (`reward_worker`), one batch of
+calls per env step.
 
 The run keeps everything that decides the outcome: a hard time limit per call
 (the process is killed when a call overruns it: the function cannot disarm
@@ -9,6 +10,9 @@ learner and their call stack are in another process. A call costs one pipe
 round trip per env step for all cars (a pickle down, a JSON line back; the
 worker publishes which call it is in through a shared word, so an overrun
 names its car); the constant params (the waypoints) are sent once per track.
+
+`load_reward_function` gives the RewardFunction for None (the console's default), a Python callable (both
+in-process, see `rewards`) or a reward file (a `RewardProcess`).
 """
 from __future__ import annotations
 

@@ -73,7 +73,8 @@ def _planned_layers(layers: list, shape: tuple, where: str) -> tuple[tuple, int,
     parameters = activations = 0
     for k, layer in enumerate(layers):
         kind, at = layer.get("type"), f"{where} layer {k} ({layer.get('type')})"
-        if kind in ("conv", "dense") and not all(isinstance(layer[key], int) and layer[key] > 0 for key in ("in", "out")):
+        if kind in ("conv", "dense") and not all(isinstance(layer[key], int) and layer[key] > 0
+                                                 for key in ("in", "out")):
             raise ValueError(f"{at}: 'in' and 'out' must be positive integers")
         if kind in ("conv", "pool"):
             if len(shape) != 3:
