@@ -247,3 +247,12 @@ def test_inspect_prints_the_start_of_huge_metadata(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "more characters of metadata; --json prints them all" in out and len(out) < 100_000
     assert math.isclose(len(out), 20_000, rel_tol=0.5)
+
+
+def test_long_list_attributes_are_not_decoded():
+    from multirace.deepracer.tfgraph import parse_graph
+
+    g = small_graph()
+    g.node("unused", "NoOp", [], strides=("ints", range(10_000)))
+    nodes = parse_graph(g.to_bytes())
+    assert nodes["unused"].attrs["strides"] is None and nodes["conv/Conv2D"].attrs["strides"] == [1, 4, 4, 1]

@@ -25,6 +25,7 @@ DT_FLOAT, DT_INT32 = 1, 3
 _NUMPY = {DT_FLOAT: np.float32, DT_INT32: np.int32}
 _DTYPE = {np.dtype(np.float32): DT_FLOAT, np.dtype(np.int32): DT_INT32}
 MAX_CONST_ELEMENTS = 2**26  # values in one constant (a 256 MB float32 tensor)
+MAX_ATTR_ITEMS = 64  # items of a list or shape attribute decoded (strides, ksize, shapes have 4 or so)
 PRODUCER = 27  # a TF1-era GraphDef version (TF 1.13), which every converter accepts
 
 
@@ -221,8 +222,10 @@ def _decode_attr(a, where: str):
     if kind == "tensor":
         return Tensor(a.tensor, where)
     if kind == "shape":
-        return [d.size for d in a.shape.dim]
+        return [d.size for d in a.shape.dim] if len(a.shape.dim) <= MAX_ATTR_ITEMS else None
     if kind == "list":
+        if max(len(a.list.i), len(a.list.f), len(a.list.s)) > MAX_ATTR_ITEMS:
+            return None  # no attribute a network layer reads is this long: not decoded
         return list(a.list.i) or list(a.list.f) or [s.decode(errors="replace") for s in a.list.s]
     if kind == "s":
         return a.s.decode(errors="replace")
