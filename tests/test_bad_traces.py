@@ -99,3 +99,11 @@ def test_a_replay_whose_race_description_is_not_ours_is_a_one_line_error(tmp_pat
     _rrd_with_info(path, text)
     err = _one_line_error(capsys, ["replay", str(path), "--summary"])
     assert str(path) in err and "race/info" in err, err
+
+
+def test_a_sim_trace_over_the_row_limit_is_refused_not_read_whole(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr("multirace.recording.simtrace.MAX_COLUMN_ROWS", 1000)
+    path = tmp_path / "endless.csv"
+    path.write_text(HEADER + _row() * 1001)
+    err = _one_line_error(capsys, ["plot", str(path)])
+    assert str(path) in err and "over 1,000 rows" in err, err

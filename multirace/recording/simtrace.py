@@ -222,6 +222,7 @@ class SimTraceRecorder:
 
 MAX_LINE = 1 << 20  # characters in one line of a sim-trace; a longer one is not a sim-trace
 REQUIRED_COLUMNS = ("episode", "steps", "X", "Y", "track_len")
+MAX_COLUMN_ROWS = 10_000_000  # rows `read_simtrace_columns` reads (about 50 bytes of memory each)
 
 
 def _lines(file, path):
@@ -268,6 +269,8 @@ def read_simtrace_columns(path, numbers: tuple, required=REQUIRED_COLUMNS) -> di
     columns = {key: array.array("d") for key in numbers}
     episodes, off = array.array("q"), array.array("b")
     for line, raw in simtrace_records(path, required=tuple(dict.fromkeys(required + numbers))):
+        if len(episodes) >= MAX_COLUMN_ROWS:
+            raise ValueError(f"sim-trace {path}: over {MAX_COLUMN_ROWS:,} rows; this reads at most that many")
         for key, column in columns.items():
             try:
                 value = float(raw[key])
