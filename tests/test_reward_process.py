@@ -99,3 +99,14 @@ def test_a_reward_function_that_fails_late_in_training_is_one_message_not_a_trac
     assert done.returncode == 2, done.stderr[-3000:]
     assert done.stderr.count("late failure") == 1 and "Traceback" not in done.stderr, done.stderr[-3000:]
     assert "late.py raised at step 21" in done.stderr and not out.exists()
+
+
+def test_a_forked_copy_of_the_run_neither_uses_nor_ends_the_runs_reward_process(tmp_path):
+    path = _write(tmp_path, "steps", "def reward_function(params):\n    return params['steps'] / 10\n")
+    code = ("import os, sys, multirace\nenv = multirace.parallel_env(num_cars=1, reward_function=sys.argv[1])\n"
+            "env.reset(seed=0)\nenv.step({'car_0': 7})\npid = os.fork()\n"
+            "if pid == 0:\n    assert env.step({'car_0': 7})[1]['car_0'] == 0.2\n    sys.exit(0)\n"
+            "assert os.waitpid(pid, 0)[1] == 0\n"
+            "assert env.step({'car_0': 7})[1]['car_0'] == 0.2\nprint('both stepped')\n")
+    done = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and "both stepped" in done.stdout, done.stderr[-2000:]
