@@ -256,3 +256,12 @@ def test_long_list_attributes_are_not_decoded():
     g.node("unused", "NoOp", [], strides=("ints", range(10_000)))
     nodes = parse_graph(g.to_bytes())
     assert nodes["unused"].attrs["strides"] is None and nodes["conv/Conv2D"].attrs["strides"] == [1, 4, 4, 1]
+
+
+def test_a_constant_listing_more_values_than_its_shape_is_a_clear_error(tmp_path):
+    g = small_graph()
+    t = node(g.graph, "dense/kernel").attr["value"].tensor
+    t.ClearField("tensor_content")
+    t.float_val.extend([0.5] * (216 * 3 + 1))
+    with pytest.raises(ModelImportError, match="node 'dense/kernel': a constant of shape .216, 3. lists 649 values"):
+        import_model(write_model(tmp_path / "m", g.to_bytes()), tmp_path / "x.pt")

@@ -213,8 +213,11 @@ class Tensor:
             if len(t.tensor_content) != count * np.dtype(dtype).itemsize:
                 raise GraphError(f"{self.where}: a constant of shape {shape} holds {len(t.tensor_content)} bytes")
             return np.frombuffer(t.tensor_content, dtype=dtype).reshape(shape).copy()
-        values = list(t.float_val) if t.dtype == DT_FLOAT else list(t.int_val)
-        return np.resize(np.asarray(values or [0], dtype=dtype), count).reshape(shape)
+        values = t.float_val if t.dtype == DT_FLOAT else t.int_val
+        if len(values) > max(count, 1):
+            raise GraphError(f"{self.where}: a constant of shape {shape} lists {len(values):,} values")
+        values = np.fromiter(values, dtype=dtype, count=len(values))  # no Python list of them
+        return np.resize(values if len(values) else np.zeros(1, dtype), count).reshape(shape)
 
 
 def _decode_attr(a, where: str):
