@@ -25,6 +25,8 @@ HOSTILE = {
                "was killed by signal 9 at step 1 for car_0"),
     "isfinite_replaced": ("import math\nmath.isfinite = lambda value: True\n"
                           "def reward_function(params):\n    return float('nan')\n", "returned nan at step 1"),
+    "closes_its_pipe": ("import os, sys\ndef reward_function(params):\n    os.close(int(sys.argv[2]))\n"
+                        "    while True:\n        pass\n", "closed its pipe to the run (its process was ended)"),
     "lies_on_the_pipe": ("import os\ndef reward_function(params):\n    os.write(int(__import__('sys').argv[2]), "
                          "b'{\"garbage\\n')\n    return 1.0\n", "malformed reply"),
 }

@@ -32,6 +32,7 @@ from . import rewards
 from .rewards import RewardFunction, RewardFunctionError, follow_centre_line
 
 CONSTANT_KEYS = ("waypoints",)  # params that stay the same for a track: sent when they change
+EXIT_WAIT = 2.0  # seconds a worker whose pipe closed has to end before it is ended
 STARTUP_SLACK = 5.0  # seconds for the interpreter to start, on top of the file's load time limit
 REPLY_LIMIT = 1 << 16  # bytes of one reply line; a longer one is malformed
 PROGRESS_BYTES = 4  # the shared word where the worker publishes the index of the call in progress
@@ -107,9 +108,14 @@ class RewardProcess(RewardFunction):
         self._process = None
 
     def _death(self) -> str:
-        """What became of a worker whose pipe closed."""
-        code = self._process.wait()
+        """What became of a worker whose pipe closed (one that closed it and lives on is ended)."""
+        try:
+            code = self._process.wait(timeout=EXIT_WAIT)
+        except subprocess.TimeoutExpired:
+            code = None
         self.close()
+        if code is None:
+            return "closed its pipe to the run (its process was ended)"
         return f"was killed by signal {-code}" if code < 0 else f"ended its process (exit status {code})"
 
     def _reply(self, seconds: float) -> dict:
