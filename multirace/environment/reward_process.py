@@ -157,8 +157,8 @@ class RewardProcess(RewardFunction):
     def _call_in_progress(self) -> int:
         return struct.unpack_from(">I", self._progress, 0)[0]
 
-    def _send(self, step: int, params_list: list) -> None:
-        message = {"step": step, "params": []}
+    def _send(self, params_list: list) -> None:
+        message = {"params": []}
         constant = {}
         for params in params_list:
             for key in CONSTANT_KEYS:
@@ -180,7 +180,7 @@ class RewardProcess(RewardFunction):
             self._start()
         struct.pack_into(">I", self._progress, 0, 0)
         try:
-            self._send(step, params_list)
+            self._send(params_list)
             reply = self._batch_reply()
         except TimeoutError:
             car = cars[min(self._call_in_progress(), len(cars) - 1)]

@@ -10,7 +10,7 @@ time limit, checks every value it is sent and ends this process when it is
 done with it.
 
 Protocol: the run writes frames (a 4-byte big-endian length, then a pickle of
-``{"step", "params": [dict, ...], "constant": {key: value} or absent}``; the
+``{"params": [dict, ...], "constant": {key: value} or absent}``; the
 constant params, such as the waypoints, are sent when they change and merged
 into every call's params). This process writes one JSON line per frame,
 ``{"values": [float, ...]}`` with, where a call failed (the batch ends there),
