@@ -221,6 +221,9 @@ def test_an_imported_graph_agent_that_would_need_gigabytes_is_refused_by_its_num
         load_agent(path, step_budget=None)
     done = bounded_cli("race", path, "bot:follow@1.0", "--max-steps", "3", memory=2 * 2**30)
     assert done.returncode == 0 and "forfeit" in done.stdout, done.stderr[-2000:]
+    done = bounded_cli("agent", "export", path, "--out", tmp_path / "car.tar.gz", memory=2 * 2**30)
+    assert done.returncode == 2 and "one inference computes" in done.stderr, done.stderr[-2000:]
+    assert not (tmp_path / "car.tar.gz").exists()
 
 
 def test_a_name_of_five_thousand_digits_forfeits_its_entrant_naming_the_field(tmp_path):
