@@ -112,3 +112,13 @@ def test_a_forked_copy_of_the_run_neither_uses_nor_ends_the_runs_reward_process(
             "assert env.step({'car_0': 7})[1]['car_0'] == 0.2\nprint('both stepped')\n")
     done = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0 and "both stepped" in done.stdout, done.stderr[-2000:]
+
+
+def test_train_with_a_reward_function_that_forks_trains_once(tmp_path):
+    path = _write(tmp_path, "forks_in_train", "import os\ndef reward_function(params):\n    os.fork()\n" + RETURNS_ONE)
+    out = tmp_path / "agent.pt"
+    done = subprocess.run([sys.executable, "-m", "multirace.cli", "train", "--config", "tiny", "--minutes", "0.05",
+                           "--no-progress", "--envs", "1", "--cars", "1", "--reward", str(path), "--out", str(out)],
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0 and done.stdout.count(f"wrote {out}") == 1, done.stdout[-2000:] + done.stderr[-2000:]
+    assert out.exists()
