@@ -93,6 +93,7 @@ def _rrd_with_info(path, text: str) -> None:
 
 @pytest.mark.parametrize("text", ['[1, 2, 3]', '{"track": "t", "format": "f", "laps": 1, "reverse": false}',
                                   '{"track": "t", "format": "f", "laps": 1, "reverse": false, "cars": [7]}',
+                                  '{"track": "t", "format": "f", "laps": "x", "reverse": false, "cars": []}',
                                   "[" * 100_000 + "]" * 100_000, "{not json"])
 def test_a_replay_whose_race_description_is_not_ours_is_a_one_line_error(tmp_path, capsys, text):
     path = tmp_path / "race.rrd"

@@ -150,10 +150,12 @@ def _json(text: str, path, entity: str):
 
 def race_info(text: str, path) -> dict:
     """The race description of a replay (its race/info JSON), checked: a one-line error naming the file
-    where it is not an object with track, reverse, format, laps and cars (each with a text id and name)."""
+    where it is not an object with track, reverse, format (text, a boolean, text), laps (a whole number) and
+    cars (each with a text id and name)."""
     info = _json(text, path, "race/info")
     cars = info.get("cars") if isinstance(info, dict) else None
-    if (not isinstance(cars, list) or any(k not in info for k in ("track", "reverse", "format", "laps"))
+    types = {"track": str, "reverse": bool, "format": str, "laps": int}
+    if (not isinstance(cars, list) or not all(isinstance(info.get(k), t) for k, t in types.items())
             or not all(isinstance(c, dict) and isinstance(c.get("id"), str) and isinstance(c.get("name"), str)
                        for c in cars)):
         raise ValueError(f"replay {path}: race/info is not a multirace race description "
