@@ -268,3 +268,16 @@ def test_a_constant_listing_more_values_than_its_shape_is_a_clear_error(tmp_path
     t.float_val.extend([0.5] * (216 * 3 + 1))
     with pytest.raises(ModelImportError, match="node 'dense/kernel': a constant of shape .216, 3. lists 649 values"):
         import_model(write_model(tmp_path / "m", g.to_bytes()), tmp_path / "x.pt")
+
+
+def test_a_graph_over_the_parameter_limit_is_refused_before_its_network_is_built(tmp_path):
+    g = small_graph()
+    t = node(g.graph, "dense/kernel").attr["value"].tensor
+    t.ClearField("tensor_content")
+    t.float_val.append(0.01)
+    del t.tensor_shape.dim[:]
+    t.tensor_shape.dim.add(size=216)
+    t.tensor_shape.dim.add(size=231_500)  # 50,004,000 values from one float_val: within the walk's budget
+    node(g.graph, POLICY).op = "Identity"  # no softmax over 231,500 outputs: a continuous head, say
+    done = bounded_cli("agent", "import", write_model(tmp_path / "m", g.to_bytes()), "--out", tmp_path / "x.pt")
+    assert done.returncode == 2 and "50,235,534 parameters, over the limit of 50,000,000" in done.stderr, done.stderr

@@ -535,7 +535,9 @@ def _import_graph_net(spec, space, metadata, source, out, name, notes, reason) -
     """A DeepRacer network that no multirace network matches, as a `graphnet.GraphNet` agent file."""
     try:
         layers, state = spec_from_graph(spec, source)
-        plan(layers)  # its size from the layers' shapes, before anything is built
+        parameters, _ = plan(layers)  # its size from the layers' shapes, before anything is built
+        if parameters > MAX_PARAMETERS:
+            raise ValueError(f"{parameters:,} parameters, over the limit of {MAX_PARAMETERS:,}")
         net = GraphNet(layers, space)
         net.load_state_dict(state, strict=True)
         net.eval()
