@@ -270,6 +270,7 @@ def test_a_constant_listing_more_values_than_its_shape_is_a_clear_error(tmp_path
         import_model(write_model(tmp_path / "m", g.to_bytes()), tmp_path / "x.pt")
 
 
+@pytest.mark.slow  # decodes 50 M values (about 30 s here)
 def test_a_graph_over_the_parameter_limit_is_refused_before_its_network_is_built(tmp_path):
     g = small_graph()
     t = node(g.graph, "dense/kernel").attr["value"].tensor
