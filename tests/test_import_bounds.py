@@ -233,7 +233,7 @@ def test_a_name_of_five_thousand_digits_forfeits_its_entrant_naming_the_field(tm
     payload = torch.load(path, weights_only=True)
     payload["metadata"] = payload["metadata"].replace('"name": "graph"', '"name": ' + "9" * 5000)
     torch.save(payload, path)
-    with pytest.raises(AgentFileError, match="field 'metadata' holds a number of over 4,300 digits"):
+    with pytest.raises(AgentFileError, match="metadata field 'name' is a number of over 4,300 digits"):
         load_agent(path, step_budget=None)
 
 

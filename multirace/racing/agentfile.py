@@ -331,17 +331,41 @@ def parse_metadata(payload: dict, source: str) -> dict:
     if not isinstance(raw, str):
         raise AgentFileError(f"{source}: field 'metadata' must be model_metadata JSON text")
     try:
-        metadata = json.loads(raw)
+        metadata = json.loads(raw, parse_int=_json_int)
     except json.JSONDecodeError as exc:
         raise AgentFileError(f"{source}: field 'metadata' is not valid JSON ({exc})") from None
     except RecursionError:
         raise AgentFileError(f"{source}: field 'metadata' is nested too deeply") from None
-    except ValueError:  # a number of more digits than Python converts (sys.get_int_max_str_digits)
-        raise AgentFileError(f"{source}: field 'metadata' holds a number of over {sys.get_int_max_str_digits():,} "
-                             "digits") from None
     if not isinstance(metadata, dict):
         raise AgentFileError(f"{source}: field 'metadata' must be a JSON object")
+    field = _long_number_field(metadata)
+    if field is not None:
+        raise AgentFileError(f"{source}: metadata field {field!r} is a number of over "
+                             f"{sys.get_int_max_str_digits():,} digits")
     return metadata
+
+
+class _LongNumber(str):
+    """A JSON integer of more digits than Python converts (`sys.get_int_max_str_digits`), kept as its text."""
+
+
+def _json_int(text: str):
+    return _LongNumber(text) if len(text.lstrip("-")) > sys.get_int_max_str_digits() > 0 else int(text)
+
+
+def _long_number_field(metadata: dict) -> str | None:
+    """The top-level field of `metadata` holding a `_LongNumber` (at any depth), if any."""
+    for field, value in metadata.items():
+        stack = [value]
+        while stack:
+            item = stack.pop()
+            if isinstance(item, _LongNumber):
+                return field
+            if isinstance(item, dict):
+                stack.extend(item.values())
+            elif isinstance(item, list):
+                stack.extend(item)
+    return None
 
 
 def metadata_sensors(metadata: dict, source: str) -> SensorSuite:
