@@ -20,8 +20,6 @@ from multirace.deepracer.tfgraph import DT_FLOAT, DT_INT32, GraphBuilder, GraphD
 from multirace.racing.agentfile import AgentFileError, load_agent, write_agent_file
 from multirace.racing.graphnet import GRAPH_FIELD, GraphNet
 
-from test_export import SHALLOW_CONVS, deepracer_graph
-
 DISCRETE = {"action_space": [{"steering_angle": s, "speed": 1.0} for s in (-30, 0, 30)],
             "sensor": ["FRONT_FACING_CAMERA"], "neural_network": "DEEP_CONVOLUTIONAL_NETWORK_SHALLOW"}
 POLICY = "main_level/agent/main/online/network_1/ppo_head_0/policy"
@@ -133,6 +131,8 @@ def test_an_average_pool_with_a_short_window_names_the_node(tmp_path):
 
 @pytest.mark.parametrize("shape", [[-1, 2000, 2000, 1], [-1, 1080, 1920, 3]])
 def test_a_huge_declared_image_is_a_clear_error_not_gigabytes(tmp_path, shape):
+    from test_export import SHALLOW_CONVS, deepracer_graph  # (skips without OpenVINO, as its module does)
+
     graph = GraphDef()
     graph.ParseFromString(deepracer_graph(np.random.default_rng(0), convs=SHALLOW_CONVS, outputs=3))
     placeholder = next(n for n in graph.node if n.op == "Placeholder")
@@ -151,6 +151,8 @@ def test_import_refuses_non_finite_weights_before_writing(tmp_path):
     with pytest.raises(ModelImportError, match="not finite|non-finite"):
         import_model(write_model(tmp_path / "m", small_graph(weights=weights).to_bytes()), tmp_path / "x.pt")
     assert not (tmp_path / "x.pt").exists()
+    from test_export import SHALLOW_CONVS, deepracer_graph
+
     graph = GraphDef()  # the same through a multirace network (CameraNet): refused by the loader's own checks
     graph.ParseFromString(deepracer_graph(np.random.default_rng(0), convs=SHALLOW_CONVS, outputs=3))
     kernel = next(n for n in graph.node if n.name.endswith("policy_fc/kernel")).attr["value"].tensor
