@@ -120,6 +120,9 @@ def cmd_plot(args) -> int:
     return 0
 
 
+INSPECT_PRINT_LIMIT = 20_000  # characters of an agent's metadata `agent inspect` prints (--json: all)
+
+
 def cmd_agent_inspect(args) -> int:
     from .racing.agentfile import inspect_agent_isolated
 
@@ -138,7 +141,12 @@ def cmd_agent_inspect(args) -> int:
         console.print(f"[red]invalid[/red]     {escape(display_name(info['error'], 1000))}")
     if "metadata" in info:
         console.print("model_metadata:")
-        console.print_json(json.dumps(info["metadata"]))
+        text = json.dumps(info["metadata"], indent=2)
+        if len(text) <= INSPECT_PRINT_LIMIT:
+            console.print_json(text)
+        else:  # a huge metadata: its start, plainly (rich's JSON rendering of megabytes takes minutes)
+            console.print(f"{text[:INSPECT_PRINT_LIMIT]}\n... ({len(text) - INSPECT_PRINT_LIMIT:,} more characters "
+                          "of metadata; --json prints them all)", markup=False, highlight=False)
     return 0 if info["valid"] else 1
 
 

@@ -567,16 +567,25 @@ def test_unusable_output_paths_are_refused_before_the_race(tmp_path, monkeypatch
     assert words in err and option in err and "time_trial" not in out  # no race ran
 
 
-def test_a_reward_function_that_keeps_catching_its_timeout_ends_the_process_with_a_message(tmp_path):
-    path = tmp_path / "stubborn.py"
-    path.write_text("def reward_function(params):\n    while True:\n        try:\n            while True:\n"
-                    "                pass\n        except BaseException:\n            pass\n")
-    code = ("import sys\nimport multirace\nfrom multirace.environment import rewards\n"
+def test_a_reward_callable_that_keeps_catching_its_timeout_ends_the_process_with_a_message():
+    # a Python callable runs in-process under SIGALRM (a reward FILE runs in its own process: test_reward_process)
+    code = ("import multirace\nfrom multirace.environment import rewards\n"
             "rewards.CALL_TIME_LIMIT, rewards.GIVE_UP_AFTER = 0.2, 0.5\n"
-            "env = multirace.parallel_env(num_cars=1, reward_function=sys.argv[1], max_steps=5)\n"
+            "def stubborn(params):\n    while True:\n        try:\n            while True:\n"
+            "                pass\n        except BaseException:\n            pass\n"
+            "env = multirace.parallel_env(num_cars=1, reward_function=stubborn, max_steps=5)\n"
             "env.reset(seed=0)\nenv.step({'car_0': 0})\n")
-    done = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=120)
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 124 and "ignored its 0.2 s time limit" in done.stderr, done.stderr[-2000:]
+
+
+def test_a_reward_file_that_keeps_catching_its_timeout_is_killed_with_a_clear_error(tmp_path, monkeypatch):
+    monkeypatch.setattr("multirace.environment.rewards.CALL_TIME_LIMIT", 0.2)
+    env = _env_with(tmp_path, "def reward_function(params):\n    while True:\n        try:\n            while True:\n"
+                              "                pass\n        except BaseException:\n            pass\n", "stubborn.py")
+    env.reset(seed=0)
+    with pytest.raises(RewardFunctionError, match="stubborn.py did not return within 0.2 s at step 1"):
+        env.step({"car_0": 0})
 
 
 def test_integer_index_scalars_and_one_element_arrays_drive():

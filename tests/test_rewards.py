@@ -4,7 +4,8 @@ from pathlib import Path
 import pytest
 
 import multirace
-from multirace.environment.rewards import RewardFunctionError, load_reward_function
+from multirace.environment.reward_process import load_reward_function
+from multirace.environment.rewards import RewardFunctionError
 
 FILES = Path(__file__).parent / "reward_files"
 

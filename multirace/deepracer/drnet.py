@@ -17,9 +17,10 @@ from ..racing.agentfile import write_agent_file
 from ..racing.graphnet import GRAPH_FIELD, LIDAR_SENSORS, GraphNet
 
 
-def save_graph_agent(path, net: GraphNet, metadata: dict) -> Path:
-    """Write `net` as an agent file whose metadata carries its spec (field ``deepracer_graph``)."""
-    return write_agent_file(path, {**metadata, GRAPH_FIELD: net.spec}, net)
+def save_graph_agent(path, net: GraphNet, metadata: dict, verify: bool = False) -> Path:
+    """Write `net` as an agent file whose metadata carries its spec (field ``deepracer_graph``); `verify`: see
+    `agentfile.write_agent_file`."""
+    return write_agent_file(path, {**metadata, GRAPH_FIELD: net.spec}, net, verify)
 
 
 def spec_from_graph(graph_spec, source: str) -> tuple[dict, dict]:

@@ -29,6 +29,8 @@ from __future__ import annotations
 
 import json
 import tarfile
+import time
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -36,16 +38,20 @@ import numpy as np
 import torch
 
 from ..environment.actions import ActionSpace, ActionSpaceError
-from ..racing.agentfile import make_metadata, save_agent
-from ..racing.graphnet import GraphNet
-from ..racing.nets import NETWORKS, AveragePool, CameraNet, num_outputs_for
+from ..racing.agentfile import MAX_PARAMETERS, AgentFileError, make_metadata, save_agent
+from ..racing.graphnet import GraphNet, plan
+from ..racing.nets import NETWORKS, AveragePool, CameraNet, num_outputs_for, parameter_count
 from ..sensors.lidar import LidarSpec
 from .drnet import save_graph_agent, spec_from_graph
-from .tfgraph import GraphError, parse_graph
+from .tfgraph import GraphError, Tensor, parse_graph
 
 MAX_ARCHIVE_BYTES = 512 * 2**20  # unpacked members of a car archive read at most
+MAX_ARCHIVE_MEMBERS = 10_000  # members of a car archive
+ARCHIVE_SECONDS = 60.0  # reading a car archive may take this long
 PASS_THROUGH = ("Identity", "StopGradient", "Snapshot")
+WEIGHTED_OPS = {"Conv2D": 4, "MatMul": 2, "BiasAdd": 1}  # ops that take a constant: its number of dimensions
 RESCALER_OPS = ("StridedSlice", "Sub", "VariableV2", "VarHandleOp", "ReadVariableOp")  # the factors r and 1-r
+MAX_GRAPH_VALUES = MAX_PARAMETERS + 2**20  # constant values a walk may decode: the weights, and small constants
 CONTINUOUS_LOG_STD = -1.0  # imported continuous policies: the log-std outputs (the .pb has no log-std)
 
 
@@ -80,20 +86,42 @@ class GraphSpec:
 class _Walker:
     def __init__(self, nodes, source, variables=None):
         self.nodes, self.source, self.variables = nodes, source, variables
+        self._values: dict = {}  # Const node name -> its decoded array (each decoded once)
+        self._decoded = 0  # values decoded so far, within MAX_GRAPH_VALUES
+
+    def _follow(self, name, through, packs=False):
+        """The node `name` reaches through the pass-through ops `through` (and packs of one tensor, with
+        `packs`); None if it reaches nothing; a cycle is a ModelImportError naming the node."""
+        node = self.nodes.get(name)
+        for _ in range(len(self.nodes) + 1):
+            if node is None or not (node.op in through or packs and self._is_pack_of_one(node)):
+                return node
+            node = self.nodes.get(node.inputs[0]) if node.inputs else None
+        raise ModelImportError(f"{self.source}: node {name!r}: its {'/'.join(through)} inputs form a cycle")
 
     def value(self, name):
-        """The constant a node evaluates to (Const, or a checkpoint's variable, through Identity), else None."""
-        node = self.nodes.get(name)
-        while node is not None and node.op in PASS_THROUGH + ("ReadVariableOp",):
-            node = self.nodes.get(node.inputs[0]) if node.inputs else None
+        """The constant a node evaluates to (Const, or a checkpoint's variable, through Identity), else None.
+        A constant is decoded when first used, sized first against what is left of `MAX_GRAPH_VALUES`."""
+        node = self._follow(name, PASS_THROUGH + ("ReadVariableOp",))
         if node is not None and node.op in ("VariableV2", "VarHandleOp") and self.variables is not None:
             return self.variables[node.name] if node.name in self.variables else None
-        return None if node is None or node.op != "Const" else node.attrs.get("value")
+        if node is None or node.op != "Const" or not isinstance(node.attrs.get("value"), Tensor):
+            return None
+        if node.name not in self._values:
+            tensor = node.attrs["value"]
+            self._decoded += tensor.size()
+            if self._decoded > MAX_GRAPH_VALUES:
+                raise ModelImportError(f"{self.source}: node {node.name!r}: the graph's constants hold over "
+                                       f"{MAX_GRAPH_VALUES:,} values (the parameter limit of an agent file)")
+            self._values[node.name] = tensor.decode()
+        return self._values[node.name]
 
     def _strip(self, name):
-        while self.nodes[name].op in PASS_THROUGH or self._is_pack_of_one(self.nodes[name]):
-            name = self.nodes[name].inputs[0]
-        return name
+        node = self._follow(name, PASS_THROUGH, packs=True)
+        if node is None:
+            raise ModelImportError(f"{self.source}: node {name!r} is referenced but not in the graph (or reads "
+                                   "one that is not)")
+        return node.name
 
     @staticmethod
     def _is_pack_of_one(node) -> bool:
@@ -151,6 +179,11 @@ class _Walker:
         inputs, constants = self._variable_input(node)
         if len(inputs) != 1:
             raise ModelImportError(f"{where}: expected one computed input, found {len(inputs)}")
+        if op in ("Add", "AddV2") and not constants:
+            raise ModelImportError(f"{where}: an addition with one input")
+        if op in WEIGHTED_OPS and (len(constants) != 1 or np.ndim(constants[0]) != WEIGHTED_OPS[op]):
+            raise ModelImportError(f"{where}: expected one constant of {WEIGHTED_OPS[op]} dimension(s), found "
+                                   f"{[np.shape(c) for c in constants]}")
         chain = self.walk(inputs[0], depth + 1)
         layers = chain.layers
         if op in ("BiasAdd", "Add", "AddV2"):
@@ -163,7 +196,7 @@ class _Walker:
         elif op == "Conv2D":
             if node.attrs.get("padding") != "VALID" or node.attrs.get("data_format", "NHWC") != "NHWC":
                 raise ModelImportError(f"{where}: only VALID NHWC convolutions are supported")
-            strides = node.attrs.get("strides") or [1, 1, 1, 1]
+            strides = _four(node.attrs.get("strides") or [1, 1, 1, 1], "strides", where)
             if strides[1] != strides[2]:
                 raise ModelImportError(f"{where}: unequal strides {strides}")
             layers.append(("conv", {"kernel": np.asarray(constants[0], np.float32), "stride": int(strides[1])}))
@@ -173,8 +206,8 @@ class _Walker:
                 kernel = kernel.T
             layers.append(("dense", {"kernel": kernel}))
         elif op == "AvgPool":
-            k, s = node.attrs.get("ksize"), node.attrs.get("strides")
-            if k != s or node.attrs.get("padding") != "VALID":
+            k, s = _four(node.attrs.get("ksize"), "ksize", where), _four(node.attrs.get("strides"), "strides", where)
+            if k != s or k[1] != k[2] or node.attrs.get("padding") != "VALID":
                 raise ModelImportError(f"{where}: only VALID pooling with stride equal to the window is supported")
             layers.append(("pool", {"k": int(k[1])}))
         elif op in ("Relu", "Tanh", "Softmax"):
@@ -193,6 +226,14 @@ class _Walker:
         else:
             raise ModelImportError(f"{where}: op {op} is not one of DeepRacer's network layers")
         return chain
+
+
+def _four(values, attribute: str, where: str) -> list:
+    """A Conv2D or pooling attribute of four positive integers (NHWC), else a ModelImportError naming it."""
+    if not isinstance(values, list) or len(values) != 4 or not all(isinstance(v, int) and 0 < v <= 4096
+                                                                     for v in values):
+        raise ModelImportError(f"{where}: attribute {attribute} is {str(values)[:80]}; expected 4 positive integers")
+    return values
 
 
 def output_node(nodes, source: str) -> str:
@@ -303,7 +344,8 @@ def to_camera_net(spec: GraphSpec, space: ActionSpace, source: str) -> CameraNet
                            f"{LidarSpec().samples}-beam LIDAR")
     for network in NETWORKS:
         try:
-            net = CameraNet(network, (height, width, channels), outputs, lidar_samples=lidar_samples)
+            with torch.device("meta"):  # sized and matched before anything is allocated
+                net = CameraNet(network, (height, width, channels), outputs, lidar_samples=lidar_samples)
         except ValueError:
             continue
         if _trunk_signature(net) != _graph_signature(cam_layers):
@@ -313,6 +355,10 @@ def to_camera_net(spec: GraphSpec, space: ActionSpace, source: str) -> CameraNet
             continue
         if post[0][0].shape != tuple(net.fc[0].weight.T.shape):
             continue
+        if parameter_count(net) > MAX_PARAMETERS:
+            raise ModelImportError(f"{source}: the {network} network on {height}x{width}x{channels} images has "
+                                   f"{parameter_count(net):,} parameters, over the limit of {MAX_PARAMETERS:,}")
+        net = CameraNet(network, (height, width, channels), outputs, lidar_samples=lidar_samples)
         _fill(net, cam_layers, lidar_stack, post, space, source)
         return net.eval()
     raise NotCameraNet(f"{source}: the camera layers {_graph_signature(cam_layers)} are not one of multirace's "
@@ -367,22 +413,7 @@ def read_model(path) -> tuple[bytes, dict, str]:
     """(graph bytes, model_metadata dict, source name) of a car archive, a folder or a `.pb` file."""
     path = Path(path)
     if path.is_file() and path.name.endswith((".tar.gz", ".tgz", ".tar")):
-        try:
-            with tarfile.open(path) as tar:
-                members = [m for m in tar.getmembers() if m.isfile()]
-                pbs = [m for m in members if m.name.endswith(".pb")]
-                meta = [m for m in members if m.name.lstrip("./") == "model_metadata.json"]
-                if len(pbs) != 1:
-                    raise ModelImportError(f"{path}: holds {len(pbs)} .pb files; a car archive holds exactly one")
-                if not meta:
-                    raise ModelImportError(f"{path}: no model_metadata.json at the archive's root")
-                if pbs[0].size + meta[0].size > MAX_ARCHIVE_BYTES:
-                    raise ModelImportError(f"{path}: members larger than {MAX_ARCHIVE_BYTES // 2**20} MB")
-                graph = tar.extractfile(pbs[0]).read()
-                metadata_bytes = tar.extractfile(meta[0]).read()
-        except tarfile.TarError as exc:
-            raise ModelImportError(f"{path}: not a readable .tar.gz archive ({exc})") from None
-        source = f"{path}:{pbs[0].name}"
+        graph, metadata_bytes, source = read_archive(path)
     else:
         pb = path
         if path.is_dir():
@@ -399,13 +430,54 @@ def read_model(path) -> tuple[bytes, dict, str]:
         if pb.stat().st_size > MAX_ARCHIVE_BYTES or meta_path.stat().st_size > 2**20:
             raise ModelImportError(f"{pb}: larger than {MAX_ARCHIVE_BYTES // 2**20} MB (or its metadata over 1 MB)")
         graph, metadata_bytes, source = pb.read_bytes(), meta_path.read_bytes(), str(pb)
+    return graph, _metadata(metadata_bytes, f"{source}: model_metadata.json"), source
+
+
+def _metadata(data: bytes, where: str) -> dict:
+    """A model_metadata.json's object; a one-line ModelImportError naming `where` otherwise."""
     try:
-        metadata = json.loads(metadata_bytes.decode("utf-8"))
+        metadata = json.loads(data.decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ModelImportError(f"{source}: model_metadata.json is not UTF-8 JSON ({exc})") from None
+        raise ModelImportError(f"{where} is not UTF-8 JSON ({exc})") from None
+    except RecursionError:
+        raise ModelImportError(f"{where} is nested too deeply") from None
     if not isinstance(metadata, dict):
-        raise ModelImportError(f"{source}: model_metadata.json is not a JSON object")
-    return graph, metadata, source
+        raise ModelImportError(f"{where} is not a JSON object")
+    return metadata
+
+
+def read_archive(path: Path) -> tuple[bytes, bytes, str]:
+    """(graph bytes, model_metadata bytes, source) of a car archive, read member by member: each header's
+    declared size is checked before its data is read or skipped (a member of gigabytes of zeros is refused,
+    not decompressed), only the .pb and model_metadata.json are read, within `ARCHIVE_SECONDS`."""
+    deadline, declared, found = time.monotonic() + ARCHIVE_SECONDS, 0, {}
+    try:
+        with tarfile.open(path) as tar:
+            for count, member in enumerate(tar, 1):
+                declared += max(member.size, 0)
+                if declared > MAX_ARCHIVE_BYTES or count > MAX_ARCHIVE_MEMBERS:
+                    raise ModelImportError(f"{path}: member {member.name!r}: the archive holds over "
+                                           f"{MAX_ARCHIVE_BYTES // 2**20} MB or {MAX_ARCHIVE_MEMBERS} members")
+                if time.monotonic() > deadline:
+                    raise ModelImportError(f"{path}: not read within {ARCHIVE_SECONDS:g} s")
+                kind = ".pb" if member.name.endswith(".pb") else "model_meta" if (
+                    member.name.lstrip("./") == "model_metadata.json") else None
+                if kind is None or not member.isfile():
+                    continue
+                if kind == "model_meta" and member.size > 2**20:
+                    raise ModelImportError(f"{path}: model_metadata.json is larger than 1 MB")
+                if kind in found:
+                    what = ".pb" if kind == ".pb" else "model_metadata.json"
+                    raise ModelImportError(f"{path}: holds at least 2 {what} files; a car archive holds exactly one")
+                found[kind] = (member.name, tar.extractfile(member).read())
+    except (tarfile.TarError, EOFError, OSError, zlib.error) as exc:
+        raise ModelImportError(f"{path}: not a readable .tar.gz archive ({type(exc).__name__}: "
+                               f"{str(exc)[:120] or 'truncated'})") from None
+    if ".pb" not in found:
+        raise ModelImportError(f"{path}: holds no .pb file; a car archive holds exactly one")
+    if "model_meta" not in found:
+        raise ModelImportError(f"{path}: no model_metadata.json at the archive's root")
+    return found[".pb"][1], found["model_meta"][1], f"{path}:{found['.pb'][0]}"
 
 
 def read_checkpoint(folder: Path):
@@ -424,13 +496,9 @@ def read_checkpoint(folder: Path):
         raise ModelImportError(f"{prefix}: a checkpoint needs its .meta graph and model_metadata.json beside it")
     if meta.stat().st_size > MAX_ARCHIVE_BYTES:
         raise ModelImportError(f"{meta}: larger than {MAX_ARCHIVE_BYTES // 2**20} MB")
-    try:
-        metadata = json.loads(metadata_path.read_bytes().decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ModelImportError(f"{metadata_path}: not UTF-8 JSON ({exc})") from None
-    if not isinstance(metadata, dict):
-        raise ModelImportError(f"{metadata_path}: not a JSON object")
-    return meta.read_bytes(), metadata, str(prefix), variables
+    if metadata_path.stat().st_size > 2**20:
+        raise ModelImportError(f"{metadata_path}: larger than 1 MB")
+    return meta.read_bytes(), _metadata(metadata_path.read_bytes(), str(metadata_path)), str(prefix), variables
 
 
 def import_model(path, out, name: str | None = None) -> Path:
@@ -460,13 +528,16 @@ def import_model(path, out, name: str | None = None) -> Path:
     agent_meta = make_metadata(space, net.network, name, net.image_shape,
                                version=str(metadata.get("version", "5")), training_algorithm="deepracer_import",
                                lidar=bool(net.lidar_samples), training=notes)
-    return save_agent(out, net, agent_meta)
+    return _saved(lambda: save_agent(out, net, agent_meta, verify=True), source)
 
 
 def _import_graph_net(spec, space, metadata, source, out, name, notes, reason) -> Path:
     """A DeepRacer network that no multirace network matches, as a `graphnet.GraphNet` agent file."""
     try:
         layers, state = spec_from_graph(spec, source)
+        parameters, _ = plan(layers)  # its size from the layers' shapes, before anything is built
+        if parameters > MAX_PARAMETERS:
+            raise ValueError(f"{parameters:,} parameters, over the limit of {MAX_PARAMETERS:,}")
         net = GraphNet(layers, space)
         net.load_state_dict(state, strict=True)
         net.eval()
@@ -485,4 +556,13 @@ def _import_graph_net(spec, space, metadata, source, out, name, notes, reason) -
                   "neural_network": metadata.get("neural_network", GraphNet.network),
                   "training_algorithm": "deepracer_import", "version": str(metadata.get("version", "5")),
                   "training": {**notes, "network": reason}, **space.to_metadata()}
-    return save_graph_agent(out, net, agent_meta)
+    return _saved(lambda: save_graph_agent(out, net, agent_meta, verify=True), source)
+
+
+def _saved(save, source: str) -> Path:
+    """`save()`'s path; an agent file that no loader would read (non-finite weights, over the parameter or
+    metadata limits...) is refused with the loader's reason before anything is written."""
+    try:
+        return save()
+    except AgentFileError as exc:
+        raise ModelImportError(f"{source}: imported, but refused before writing: {exc}") from None

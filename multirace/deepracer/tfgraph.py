@@ -8,9 +8,9 @@ inference graph uses are declared; unknown fields of other graphs are kept
 by protobuf and ignored.
 
 `GraphBuilder` adds nodes (constants, placeholders, ops) and serialises the
-graph; `read_graph` parses a `.pb` into `{name: Node}` with attributes and
-constant values as NumPy arrays (`parse_graph(..., meta=True)`: the graph of a
-training checkpoint's `.meta`).
+graph; `read_graph` parses a `.pb` into `{name: Node}` with attributes, and
+constants as `Tensor`s decoded to NumPy arrays only when used
+(`parse_graph(..., meta=True)`: the graph of a training checkpoint's `.meta`).
 """
 from __future__ import annotations
 
@@ -25,6 +25,7 @@ DT_FLOAT, DT_INT32 = 1, 3
 _NUMPY = {DT_FLOAT: np.float32, DT_INT32: np.int32}
 _DTYPE = {np.dtype(np.float32): DT_FLOAT, np.dtype(np.int32): DT_INT32}
 MAX_CONST_ELEMENTS = 2**26  # values in one constant (a 256 MB float32 tensor)
+MAX_ATTR_ITEMS = 64  # items of a list or shape attribute decoded (strides, ksize, shapes have 4 or so)
 PRODUCER = 27  # a TF1-era GraphDef version (TF 1.13), which every converter accepts
 
 
@@ -187,26 +188,47 @@ class Node:
     attrs: dict = field(default_factory=dict)
 
 
+class Tensor:
+    """A constant's TensorProto, decoded only when a walk uses it (`decode`): an unused constant costs nothing,
+    and a used one is sized from its shape, against a budget, before anything is allocated."""
+
+    def __init__(self, proto, where: str):
+        self.proto, self.where = proto, where
+
+    def size(self) -> int:
+        """The number of values the constant declares; GraphError for a negative or over-limit shape."""
+        shape = [d.size for d in self.proto.tensor_shape.dim]
+        if any(d < 0 for d in shape) or math.prod(shape) > MAX_CONST_ELEMENTS:
+            raise GraphError(f"{self.where}: a constant of shape {shape} (at most {MAX_CONST_ELEMENTS:,} values)")
+        return math.prod(shape)
+
+    def decode(self):
+        """The constant as a NumPy array (None for a dtype other than float32 and int32)."""
+        t = self.proto
+        dtype = _NUMPY.get(t.dtype)
+        if dtype is None:
+            return None
+        count, shape = self.size(), [d.size for d in t.tensor_shape.dim]
+        if t.tensor_content:
+            if len(t.tensor_content) != count * np.dtype(dtype).itemsize:
+                raise GraphError(f"{self.where}: a constant of shape {shape} holds {len(t.tensor_content)} bytes")
+            return np.frombuffer(t.tensor_content, dtype=dtype).reshape(shape).copy()
+        values = t.float_val if t.dtype == DT_FLOAT else t.int_val
+        if len(values) > max(count, 1):
+            raise GraphError(f"{self.where}: a constant of shape {shape} lists {len(values):,} values")
+        values = np.fromiter(values, dtype=dtype, count=len(values))  # no Python list of them
+        return np.resize(values if len(values) else np.zeros(1, dtype), count).reshape(shape)
+
+
 def _decode_attr(a, where: str):
     kind = a.WhichOneof("value")
     if kind == "tensor":
-        t = a.tensor
-        dtype = _NUMPY.get(t.dtype)
-        shape = [d.size for d in t.tensor_shape.dim]
-        if dtype is None:
-            return None
-        if any(d < 0 for d in shape) or math.prod(shape) > MAX_CONST_ELEMENTS:
-            raise GraphError(f"{where}: a constant of shape {shape} (at most {MAX_CONST_ELEMENTS:,} values)")
-        count = math.prod(shape)
-        if t.tensor_content:
-            if len(t.tensor_content) != count * np.dtype(dtype).itemsize:
-                raise GraphError(f"{where}: a constant of shape {shape} holds {len(t.tensor_content)} bytes")
-            return np.frombuffer(t.tensor_content, dtype=dtype).reshape(shape).copy()
-        values = list(t.float_val) if t.dtype == DT_FLOAT else list(t.int_val)
-        return np.resize(np.asarray(values or [0], dtype=dtype), count).reshape(shape)
+        return Tensor(a.tensor, where)
     if kind == "shape":
-        return [d.size for d in a.shape.dim]
+        return [d.size for d in a.shape.dim] if len(a.shape.dim) <= MAX_ATTR_ITEMS else None
     if kind == "list":
+        if max(len(a.list.i), len(a.list.f), len(a.list.s)) > MAX_ATTR_ITEMS:
+            return None  # no attribute a network layer reads is this long: not decoded
         return list(a.list.i) or list(a.list.f) or [s.decode(errors="replace") for s in a.list.s]
     if kind == "s":
         return a.s.decode(errors="replace")

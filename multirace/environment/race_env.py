@@ -30,7 +30,7 @@ from ..sensors.lidar import SECTORS, Lidar, sector_lidar
 from ..sensors.suite import declared_sensors
 from ..sim.objects import objects_seen
 from .randomize import Randomization, apply_command, apply_image
-from .rewards import load_reward_function
+from .reward_process import load_reward_function
 from .rules import CarRace, StepMeasure, make_rules
 from .state import CAR_FEATURES, GLOBAL_PER_CAR, STATE_BOUND, car_features, global_state
 from ..sim.texture import DEFAULT_PALETTE, TrackTexture
@@ -298,12 +298,14 @@ class RaceEnv(ParallelEnv):
         self._measure_all()
         self._advance_distances()
         touched = self._apply_contacts(contacts)
-        params, rewards = [], {}
         table = self._object_table()
-        for i, agent in enumerate(self.possible_agents):
-            p = self._params(i, touched[i], table)
-            params.append(p)
-            rewards[agent] = self.reward_function(p, self.steps, agent) if self.races[i].racing else 0.0
+        params = [self._params(i, touched[i], table) for i in range(self.num_cars)]
+        racing = [i for i in range(self.num_cars) if self.races[i].racing]
+        rewards = dict.fromkeys(self.possible_agents, 0.0)
+        if racing:  # one call for all cars: a reward file answers from its own process
+            values = self.reward_function.rewards([params[i] for i in racing], self.steps,
+                                                  [self.possible_agents[i] for i in racing])
+            rewards.update(zip((self.possible_agents[i] for i in racing), values))
         events = [self._apply_rules(i, prev_distance[i], touched[i]) for i in range(self.total_cars)]
         if self.rules.time_up(self.sim_time):
             for i, race in enumerate(self.races):
@@ -610,6 +612,7 @@ class RaceEnv(ParallelEnv):
         return None
 
     def close(self):
+        self.reward_function.close()
         if self._window is not None:
             self._window.close()
             self._window = None

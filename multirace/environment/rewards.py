@@ -5,19 +5,19 @@ the dict of the 27 keys the DeepRacer simulator passes (see `PARAM_KEYS`), in
 DeepRacer's units. A file written for the DeepRacer console runs unchanged:
 it is executed as a module and its `reward_function` is used.
 
-Reward functions come from anyone's notebook, so every call runs under a
-watchdog: a time limit per call (`CALL_TIME_LIMIT`) and for loading the file
-(`LOAD_TIME_LIMIT`), each of its own copy of the params (nothing it changes
-reaches the env, another car or a later step), and every way it can fail
-(an exception, `sys.exit`, a hang, a value that is not a finite number in
-range: DeepRacer requires a float) is a `RewardFunctionError` naming the
-file, the step and the car. The time limits use SIGALRM, so they hold where
-the env runs in a process's main thread (the env, its worker processes).
+A reward function is the user's own code, not data: it may read files and
+open sockets. A reward FILE runs in a process of its own (`reward_process`):
+a hard time limit per call that the function cannot disarm, nothing of the
+run's to reach, and a clear error when that process dies. A Python callable
+(a researcher's, or the built-in default) runs in-process under a watchdog:
+a time limit per call (`CALL_TIME_LIMIT`, SIGALRM, so it holds where the env
+runs in a process's main thread) on its own copy of the params. Either way,
+every way it can fail (an exception, `sys.exit`, a hang, a value that is not
+a finite number in range: DeepRacer requires a float) is a
+`RewardFunctionError` naming the file, the step and the car.
 """
 from __future__ import annotations
 
-import contextlib
-import importlib.util
 import math
 import numbers
 import os
@@ -25,7 +25,6 @@ import signal
 import sys
 import threading
 import time
-from pathlib import Path
 from typing import Callable
 
 REWARD_LIMIT = 1e5
@@ -86,21 +85,6 @@ class _Alarm:
         raise _TimeUp()
 
 
-@contextlib.contextmanager
-def time_limit(seconds: float):
-    """Raise `_TimeUp` in the block after `seconds`, again every `RETRY_INTERVAL` if the code swallows it
-    (a bare ``except:``), and end the process with a message after `GIVE_UP_AFTER` more seconds: a reward
-    function must never hang a run. Main thread only (elsewhere the block runs unlimited)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    _Alarm.arm(seconds)
-    try:
-        yield
-    finally:
-        _Alarm.disarm()
-
-
 def private_params(params: dict) -> dict:
     """A copy of the params for one call: its lists are copies too (their items are numbers and tuples)."""
     copy = params.copy()
@@ -158,6 +142,17 @@ class RewardFunction:
             raise self._error("raised", step, car, f": {type(exc).__name__}: {exc}") from exc
         if type(value) is not float:
             value = self._as_float(value, step, car)
+        return self._checked(value, step, car)
+
+    def rewards(self, params_list: list, step: int, cars: list) -> list:
+        """The function's values for each car's params at `step` (the cars in order)."""
+        return [self(params, step, car) for params, car in zip(params_list, cars)]
+
+    def close(self) -> None:
+        """Release what the function holds (nothing, in-process)."""
+
+    def _checked(self, value: float, step: int, car: str) -> float:
+        """`value` if it is finite and within the limit, else RewardFunctionError."""
         if not math.isfinite(value) or abs(value) > REWARD_LIMIT:
             raise RewardFunctionError(
                 f"reward function {self.label} returned {value} at step {step} for {car}; "
@@ -176,46 +171,3 @@ class RewardFunction:
 
     def _error(self, what: str, step: int, car: str, detail: str = "") -> RewardFunctionError:
         return RewardFunctionError(f"reward function {self.label} {what} at step {step} for {car}{detail}")
-
-    def __getstate__(self):
-        # functions loaded from files are re-loaded in worker processes
-        if self.label.endswith(".py") and Path(self.label).exists():
-            return {"label": self.label}
-        return self.__dict__
-
-    def __setstate__(self, state):
-        if "function" not in state:
-            state = load_reward_function(state["label"]).__dict__
-        self.__dict__.update(state)
-
-
-def load_reward_function(spec=None) -> RewardFunction:
-    """A RewardFunction from None (the console default), a callable, or a path to a `.py` file."""
-    if spec is None:
-        return RewardFunction(follow_centre_line, "follow_centre_line (default)")
-    if isinstance(spec, RewardFunction):
-        return spec
-    if callable(spec):
-        return RewardFunction(spec, getattr(spec, "__name__", repr(spec)))
-    path = Path(spec)
-    if not path.is_file():
-        raise RewardFunctionError(f"reward function file {path}: no such file")
-    module_name = f"multirace_reward_{abs(hash(str(path.resolve())))}"
-    try:
-        module_spec = importlib.util.spec_from_file_location(module_name, path)
-        module = importlib.util.module_from_spec(module_spec)
-        sys.modules[module_name] = module
-        with time_limit(LOAD_TIME_LIMIT):
-            module_spec.loader.exec_module(module)
-    except _TimeUp:
-        raise RewardFunctionError(f"reward function file {path}: loading it did not finish within "
-                                  f"{LOAD_TIME_LIMIT:g} s") from None
-    except SystemExit as exc:
-        raise RewardFunctionError(f"reward function file {path}: calls sys.exit({exc.code!r}) when loaded") from None
-    except Exception as exc:
-        raise RewardFunctionError(f"reward function file {path}: cannot be loaded: "
-                                  f"{type(exc).__name__}: {exc}") from exc
-    function = getattr(module, "reward_function", None)
-    if not callable(function):
-        raise RewardFunctionError(f"reward function file {path}: defines no reward_function(params)")
-    return RewardFunction(function, str(path))

@@ -30,8 +30,11 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from .rewards import RewardFunctionError
+
 DEFAULT_INFO_KEYS = ("progress", "laps_completed", "lap_times", "resets", "status", "collisions")
 RESET, ACTIONS, STEP, CLOSE, DONE = b"r", b"a", b"s", b"c", b"d"  # one-byte commands and the bare reply
+FAILED = b"f"  # the reply of a worker whose env's reward function failed; its message follows
 SPIN_WAIT = 0.0005  # seconds a worker polls for its next command before it sleeps in a blocking read
 
 
@@ -101,6 +104,12 @@ def _worker(remote, make_env, info_keys, spin_wait: float) -> None:
             os.sched_yield()
         return os.read(fd, 1)
 
+    def report(failure: RewardFunctionError) -> None:
+        """Tell the learner why this worker stops (it raises it, once), instead of a traceback per worker."""
+        if not info_keys:
+            os.write(fd, FAILED)
+        remote.send(str(failure))
+
     try:
         while True:
             command = next_command()
@@ -133,11 +142,20 @@ def _worker(remote, make_env, info_keys, spin_wait: float) -> None:
                 shared["actions"] = _SharedArray.attach(spec)
             elif command in (CLOSE, b""):  # b"": the learner is gone
                 break
+    except RewardFunctionError as failure:
+        report(failure)
     finally:
         for array in shared.values():
             array.close()
         env.close()
         remote.close()
+
+
+def _checked(reply):
+    """A worker's reply, or the RewardFunctionError it reported (a message: infos are lists)."""
+    if isinstance(reply, str):
+        raise RewardFunctionError(reply)
+    return reply
 
 
 class SubprocVectorEnv:
@@ -201,7 +219,7 @@ class SubprocVectorEnv:
             remote.send(seed)
         if not self.shared:
             self._share_buffers()
-        infos = [remote.recv() for remote in self.remotes]
+        infos = [_checked(remote.recv()) for remote in self.remotes]
         return self._observations(), infos
 
     def _observations(self):
@@ -221,10 +239,13 @@ class SubprocVectorEnv:
         for remote in self.remotes:
             os.write(remote.fileno(), STEP)
         if self.info_keys:
-            infos = [remote.recv() for remote in self.remotes]
+            infos = [_checked(remote.recv()) for remote in self.remotes]
         else:
             for k, remote in enumerate(self.remotes):
-                if os.read(remote.fileno(), 1) != DONE:
+                reply = os.read(remote.fileno(), 1)
+                if reply == FAILED:
+                    _checked(remote.recv())
+                if reply != DONE:
                     raise RuntimeError(f"vector env: worker {k} ended during a step (see its traceback above)")
             infos = [[{}] * self.shared["rewards"].shape[1]] * self.num_envs
         flags = self.shared["flags"].array

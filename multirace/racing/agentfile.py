@@ -61,7 +61,7 @@ from ..environment.actions import ActionSpace, ActionSpaceError
 from ..sensors.camera import observation_shape
 from ..sensors.lidar import LidarSpec, sector_lidar
 from ..sensors.suite import RANGE_INPUTS, SensorSuite, declared_sensors, parse_sensors
-from .graphnet import GRAPH_FIELD, GraphNet
+from .graphnet import GRAPH_FIELD, GraphNet, plan
 from .nets import NETWORKS, CameraNet, num_outputs_for, parameter_count
 from .entrant import Controller, Forfeit
 
@@ -93,11 +93,11 @@ def make_metadata(action_space, network: str, name: str, image_shape=(120, 160, 
     return metadata
 
 
-def save_agent(path, net: CameraNet, metadata: dict) -> Path:
+def save_agent(path, net: CameraNet, metadata: dict, verify: bool = False) -> Path:
     """Write `net`'s weights and `metadata` (a model_metadata dict) as an agent file; returns the path.
 
     The metadata is checked against the net (network name, image shape, outputs)
-    before anything is written.
+    before anything is written; with `verify`, the bytes too, by every check the loader makes.
     """
     path = Path(path)
     metadata = dict(metadata)
@@ -121,7 +121,7 @@ def save_agent(path, net: CameraNet, metadata: dict) -> Path:
     if num_outputs_for(space) != net.num_outputs:
         raise AgentFileError(f"{path}: the net has {net.num_outputs} outputs but the action space needs "
                              f"{num_outputs_for(space)}")
-    return write_agent_file(path, metadata, net)
+    return write_agent_file(path, metadata, net, verify)
 
 
 def net_sensors(net: CameraNet) -> SensorSuite:
@@ -133,15 +133,23 @@ def net_sensors(net: CameraNet) -> SensorSuite:
     return SensorSuite("stereo" if net.image_shape[2] == 2 else "mono", kinds.get(net.lidar_samples))
 
 
-def write_agent_file(path, metadata: dict, net) -> Path:
-    """Write an agent file (atomically) of `net`'s parameters and `metadata`, already checked."""
-    path = Path(path)
+def agent_file_bytes(metadata: dict, net) -> bytes:
+    """The bytes of an agent file of `net`'s parameters and `metadata`."""
     state = {k: v.detach().cpu().contiguous().clone() for k, v in net.state_dict().items()}
     payload = {"format": FORMAT, "format_version": FORMAT_VERSION,
                "metadata": json.dumps(without_machine_paths(metadata), indent=2, sort_keys=True), "state_dict": state}
     buffer = io.BytesIO()
     torch.save(payload, buffer)
-    return write_bytes(path, buffer.getvalue())
+    return buffer.getvalue()
+
+
+def write_agent_file(path, metadata: dict, net, verify: bool = False) -> Path:
+    """Write an agent file (atomically) of `net`'s parameters and `metadata`, already checked; with `verify`,
+    its bytes pass every check of the loader (`agent_from_bytes`) before anything is written."""
+    data = agent_file_bytes(metadata, net)
+    if verify:
+        agent_from_bytes(data, Path(path))
+    return write_bytes(path, data)
 
 
 # ------------------------------------------------------------------ loading
@@ -320,13 +328,17 @@ def parse_metadata(payload: dict, source: str) -> dict:
     if not isinstance(raw, str):
         raise AgentFileError(f"{source}: field 'metadata' must be model_metadata JSON text")
     try:
-        metadata = json.loads(raw)
+        metadata = json.loads(raw, parse_int=_json_int)
     except json.JSONDecodeError as exc:
         raise AgentFileError(f"{source}: field 'metadata' is not valid JSON ({exc})") from None
     except RecursionError:
         raise AgentFileError(f"{source}: field 'metadata' is nested too deeply") from None
     if not isinstance(metadata, dict):
         raise AgentFileError(f"{source}: field 'metadata' must be a JSON object")
+    field = _long_number_field(metadata)
+    if field is not None:
+        raise AgentFileError(f"{source}: metadata field {field!r} is a number of over "
+                             f"{sys.get_int_max_str_digits():,} digits")
     return without_machine_paths(metadata)
 
 
@@ -344,6 +356,29 @@ def without_machine_paths(value):
     if isinstance(value, list):
         return [without_machine_paths(item) for item in value]
     return value
+
+
+class _LongNumber(str):
+    """A JSON integer of more digits than Python converts (`sys.get_int_max_str_digits`), kept as its text."""
+
+
+def _json_int(text: str):
+    return _LongNumber(text) if len(text.lstrip("-")) > sys.get_int_max_str_digits() > 0 else int(text)
+
+
+def _long_number_field(metadata: dict) -> str | None:
+    """The top-level field of `metadata` holding a `_LongNumber` (at any depth), if any."""
+    for field, value in metadata.items():
+        stack = [value]
+        while stack:
+            item = stack.pop()
+            if isinstance(item, _LongNumber):
+                return field
+            if isinstance(item, dict):
+                stack.extend(item.values())
+            elif isinstance(item, list):
+                stack.extend(item)
+    return None
 
 
 def metadata_sensors(metadata: dict, source: str) -> SensorSuite:
@@ -471,7 +506,14 @@ def load_agent(path, step_budget: float | None = DEFAULT_STEP_BUDGET, smoke_runs
 
 
 def _load_agent(path: Path, step_budget: float | None, smoke_runs: int) -> Agent:
-    data = read_agent_bytes(path)
+    return agent_from_bytes(read_agent_bytes(path), path, step_budget, smoke_runs)
+
+
+def agent_from_bytes(data: bytes, path: Path, step_budget: float | None = None, smoke_runs: int = 1) -> Agent:
+    """The agent in an agent file's bytes, with every check `load_agent` makes (so a writer can refuse what
+    no loader would read before it writes anything); AgentFileError naming `path` and the field."""
+    if len(data) > MAX_FILE_BYTES:
+        raise AgentFileError(f"{path}: over the {MAX_FILE_BYTES // 2**20} MB limit of an agent file")
     payload = payload_from_bytes(data, path)
     source = str(path)
     metadata, space, network, shape, sensors = check_metadata(parse_metadata(payload, source), source)
@@ -526,6 +568,11 @@ def _build_net(metadata: dict, space: ActionSpace, network: str, shape: tuple, s
 def _graph_net(metadata: dict, space: ActionSpace, shape: tuple, sensors: SensorSuite, source: str) -> GraphNet:
     """A `GraphNet` from metadata field ``deepracer_graph``, checked against fields 'image' and 'sensor'."""
     spec = metadata[GRAPH_FIELD]
+    try:
+        plan(spec)  # its size, from the shapes alone, before anything is built
+    except ValueError as exc:
+        raise AgentFileError(f"{source}: metadata field '{GRAPH_FIELD}' is not a network spec multirace can run "
+                             f"({exc})") from None
     try:
         net = GraphNet(spec, space)
     except (ValueError, KeyError, IndexError, TypeError, AttributeError) as exc:

@@ -20,6 +20,8 @@ is present, so such agents race, league and export like any other.
 """
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
@@ -60,6 +62,66 @@ def _module(layer: dict) -> nn.Module:
     if kind == "flatten":
         return _FlattenNHWC()
     raise ValueError(f"deepracer_graph: unknown layer type {kind!r}")
+
+
+MAX_ACTIVATIONS = 2**26  # values one inference of a GraphNet may compute, all layers together (256 MB)
+
+
+def _planned_layers(layers: list, shape: tuple, where: str) -> tuple[tuple, int, int]:
+    """(output shape, parameters, activation values) of `layers` applied to `shape` ((C, H, W) or (N,)),
+    worked out from the spec alone; ValueError naming the layer that does not fit its input."""
+    parameters = activations = 0
+    for k, layer in enumerate(layers):
+        kind, at = layer.get("type"), f"{where} layer {k} ({layer.get('type')})"
+        if kind in ("conv", "dense") and not all(isinstance(layer[key], int) and layer[key] > 0
+                                                 for key in ("in", "out")):
+            raise ValueError(f"{at}: 'in' and 'out' must be positive integers")
+        if kind in ("conv", "pool"):
+            if len(shape) != 3:
+                raise ValueError(f"{at}: needs an image, gets {shape}")
+            c, h, w = shape
+            size, stride = (layer["k"], layer["stride"]) if kind == "conv" else (layer["k"], layer["k"])
+            if kind == "conv" and layer["in"] != c:
+                raise ValueError(f"{at}: reads {layer['in']} channels, gets {c}")
+            if not (isinstance(size, int) and isinstance(stride, int) and 0 < size <= min(h, w) and stride > 0):
+                raise ValueError(f"{at}: a {size}x{size} window (stride {stride}) on a {h}x{w} input")
+            shape = (layer["out"] if kind == "conv" else c, (h - size) // stride + 1, (w - size) // stride + 1)
+            parameters += layer["out"] * (c * size * size + 1) if kind == "conv" else 0
+        elif kind == "flatten":
+            shape = (math.prod(shape),)
+        elif kind == "dense":
+            if shape != (layer["in"],):
+                raise ValueError(f"{at}: reads {layer['in']} values, gets {shape}")
+            shape = (layer["out"],)
+            parameters += layer["out"] * (layer["in"] + 1)
+        elif kind not in ("scale", "relu"):
+            raise ValueError(f"{at}: unknown layer type")
+        activations += math.prod(shape)
+    return shape, parameters, activations
+
+
+def plan(spec: dict) -> tuple[int, int]:
+    """(parameters, activation values) of the network a spec describes, from its shapes alone: nothing is
+    allocated, so a spec that would need gigabytes is refused by its numbers. ValueError naming the layer
+    where the spec does not fit together, or saying that one inference would compute over `MAX_ACTIVATIONS`
+    values."""
+    try:
+        widths, parameters, activations = 0, 0, 0
+        for sensor in sorted(spec["inputs"]):
+            dims = tuple(int(d) for d in spec["inputs"][sensor]["shape"])
+            if any(d <= 0 for d in dims) or len(dims) not in (1, 3):
+                raise ValueError(f"input {sensor}: shape {list(dims)}")
+            shape = dims if len(dims) == 1 else (dims[2], dims[0], dims[1])
+            out, p, a = _planned_layers(spec["inputs"][sensor]["layers"], shape, f"input {sensor}")
+            if len(out) != 1:
+                raise ValueError(f"input {sensor}: its layers end in {out}, not a vector")
+            widths, parameters, activations = widths + out[0], parameters + p, activations + a + math.prod(dims)
+        _, p, a = _planned_layers(spec["layers"], (widths,), "the layers after the inputs")
+    except (KeyError, TypeError, AttributeError) as exc:
+        raise ValueError(f"{type(exc).__name__}: {exc}") from None
+    if activations + a > MAX_ACTIVATIONS:
+        raise ValueError(f"one inference computes {activations + a:,} values, over the limit of {MAX_ACTIVATIONS:,}")
+    return parameters + p, activations + a
 
 
 class GraphNet(nn.Module):

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..text import TEXT_LENGTH, display_name, laps_text
+from .files import regular_file
 from .replay import END_TEXT
 
 
@@ -60,16 +61,14 @@ def replay_summary(path, poses: bool = True) -> dict:
     "race_time", "car", "name", "kind", "clock", "text"}], "result"} and, with `poses`, "poses":
     {car id: array (k, 4) of step, x, y, yaw} sorted by step.
     """
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"replay {path}: no such file")
+    path = regular_file(path, "replay")
     chunks = read_chunks(path)
     info = static_text(chunks, "race/info")
     if info is None:
         raise ValueError(f"replay {path}: not a multirace replay (no race/info)")
-    info = json.loads(info)
+    info = race_info(info, path)
     result_text = static_text(chunks, "race/result")
-    result = json.loads(result_text) if result_text else None
+    result = _json(result_text, path, "race/result") if result_text else None
     names = {c["id"]: c["name"] for c in info["cars"]}
     all_steps: set[int] = set()
     max_time = 0.0
@@ -87,6 +86,8 @@ def replay_summary(path, poses: bool = True) -> dict:
             all_steps.update(int(s) for s in steps)
             if times is not None and len(times):
                 max_time = max(max_time, float(times.max()))
+            if len(parts) == 3 and parts[2] not in pose_rows:  # a car the race description does not name
+                continue
             if parts[:2] == ["world", "cars"] and len(parts) == 3:
                 trans = record_column(batch, "Transform3D:translation")
                 quat = record_column(batch, "Transform3D:quaternion")
@@ -108,6 +109,8 @@ def replay_summary(path, poses: bool = True) -> dict:
                     image_counts[parts[1]] = image_counts.get(parts[1], 0) + sum(
                         1 for b in blob.to_pylist() if b)
             elif parts[0] == "events" and len(parts) == 2:
+                if record_column(batch, "TextLog:text") is None or times is None:
+                    continue
                 texts = first_items(record_column(batch, "TextLog:text").to_pylist())
                 kinds = first_items(record_column(batch, "kind").to_pylist()) if record_column(batch, "kind") is not None \
                     else [None] * len(texts)
@@ -122,7 +125,7 @@ def replay_summary(path, poses: bool = True) -> dict:
     for c in info["cars"]:
         laps = [e for e in events if e["car"] == c["id"] and e["kind"] == "lap"]
         ends = [e["kind"] for e in events if e["car"] == c["id"] and e["kind"] in END_TEXT]
-        lap_times = [float(e["text"].rsplit(" in ", 1)[1].split()[0]) for e in laps]
+        lap_times = [t for t in (lap_time(e["text"]) for e in laps) if t is not None]
         cars.append({"id": c["id"], "name": c["name"], "laps": len(laps), "lap_times": lap_times,
                      "images": image_counts.get(c["id"], 0), "pose_steps": len(pose_rows[c["id"]]),
                      "lidar_scans": len(lidar_echoes[c["id"]]), "lidar_echoes": sum(lidar_echoes[c["id"]]),
@@ -137,6 +140,36 @@ def replay_summary(path, poses: bool = True) -> dict:
         summary["poses"] = {cid: np.array([(s, *p) for s, p in sorted(rows.items())], dtype=np.float64).reshape(-1, 4)
                             for cid, rows in pose_rows.items()}
     return summary
+
+
+def _json(text: str, path, entity: str):
+    try:
+        return json.loads(text)
+    except (ValueError, RecursionError):  # RecursionError: nesting deeper than the parser's stack
+        raise ValueError(f"replay {path}: {entity} is not JSON multirace can read") from None
+
+
+def race_info(text: str, path) -> dict:
+    """The race description of a replay (its race/info JSON), checked: a one-line error naming the file
+    where it is not an object with track, reverse, format (text, a boolean, text), laps (a whole number) and
+    cars (each with a text id and name)."""
+    info = _json(text, path, "race/info")
+    cars = info.get("cars") if isinstance(info, dict) else None
+    types = {"track": str, "reverse": bool, "format": str, "laps": int}
+    if (not isinstance(cars, list) or not all(isinstance(info.get(k), t) for k, t in types.items())
+            or not all(isinstance(c, dict) and isinstance(c.get("id"), str) and isinstance(c.get("name"), str)
+                       for c in cars)):
+        raise ValueError(f"replay {path}: race/info is not a multirace race description "
+                         "(track, reverse, format, laps and cars with an id and a name)")
+    return info
+
+
+def lap_time(text) -> float | None:
+    """The seconds of a lap event's text ("... in 12.345 s"), or None where it holds none."""
+    try:
+        return float(str(text).rsplit(" in ", 1)[1].split()[0])
+    except (IndexError, ValueError):
+        return None
 
 
 def static_text(chunks: dict, entity: str) -> str | None:
@@ -174,9 +207,7 @@ def open_viewer(path) -> int:
     import shutil
     import subprocess
 
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"replay {path}: no such file")
+    path = regular_file(path, "replay")
     import os
     import sys
 

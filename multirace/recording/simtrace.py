@@ -33,6 +33,7 @@ with infos (learning cars) are logged.
 """
 from __future__ import annotations
 
+import array
 import csv
 import math
 from pathlib import Path
@@ -40,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import AtomicOutput
+from .files import regular_file
 
 SIMTRACE_COLUMNS = ("episode", "steps", "X", "Y", "yaw", "steer", "throttle", "action", "reward", "done",
                     "all_wheels_on_track", "progress", "closest_waypoint", "track_len", "tstamp",
@@ -243,20 +245,76 @@ class SimTraceRecorder:
             self.writer.discard()
 
 
-def read_simtrace(path) -> list[dict]:
-    """Rows of a sim-trace CSV as dicts with numbers and booleans parsed (no pandas needed)."""
-    rows = []
+MAX_LINE = 1 << 20  # characters in one line of a sim-trace; a longer one is not a sim-trace
+REQUIRED_COLUMNS = ("episode", "steps", "X", "Y", "track_len")
+MAX_COLUMN_ROWS = 10_000_000  # rows `read_simtrace_columns` reads (about 50 bytes of memory each)
+
+
+def _lines(file, path):
+    """The file's lines, none longer than `MAX_LINE` (a file of one endless line is refused, not read whole)."""
+    number = 0
+    while True:
+        line = file.readline(MAX_LINE + 1)
+        if not line:
+            return
+        number += 1
+        if len(line) > MAX_LINE:
+            raise ValueError(f"sim-trace {path} line {number}: longer than {MAX_LINE} characters; "
+                             "not a DeepRacer sim-trace CSV")
+        yield line
+
+
+def simtrace_records(path, required=REQUIRED_COLUMNS):
+    """Stream the raw rows (dicts of text) of a sim-trace CSV, one at a time, with the line each is on; a
+    one-line ValueError naming the file (and line) for anything that is not a sim-trace with `required`."""
+    path = regular_file(path, "sim-trace")
     try:
         with open(path, newline="", encoding="utf-8") as f:
-            reader = csv.DictReader(f)
-            missing = [c for c in ("episode", "steps", "X", "Y", "track_len") if c not in (reader.fieldnames or ())]
+            reader = csv.DictReader(_lines(f, path))
+            missing = [c for c in required if c not in (reader.fieldnames or ())]
             if missing:
                 raise ValueError(f"{path}: not a DeepRacer sim-trace CSV (no column {', '.join(missing)})")
             for raw in reader:
-                rows.append(_parsed(raw, path))
+                yield reader.line_num, raw
     except UnicodeDecodeError:
         raise ValueError(f"{path}: not a DeepRacer sim-trace CSV (not UTF-8 text)") from None
-    return rows
+    except csv.Error as exc:
+        raise ValueError(f"sim-trace {path}: not a readable CSV ({exc})") from None
+
+
+def read_simtrace(path) -> list[dict]:
+    """Rows of a sim-trace CSV as dicts with numbers and booleans parsed (no pandas needed)."""
+    return [_parsed(raw, path) for _, raw in simtrace_records(path)]
+
+
+def read_simtrace_columns(path, numbers: tuple, required=REQUIRED_COLUMNS) -> dict:
+    """Chosen columns of a sim-trace as arrays, streamed (memory: 8 bytes per value, not a dict per row):
+    `numbers` as float64, each finite, plus ``episode`` (int64) and ``off`` (the step went off track or
+    crashed). Any value that is not a finite number is a one-line error naming the file, line and column."""
+    columns = {key: array.array("d") for key in numbers}
+    episodes, off = array.array("q"), array.array("b")
+    for line, raw in simtrace_records(path, required=tuple(dict.fromkeys(required + numbers))):
+        if len(episodes) >= MAX_COLUMN_ROWS:
+            raise ValueError(f"sim-trace {path}: over {MAX_COLUMN_ROWS:,} rows; this reads at most that many")
+        for key, column in columns.items():
+            try:
+                value = float(raw[key])
+            except (TypeError, ValueError):
+                value = math.nan
+            if not math.isfinite(value):
+                raise ValueError(f"sim-trace {path} line {line}: column {key} is {str(raw[key])[:40]!r}, "
+                                 "not a finite number")
+            column.append(value)
+        try:
+            episodes.append(int(float(raw["episode"])))
+        except (TypeError, ValueError, OverflowError):
+            raise ValueError(f"sim-trace {path} line {line}: column episode is {str(raw['episode'])[:40]!r}, "
+                             "not a whole number") from None
+        off.append(raw.get("episode_status") in ("off_track", "crashed"))
+    arrays = {key: np.frombuffer(column, dtype=np.float64) for key, column in columns.items()}
+    arrays["episode"] = np.frombuffer(episodes, dtype=np.int64)
+    arrays["off"] = np.frombuffer(off, dtype=np.int8).astype(bool)
+    return arrays
 
 
 def _parsed(raw: dict, path) -> dict:

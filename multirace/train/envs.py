@@ -113,6 +113,7 @@ class TrainEnv:
         self.possible_agents = [f"car_{i}" for i in range(self.num_cars)]
         self.agents = list(self.possible_agents)
         self._envs: dict = {}
+        self._reward = None  # the loaded reward file, shared by the envs
         self.env = None
         self._rng = np.random.default_rng([worker, 7])
         self.perturbation = -1
@@ -126,12 +127,20 @@ class TrainEnv:
             track, reverse = self.runs[k]
             if isinstance(track, np.ndarray):
                 track = Track(track, name=f"generated_{k}", source="<trackgen>", reverse=reverse)
-            reward = None if self.reward in ("progress", "centre", None) else self.reward
+            reward = None if self.reward in ("progress", "centre", None) else self._reward_file()
             self._envs[k] = RaceEnv(track=track, reverse=reverse, num_cars=self.num_cars, race="time_trial",
                                     laps=100000, bots=self.bots, action_space=self.action_space,
                                     reward_function=reward, camera=self.camera, sensor=self.sensor,
                                     max_steps=self.episode_steps, observation=self.observation)
         return self._envs[k]
+
+    def _reward_file(self):
+        """The reward file, loaded once for every track this env switches between (it runs in one process)."""
+        if self._reward is None:
+            from ..environment.reward_process import load_reward_function
+
+            self._reward = load_reward_function(self.reward)
+        return self._reward
 
     def _episode_randomization(self):
         """This episode's randomisation: the configured one or nature's pick, scaled by the curriculum."""
