@@ -106,6 +106,8 @@ def _check(conn: sqlite3.Connection, folder: Path) -> None:
             raise LeagueError(f"{path}: not a multirace league store (table {table!r} {lack}); {RECOVER}")
     with _Tx(conn):
         stored = {Path(row[0]).name for row in conn.execute("SELECT file FROM submissions")}
+        if conn.execute("SELECT 1 FROM sqlite_master WHERE type='table' AND name='versions'").fetchone():
+            stored |= {Path(row[0]).name for row in conn.execute("SELECT file FROM versions")}  # earlier uploads
         on_disk = {p.name for p in (folder / SUBMISSIONS).glob("*.pt")}
     missing, unknown = sorted(stored - on_disk), sorted(on_disk - stored)
     if missing:
