@@ -170,7 +170,8 @@ def test_uploads_are_checked_and_refused_in_plain_words(league, cache, tmp_path)
         assert status == 413
         assert upload(srv.url, token, b"")[0] == 400
         status, answer = upload(srv.url, token, os.urandom(5000))
-        assert status == 422 and answer["error"].startswith("refused: the uploaded file") and ".tmp" not in answer["error"]
+        assert status == 422 and answer["error"].startswith("refused: the uploaded file")
+        assert ".tmp" not in answer["error"]
         marker = tmp_path / "pwned"
 
         class Evil:
@@ -346,7 +347,8 @@ def test_in_a_browser_upload_watch_the_board_change_play_the_video_open_the_repl
             browser = _browser(playwright)
             page = browser.new_page(viewport={"width": 1280, "height": 900})
             outside = []
-            page.on("request", lambda r: None if r.url.startswith((srv.url, "data:", "blob:")) else outside.append(r.url))
+            page.on("request", lambda r: None if r.url.startswith((srv.url, "data:", "blob:"))
+                    else outside.append(r.url))
             page.goto(srv.url + "/submit")
             page.fill("input[name=token]", token)
             page.set_input_files("input[name=file]", str(agent))

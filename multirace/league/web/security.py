@@ -6,7 +6,8 @@
 - CSRF: forms carry a random token that must equal the one in a SameSite=Strict cookie (double submit), and a
   cross-origin Origin header is refused. The JSON API takes the entrant's token in the Authorization header,
   which a cross-site form cannot send.
-- `SecurityHeaders`: nosniff, no referrer, same-origin framing and a same-origin Content-Security-Policy.
+- `SecurityHeaders`: nosniff, referrers only to this site (so forms carry a real Origin), same-origin
+  framing and a same-origin Content-Security-Policy.
 """
 from __future__ import annotations
 
@@ -116,7 +117,7 @@ def bearer_token(request) -> str | None:
 
 
 class SecurityHeaders:
-    """ASGI middleware adding nosniff, no-referrer, same-origin framing and a CSP to every response."""
+    """ASGI middleware adding nosniff, a same-origin referrer policy, same-origin framing and a CSP."""
 
     def __init__(self, app):
         self.app = app
@@ -130,7 +131,7 @@ class SecurityHeaders:
             if message["type"] == "http.response.start":
                 message.setdefault("headers", [])
                 message["headers"] = list(message["headers"]) + [
-                    (b"x-content-type-options", b"nosniff"), (b"referrer-policy", b"no-referrer"),
+                    (b"x-content-type-options", b"nosniff"), (b"referrer-policy", b"same-origin"),
                     (b"x-frame-options", b"SAMEORIGIN"), (b"content-security-policy", policy.encode())]
             await send(message)
 
