@@ -274,6 +274,7 @@ def test_a_server_killed_mid_upload_loses_nothing(league, cache, tmp_path):
     srv = Server(cache, league, log=tmp_path / "serve2.log")
     try:
         assert get_json(srv.url + "/api/leaderboard")["leaderboard"]["recorded"] == 6
+        assert not list((league / "submissions").glob(".*.tmp"))  # the killed upload's copy is cleared
         assert upload(srv.url, token, data)[0] == 201  # nothing half-made stands in its way
     finally:
         srv.stop()

@@ -94,6 +94,19 @@ def _write_copy(folder: Path, sha: str, data: bytes) -> Path:
     return copy
 
 
+def remove_stale_uploads(folder) -> int:
+    """Delete the temporary upload files in submissions/ left by processes that no longer run (killed mid-
+    upload); returns how many. A file of a live process (an upload being validated) is left alone."""
+    removed = 0
+    for tmp in (Path(folder) / SUBMISSIONS).glob(".*.tmp"):
+        parts = tmp.name.split(".")
+        pid = int(parts[2]) if len(parts) > 3 and parts[2].isdigit() else None
+        if pid is not None and pid != os.getpid() and not Path(f"/proc/{pid}").exists():
+            tmp.unlink(missing_ok=True)
+            removed += 1
+    return removed
+
+
 def _refuse_duplicate(conn, name: str, sha: str) -> None:
     row = conn.execute("SELECT name FROM submissions WHERE sha256=? UNION SELECT name FROM versions WHERE sha256=?",
                        (sha, sha)).fetchone()

@@ -8,6 +8,7 @@ body or as the multipart field `file`. There are no admin routes: entrants are m
 """
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 from urllib.parse import quote
 
@@ -22,7 +23,7 @@ from starlette.staticfiles import StaticFiles
 from starlette.templating import Jinja2Templates
 
 from ..config import LeagueError
-from ..entrants import entrant_for_token, upload_version
+from ..entrants import entrant_for_token, remove_stale_uploads, upload_version
 from ..store import connect
 from ..submissions import MAX_SUBMISSION_BYTES
 from .charts import lap_chart_svg, rating_chart_svg
@@ -34,6 +35,7 @@ from .viewer import viewer_assets
 
 HERE = Path(__file__).resolve().parent
 MULTIPART_OVERHEAD = 64 * 1024  # room for the form's other fields and part headers
+VALIDATIONS_AT_ONCE = 2
 
 
 class Uploads:
@@ -43,6 +45,7 @@ class Uploads:
         self.league, self.limit = league, limit
         self.per_entrant = RateLimiter(per_hour, 3600.0)
         self.bad_tokens = RateLimiter(30, 600.0)  # failed tokens per client address
+        self.validating = threading.BoundedSemaphore(VALIDATIONS_AT_ONCE)
 
     def entrant(self, request: Request, token) -> str:
         """The entrant a token belongs to; LeagueError (401 or 429) for a missing, wrong or abused token."""
@@ -69,9 +72,13 @@ class Uploads:
         if not self.per_entrant.allow(name):
             raise _Refused(429, "refused: too many uploads from this entrant in the last hour; try again later")
         try:
-            return await run_in_threadpool(upload_version, self.league.folder, name, data)
+            return await run_in_threadpool(self._validate_and_store, name, data)
         except LeagueError as exc:
             raise _Refused(422, str(exc)) from None
+
+    def _validate_and_store(self, name: str, data: bytes) -> dict:
+        with self.validating:  # the others wait their turn: each validation is a subprocess
+            return upload_version(self.league.folder, name, data)
 
 
 class _Refused(Exception):
@@ -92,6 +99,7 @@ def create_app(folder, upload_limit: int = MAX_SUBMISSION_BYTES, uploads_per_hou
     """The web app of the league in `folder` (the store is checked first: a damaged league is refused)."""
     league = League(folder)
     connect(league.folder).close()
+    remove_stale_uploads(league.folder)
     uploads = Uploads(league, upload_limit, uploads_per_hour)
     templates = Jinja2Templates(directory=str(HERE / "templates"))
     templates.env.globals.update(league_name=league.name, fmt=_fmt)
