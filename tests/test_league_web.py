@@ -356,7 +356,8 @@ def test_in_a_browser_upload_watch_the_board_change_play_the_video_open_the_repl
             page.click("button[type=submit]")
             assert "Accepted" in page.inner_text("#outcome")
             page.goto(srv.url + "/")
-            assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
+            assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth && "
+                                 "document.getElementById('standings').scrollWidth <= 1280")
             page.wait_for_function("() => /10 of 10 matches played/.test(document.getElementById('summary').innerText)",
                                    timeout=600_000)  # the page redrew itself as the runner played alice's matches
             assert "alice" in page.inner_text("#standings")

@@ -12,6 +12,7 @@ import threading
 from pathlib import Path
 from urllib.parse import quote
 
+from markupsafe import Markup, escape
 from starlette.applications import Starlette
 from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import UploadFile
@@ -103,6 +104,7 @@ def create_app(folder, upload_limit: int = MAX_SUBMISSION_BYTES, uploads_per_hou
     uploads = Uploads(league, upload_limit, uploads_per_hour)
     templates = Jinja2Templates(directory=str(HERE / "templates"))
     templates.env.globals.update(league_name=league.name, fmt=_fmt)
+    templates.env.filters["wbr"] = lambda text: Markup(escape(text).replace("_", Markup("_<wbr>")))
 
     def page(request, name, context, status=200):
         return templates.TemplateResponse(request, name, context, status_code=status)
