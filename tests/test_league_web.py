@@ -107,7 +107,7 @@ def test_pages_and_api_show_the_league(server, played):
     status, headers, page = request("GET", url + "/")
     assert status == 200 and headers["x-content-type-options"] == "nosniff"
     assert "default-src 'self'" in headers["content-security-policy"]
-    for text in (b"Rating", b"Best lap (s)", b"At-fault collisions / lap", b"Forfeits", b"dagger",
+    for text in (b"Rating", b"Time-trial best lap (s)", b"At-fault collisions / lap", b"Forfeits", b"dagger",
                  b"bot:follow@1.5"):
         assert text in page
     dagger = get_json(url + "/api/entrants/dagger")

@@ -101,7 +101,6 @@ def create_app(folder, upload_limit: int = MAX_SUBMISSION_BYTES, uploads_per_hou
     league = League(folder)
     connect(league.folder).close()
     remove_stale_uploads(league.folder)
-    uploads = Uploads(league, upload_limit, uploads_per_hour)
     templates = Jinja2Templates(directory=str(HERE / "templates"))
     templates.env.globals.update(league_name=league.name, fmt=_fmt)
     templates.env.filters["wbr"] = lambda text: Markup(escape(text).replace("_", Markup("_<wbr>")))
@@ -109,6 +108,17 @@ def create_app(folder, upload_limit: int = MAX_SUBMISSION_BYTES, uploads_per_hou
     def page(request, name, context, status=200):
         return templates.TemplateResponse(request, name, context, status_code=status)
 
+    routes = _api_routes(league) + _page_routes(league, page) + _upload_routes(
+        Uploads(league, upload_limit, uploads_per_hour), page) + [
+        Mount("/static", StaticFiles(directory=str(HERE / "static")), name="static"),
+        Mount("/viewer", StaticFiles(directory=str(viewer_assets(viewer_cache)), html=True), name="viewer"),
+    ]
+    middleware = [Middleware(SecurityHeaders), Middleware(BodyLimit, limit=upload_limit + MULTIPART_OVERHEAD)]
+    return Starlette(routes=routes, middleware=middleware)
+
+
+def _page_routes(league: League, page) -> list:
+    """The leaderboard, entrant and match pages, and a match's video and replay."""
     def leaderboard_page(request):
         return page(request, "leaderboard.html", {"table": league.leaderboard()})
 
@@ -137,6 +147,13 @@ def create_app(folder, upload_limit: int = MAX_SUBMISSION_BYTES, uploads_per_hou
             return Response("no replay for this match", status_code=404)
         return FileResponse(path, media_type="application/octet-stream")
 
+    return [Route("/", leaderboard_page), Route("/entrants/{name}", entrant_page),
+            Route("/matches/{match_id}", match_page), Route("/matches/{match_id}/video.mp4", video),
+            Route("/matches/{match_id}/replay.rrd", replay)]
+
+
+def _upload_routes(uploads: Uploads, page) -> list:
+    """The upload form (with its CSRF token) and the upload API."""
     async def submit_form(request):
         token = new_csrf_token()
         response = page(request, "submit.html", {"csrf": token, "field": CSRF_FIELD})
@@ -173,17 +190,8 @@ def create_app(folder, upload_limit: int = MAX_SUBMISSION_BYTES, uploads_per_hou
                              "agent": result["metadata"].get("name"), "url": f"/entrants/{quote(result['name'])}"},
                             status_code=201)
 
-    routes = _api_routes(league) + [
-        Route("/", leaderboard_page), Route("/entrants/{name}", entrant_page),
-        Route("/matches/{match_id}", match_page), Route("/matches/{match_id}/video.mp4", video),
-        Route("/matches/{match_id}/replay.rrd", replay),
-        Route("/submit", submit_form, methods=["GET"]), Route("/submit", submit_post, methods=["POST"]),
-        Route("/api/submissions", api_submit, methods=["POST"]),
-        Mount("/static", StaticFiles(directory=str(HERE / "static")), name="static"),
-        Mount("/viewer", StaticFiles(directory=str(viewer_assets(viewer_cache)), html=True), name="viewer"),
-    ]
-    middleware = [Middleware(SecurityHeaders), Middleware(BodyLimit, limit=upload_limit + MULTIPART_OVERHEAD)]
-    return Starlette(routes=routes, middleware=middleware)
+    return [Route("/submit", submit_form, methods=["GET"]), Route("/submit", submit_post, methods=["POST"]),
+            Route("/api/submissions", api_submit, methods=["POST"])]
 
 
 def _api_routes(league: League) -> list:
