@@ -1,0 +1,158 @@
+"""Ratings that settle fast: head-to-head heats chosen where the table is uncertain, and how to measure it.
+
+`uncertain_heats` picks the next heats of 2 cars: pairs whose outcome is least predictable and whose ratings
+are least known (OpenSkill's draw probability of the pair times the sum of their variances), each entrant at
+most once per batch, pairs that met least often first. `measure` compares it with a round robin on real
+races: two independent chains of results (the same pairs on different seeds) are rated apart, and the
+number of heats until their top 8 agree (Kendall tau >= 0.9) is the figure.
+`python -m multirace.league.convergence OUT.json` runs the measurement on 32 entrants.
+"""
+from __future__ import annotations
+
+import itertools
+import json
+import random
+import sys
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+
+def uncertain_heats(model, ratings: dict, count: int, met: dict) -> list[tuple[str, str]]:
+    """Up to `count` disjoint pairs of entrants for the next heats, most informative first."""
+    def score(pair):
+        a, b = ratings[pair[0]], ratings[pair[1]]
+        return (-met.get(frozenset(pair), 0), model.predict_draw([[a], [b]]) * (a.sigma ** 2 + b.sigma ** 2))
+
+    candidates = sorted(itertools.combinations(sorted(ratings), 2), key=score, reverse=True)
+    chosen, busy = [], set()
+    for a, b in candidates:
+        if a not in busy and b not in busy:
+            chosen.append((a, b))
+            busy |= {a, b}
+            if len(chosen) == count:
+                break
+    return chosen
+
+
+def top_tau(first: list[str], second: list[str], k: int = 8) -> float:
+    """Kendall tau between two rankings over the first ranking's top k (the second ranks them too)."""
+    from scipy.stats import kendalltau
+
+    top = first[:k]
+    where = {name: i for i, name in enumerate(second)}
+    return float(kendalltau(range(len(top)), [where[n] for n in top]).statistic)
+
+
+def _ranking(model, names, heats) -> tuple[dict, list[str]]:
+    ratings = {n: model.rating(name=n) for n in names}
+    for winner, loser in heats:
+        new = model.rate([[ratings[winner]], [ratings[loser]]], ranks=[1, 2])
+        ratings[winner], ratings[loser] = new[0][0], new[1][0]
+    return ratings, sorted(names, key=lambda n: (-ratings[n].ordinal(), n))
+
+
+def _play(task) -> tuple:
+    """One real heat of two entrants (in a worker process): (a, b, seed, winner)."""
+    from .worker import run_match
+
+    a, b, seed, specs, track, steps = task
+    entrants = [{"name": n, "spec": specs[n], "sha256": None, "step_budget": 0.5} for n in (a, b)]
+    if seed % 2:
+        entrants.reverse()  # grid slots alternate with the seed
+    spec = {"kind": "head_to_head", "race": "head_to_head", "track": track, "reverse": False, "seed": seed,
+            "trial": 0, "laps": 1, "max_steps": steps, "entrants": entrants}
+    cars = run_match(spec, Path("/"), None)["cars"]
+    return a, b, seed, min(cars, key=lambda c: c["position"])["name"]
+
+
+class Outcomes:
+    """Real heat results, cached in a JSON file (a pair on a seed is raced once)."""
+
+    def __init__(self, path: Path, specs: dict, track: str, steps: int, workers: int):
+        self.path, self.specs, self.track, self.steps = path, specs, track, steps
+        self.pool = ProcessPoolExecutor(workers)
+        self.known = json.loads(path.read_text()) if path.is_file() else {}
+
+    def winners(self, heats: list[tuple[str, str, int]]) -> list[str]:
+        todo = [h for h in heats if self._key(*h) not in self.known]
+        tasks = [(a, b, s, self.specs, self.track, self.steps) for a, b, s in todo]
+        for a, b, seed, winner in self.pool.map(_play, tasks):
+            self.known[self._key(a, b, seed)] = winner
+        if todo:
+            self.path.write_text(json.dumps(self.known, sort_keys=True))
+        return [self.known[self._key(*h)] for h in heats]
+
+    @staticmethod
+    def _key(a, b, seed) -> str:
+        return f"{min(a, b)}|{max(a, b)}|{seed}"
+
+
+def _chains(outcomes: Outcomes, names, schedule, batch: int, limit: int, curve: list, on_batch) -> int | None:
+    """Run two chains (seeds 1 and 2) in batches until their top 8 agree, appending to the tau `curve` (and
+    calling `on_batch`) after each batch; returns the heats per chain at agreement (None: not within `limit`)."""
+    from openskill.models import PlackettLuce
+
+    model = PlackettLuce()
+    played = {1: [], 2: []}
+    while len(played[1]) < limit:
+        for seed in (1, 2):
+            ratings, _ = _ranking(model, names, played[seed])
+            met = {}
+            for w, l in played[seed]:
+                met[frozenset((w, l))] = met.get(frozenset((w, l)), 0) + 1
+            pairs = schedule(model, ratings, batch, met, len(played[seed]))
+            winners = outcomes.winners([(a, b, seed) for a, b in pairs])
+            played[seed] += [(w, b if w == a else a) for (a, b), w in zip(pairs, winners)]
+        tau = top_tau(_ranking(model, names, played[1])[1], _ranking(model, names, played[2])[1])
+        curve.append({"heats_per_chain": len(played[1]), "tau_top8": round(tau, 4)})
+        on_batch()
+        if tau >= 0.9:
+            return len(played[1])
+    return None
+
+
+def measure(entrants: dict, out: Path, track: str = "reinvent_base", steps: int = 100, batch: int = 16,
+            workers: int = 2, seed: int = 0) -> dict:
+    """Heats per chain until two independent chains' top 8 agree (tau >= 0.9): uncertainty schedule vs a
+    round robin in random order. `entrants` maps names to agent files or bot specs."""
+    names = sorted(entrants)
+    order = list(itertools.combinations(names, 2))
+    random.Random(seed).shuffle(order)
+
+    def round_robin(model, ratings, count, met, done):
+        return order[done:done + count]
+
+    def uncertain(model, ratings, count, met, done):
+        return uncertain_heats(model, ratings, count, met)
+
+    result = {"entrants": len(names), "track": track, "max_steps": steps, "batch": batch,
+              "uncertainty": {"converged_at": None, "curve": []}, "round_robin": {"converged_at": None, "curve": []}}
+    outcomes = Outcomes(out.with_suffix(".heats.json"), entrants, track, steps, workers)
+
+    def save():  # after every batch: a measurement stopped early keeps its curve so far
+        out.write_text(json.dumps({**result, "heats_raced": len(outcomes.known)}, indent=2))
+
+    try:
+        for key, schedule in (("uncertainty", uncertain), ("round_robin", round_robin)):
+            result[key]["converged_at"] = _chains(outcomes, names, schedule, batch, len(order),
+                                                  result[key]["curve"], save)
+            save()
+    finally:
+        outcomes.pool.shutdown()
+    return {**result, "heats_raced": len(outcomes.known)}
+
+
+def league_of_32() -> dict:
+    """32 entrants: the 4 shipped agents and 28 bots of four kinds and many speeds."""
+    from ..resources import agents_dir
+
+    entrants = {p.stem: str(p) for p in sorted(agents_dir().glob("*.pt"))}
+    speeds = [0.6, 0.8, 1.0, 1.2, 1.4, 1.6, 1.8, 2.0]
+    bots = ([f"bot:follow@{s}" for s in speeds] + [f"bot:lanes@{s}" for s in speeds]
+            + [f"bot:pass@{s}" for s in speeds[1:7]] + [f"bot:racingline@{s}" for s in (0.5, 0.6, 0.7, 0.8, 0.9, 1.0)])
+    entrants.update({b: b for b in bots[:32 - len(entrants)]})
+    return entrants
+
+
+if __name__ == "__main__":
+    print(json.dumps(measure(league_of_32(), Path(sys.argv[1])), indent=2))
