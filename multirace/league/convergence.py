@@ -43,12 +43,14 @@ def top_tau(first: list[str], second: list[str], k: int = 8) -> float:
     return float(kendalltau(range(len(top)), [where[n] for n in top]).statistic)
 
 
-def _ranking(model, names, heats) -> tuple[dict, list[str]]:
+def _ranking(model, names, heats, tie_order: dict) -> tuple[dict, list[str]]:
+    """Ratings after `heats` (winner, loser) and the ranking; equal ratings in the chain's own random order,
+    so that two chains never agree merely because they break ties alike."""
     ratings = {n: model.rating(name=n) for n in names}
     for winner, loser in heats:
         new = model.rate([[ratings[winner]], [ratings[loser]]], ranks=[1, 2])
         ratings[winner], ratings[loser] = new[0][0], new[1][0]
-    return ratings, sorted(names, key=lambda n: (-ratings[n].ordinal(), n))
+    return ratings, sorted(names, key=lambda n: (-round(ratings[n].ordinal(), 9), tie_order[n]))
 
 
 def _play(task) -> tuple:
@@ -88,26 +90,30 @@ class Outcomes:
 
 
 def _chains(outcomes: Outcomes, names, schedule, batch: int, limit: int, curve: list, on_batch) -> int | None:
-    """Run two chains (seeds 1 and 2) in batches until their top 8 agree, appending to the tau `curve` (and
+    """Run two chains (seeds 1 and 2) in batches until their top 8 agree after two batches running, appending to the tau `curve` (and
     calling `on_batch`) after each batch; returns the heats per chain at agreement (None: not within `limit`)."""
     from openskill.models import PlackettLuce
 
     model = PlackettLuce()
     played = {1: [], 2: []}
+    ties = {seed: dict(zip(names, random.Random(seed).sample(range(len(names)), len(names)))) for seed in (1, 2)}
+    agreed = 0
     while len(played[1]) < limit:
         for seed in (1, 2):
-            ratings, _ = _ranking(model, names, played[seed])
+            ratings, _ = _ranking(model, names, played[seed], ties[seed])
             met = {}
             for w, l in played[seed]:
                 met[frozenset((w, l))] = met.get(frozenset((w, l)), 0) + 1
             pairs = schedule(model, ratings, batch, met, len(played[seed]))
             winners = outcomes.winners([(a, b, seed) for a, b in pairs])
             played[seed] += [(w, b if w == a else a) for (a, b), w in zip(pairs, winners)]
-        tau = top_tau(_ranking(model, names, played[1])[1], _ranking(model, names, played[2])[1])
+        rankings = [_ranking(model, names, played[seed], ties[seed])[1] for seed in (1, 2)]
+        tau = top_tau(*rankings)
         curve.append({"heats_per_chain": len(played[1]), "tau_top8": round(tau, 4)})
         on_batch()
-        if tau >= 0.9:
-            return len(played[1])
+        agreed = agreed + 1 if tau >= 0.9 else 0
+        if agreed == 2:  # two batches in a row: agreement that holds, not a passing coincidence
+            return len(played[1]) - batch
     return None
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import signal
 import threading
 import time
+from pathlib import Path
 
 from .store import connect
 from .runner import run_league
@@ -16,8 +17,6 @@ from .runner import run_league
 
 def _signature(folder) -> tuple:
     """What decides the schedule: the entrants' racing files and the league definition."""
-    from pathlib import Path
-
     conn = connect(folder)
     try:
         files = tuple(conn.execute("SELECT name, sha256 FROM submissions ORDER BY name").fetchall())
