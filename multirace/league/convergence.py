@@ -90,8 +90,9 @@ class Outcomes:
 
 
 def _chains(outcomes: Outcomes, names, schedule, batch: int, limit: int, curve: list, on_batch) -> int | None:
-    """Run two chains (seeds 1 and 2) in batches until their top 8 agree after two batches running, appending to the tau `curve` (and
-    calling `on_batch`) after each batch; returns the heats per chain at agreement (None: not within `limit`)."""
+    """Run two chains (seeds 1 and 2) in batches until their top 8 agree for two batches running, appending
+    to the tau `curve` (and calling `on_batch`) after each batch; returns the heats per chain at agreement
+    (None: not within `limit`)."""
     from openskill.models import PlackettLuce
 
     model = PlackettLuce()
