@@ -3,8 +3,10 @@
 `uncertain_heats` picks the next heats of 2 cars: pairs whose outcome is least predictable and whose ratings
 are least known (OpenSkill's draw probability of the pair times the sum of their variances), each entrant at
 most once per batch, pairs that met least often first. `measure` compares it with a round robin on real
-races: two independent chains of results (the same pairs on different seeds) are rated apart, and the
-number of heats until their top 8 agree (Kendall tau >= 0.9) is the figure.
+races: each pairing is raced from both grid orders (bots that never overtake would otherwise lose from
+behind whatever their speed); two independent chains of results (on seeds 1 and 2) are rated apart, and
+the number of pairings per chain until their top 8 agree (Kendall tau >= 0.9, two batches running) is the
+figure. The schedule is not yet what `league run` plays: it is measured here first.
 `python -m multirace.league.convergence OUT.json` runs the measurement on 32 entrants.
 """
 from __future__ import annotations
@@ -54,17 +56,21 @@ def _ranking(model, names, heats, tie_order: dict) -> tuple[dict, list[str]]:
 
 
 def _play(task) -> tuple:
-    """One real heat of two entrants (in a worker process): (a, b, seed, winner)."""
+    """One real pairing of two entrants (in a worker process), raced from both grid orders on the seed (a
+    car that never overtakes loses from behind whatever its speed): (a, b, seed, winner). The winner has the
+    better sum of finishing positions, then the more distance over both races."""
     from .worker import run_match
 
     a, b, seed, specs, track, steps = task
-    entrants = [{"name": n, "spec": specs[n], "sha256": None, "step_budget": 0.5} for n in (a, b)]
-    if seed % 2:
-        entrants.reverse()  # grid slots alternate with the seed
-    spec = {"kind": "head_to_head", "race": "head_to_head", "track": track, "reverse": False, "seed": seed,
-            "trial": 0, "laps": 1, "max_steps": steps, "entrants": entrants}
-    cars = run_match(spec, Path("/"), None)["cars"]
-    return a, b, seed, min(cars, key=lambda c: c["position"])["name"]
+    score = {a: [0, 0.0], b: [0, 0.0]}
+    for grid in ((a, b), (b, a)):
+        entrants = [{"name": n, "spec": specs[n], "sha256": None, "step_budget": 0.5} for n in grid]
+        spec = {"kind": "head_to_head", "race": "head_to_head", "track": track, "reverse": False, "seed": seed,
+                "trial": 0, "laps": 1, "max_steps": steps, "entrants": entrants}
+        for car in run_match(spec, Path("/"), None)["cars"]:
+            score[car["name"]][0] -= car["position"]
+            score[car["name"]][1] += car["laps"] * 100 + (car.get("progress") or 0.0)
+    return a, b, seed, max((a, b), key=lambda n: (score[n], n == min(a, b)))
 
 
 class Outcomes:
