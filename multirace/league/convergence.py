@@ -95,17 +95,15 @@ class Outcomes:
         return f"{min(a, b)}|{max(a, b)}|{seed}"
 
 
-def _chains(outcomes: Outcomes, names, schedule, batch: int, limit: int, curve: list, on_batch) -> int | None:
-    """Run two chains (seeds 1 and 2) in batches until their top 8 agree for two batches running, appending
-    to the tau `curve` (and calling `on_batch`) after each batch; returns the heats per chain at agreement
-    (None: not within `limit`)."""
+def _chains(outcomes: Outcomes, names, schedule, batch: int):
+    """Two chains of a schedule (outcomes on seeds 1 and 2), a batch of pairings each per step: yields the
+    pairings per chain so far and the Kendall tau of the two chains' top 8."""
     from openskill.models import PlackettLuce
 
     model = PlackettLuce()
     played = {1: [], 2: []}
     ties = {seed: dict(zip(names, random.Random(seed).sample(range(len(names)), len(names)))) for seed in (1, 2)}
-    agreed = 0
-    while len(played[1]) < limit:
+    while True:
         for seed in (1, 2):
             ratings, _ = _ranking(model, names, played[seed], ties[seed])
             met = {}
@@ -115,44 +113,40 @@ def _chains(outcomes: Outcomes, names, schedule, batch: int, limit: int, curve: 
             winners = outcomes.winners([(a, b, seed) for a, b in pairs])
             played[seed] += [(w, b if w == a else a) for (a, b), w in zip(pairs, winners)]
         rankings = [_ranking(model, names, played[seed], ties[seed])[1] for seed in (1, 2)]
-        tau = top_tau(*rankings)
-        curve.append({"heats_per_chain": len(played[1]), "tau_top8": round(tau, 4)})
-        on_batch()
-        agreed = agreed + 1 if tau >= 0.9 else 0
-        if agreed == 2:  # two batches in a row: agreement that holds, not a passing coincidence
-            return len(played[1]) - batch
-    return None
+        yield len(played[1]), top_tau(*rankings)
 
 
 def measure(entrants: dict, out: Path, track: str = "reinvent_base", steps: int = 100, batch: int = 16,
             workers: int = 2, seed: int = 0) -> dict:
-    """Heats per chain until two independent chains' top 8 agree (tau >= 0.9): uncertainty schedule vs a
-    round robin in random order. `entrants` maps names to agent files or bot specs."""
+    """Pairings per chain until two independent chains' top 8 agree (tau >= 0.9 for two batches running):
+    the uncertainty schedule against a round robin in random order, a batch of each in turn (so a run
+    stopped early compares them at equal cost). `entrants` maps names to agent files or bot specs."""
     names = sorted(entrants)
     order = list(itertools.combinations(names, 2))
     random.Random(seed).shuffle(order)
-
-    def round_robin(model, ratings, count, met, done):
-        return order[done:done + count]
-
-    def uncertain(model, ratings, count, met, done):
-        return uncertain_heats(model, ratings, count, met)
-
-    result = {"entrants": len(names), "track": track, "max_steps": steps, "batch": batch,
-              "uncertainty": {"converged_at": None, "curve": []}, "round_robin": {"converged_at": None, "curve": []}}
+    schedules = {"uncertainty": lambda model, ratings, count, met, done: uncertain_heats(model, ratings, count, met),
+                 "round_robin": lambda model, ratings, count, met, done: order[done:done + count]}
+    result = {"entrants": len(names), "track": track, "max_steps": steps, "batch": batch}
     outcomes = Outcomes(out.with_suffix(".heats.json"), entrants, track, steps, workers)
-
-    def save():  # after every batch: a measurement stopped early keeps its curve so far
-        out.write_text(json.dumps({**result, "heats_raced": len(outcomes.known)}, indent=2))
-
+    chains = {key: _chains(outcomes, names, schedule, batch) for key, schedule in schedules.items()}
+    for key in chains:
+        result[key] = {"converged_at": None, "curve": [], "agreed": 0}
     try:
-        for key, schedule in (("uncertainty", uncertain), ("round_robin", round_robin)):
-            result[key]["converged_at"] = _chains(outcomes, names, schedule, batch, len(order),
-                                                  result[key]["curve"], save)
-            save()
+        while any(r["converged_at"] is None and len(r["curve"]) * batch < len(order)
+                  for r in (result[k] for k in chains)):
+            for key, chain in chains.items():
+                state = result[key]
+                if state["converged_at"] is not None:
+                    continue
+                count, tau = next(chain)
+                state["curve"].append({"pairings_per_chain": count, "tau_top8": round(tau, 4)})
+                state["agreed"] = state["agreed"] + 1 if tau >= 0.9 else 0
+                if state["agreed"] == 2:  # two batches in a row: agreement that holds, not a coincidence
+                    state["converged_at"] = count - batch
+                out.write_text(json.dumps({**result, "races": 2 * len(outcomes.known)}, indent=2))
     finally:
         outcomes.pool.shutdown()
-    return {**result, "heats_raced": len(outcomes.known)}
+    return {**result, "races": 2 * len(outcomes.known)}
 
 
 def league_of_32() -> dict:
