@@ -6,7 +6,9 @@ most once per batch, pairs that met least often first. `measure` compares it wit
 races: each pairing is raced from both grid orders (bots that never overtake would otherwise lose from
 behind whatever their speed); two independent chains of results (on seeds 1 and 2) are rated apart, and
 the number of pairings per chain until their top 8 agree (Kendall tau >= 0.9, two batches running) is the
-figure. The schedule is not yet what `league run` plays: it is measured here first.
+figure. The round robin's chains race disjoint halves of its pairings: the races of these entrants hardly
+depend on the seed, so the same pairings on two seeds would agree at once. The schedule is not yet what
+`league run` plays: it is measured here first.
 `python -m multirace.league.convergence OUT.json` runs the measurement on 32 entrants.
 """
 from __future__ import annotations
@@ -109,7 +111,7 @@ def _chains(outcomes: Outcomes, names, schedule, batch: int):
             met = {}
             for w, l in played[seed]:
                 met[frozenset((w, l))] = met.get(frozenset((w, l)), 0) + 1
-            pairs = schedule(model, ratings, batch, met, len(played[seed]))
+            pairs = schedule(model, ratings, batch, met, len(played[seed]), seed)
             winners = outcomes.winners([(a, b, seed) for a, b in pairs])
             played[seed] += [(w, b if w == a else a) for (a, b), w in zip(pairs, winners)]
         rankings = [_ranking(model, names, played[seed], ties[seed])[1] for seed in (1, 2)]
@@ -124,15 +126,17 @@ def measure(entrants: dict, out: Path, track: str = "reinvent_base", steps: int 
     names = sorted(entrants)
     order = list(itertools.combinations(names, 2))
     random.Random(seed).shuffle(order)
-    schedules = {"uncertainty": lambda model, ratings, count, met, done: uncertain_heats(model, ratings, count, met),
-                 "round_robin": lambda model, ratings, count, met, done: order[done:done + count]}
+    halves = {1: order[0::2], 2: order[1::2]}  # a round robin's two independent halves: disjoint pairings
+    schedules = {"uncertainty": lambda model, ratings, count, met, done, seed: uncertain_heats(model, ratings, count,
+                                                                                              met),
+                 "round_robin": lambda model, ratings, count, met, done, seed: halves[seed][done:done + count]}
     result = {"entrants": len(names), "track": track, "max_steps": steps, "batch": batch}
     outcomes = Outcomes(out.with_suffix(".heats.json"), entrants, track, steps, workers)
     chains = {key: _chains(outcomes, names, schedule, batch) for key, schedule in schedules.items()}
     for key in chains:
         result[key] = {"converged_at": None, "curve": [], "agreed": 0}
     try:
-        while any(r["converged_at"] is None and len(r["curve"]) * batch < len(order)
+        while any(r["converged_at"] is None and len(r["curve"]) * batch < len(order) // 2
                   for r in (result[k] for k in chains)):
             for key, chain in chains.items():
                 state = result[key]
