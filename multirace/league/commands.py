@@ -40,7 +40,11 @@ def add_league_commands(sub) -> None:
     run.add_argument("--ray", metavar="ADDRESS", default=None,
                      help="run matches as Ray tasks on this cluster (e.g. auto or ray://host:10001)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.add_argument("--watch", action="store_true",
+                     help="keep running: play the matches each newly uploaded version needs (Ctrl-C to stop)")
+    run.add_argument("--poll", type=float, default=2.0, help="with --watch: seconds between looks (default 2)")
     run.set_defaults(func=_cmd_run)
+    _add_web_commands(league_sub)
     table = league_sub.add_parser("table", help="print or export the league table",
                                   description="Ratings (OpenSkill Plackett-Luce ordinal), time-trial standings "
                                               "and clean driving. Only reads the league folder (a read-only "
@@ -88,6 +92,14 @@ def _cmd_submit(args) -> int:
 
 @_store_errors
 def _cmd_run(args) -> int:
+    if args.watch:
+        from .watch import watch_league
+
+        print(f"watching {args.dir} for new versions (Ctrl-C to stop)", flush=True)
+        ran = watch_league(args.dir, workers=args.workers, ray_address=args.ray, poll=max(args.poll, 0.1),
+                           say=lambda line: print(line, flush=True))
+        print(f"league run --watch: stopped after {ran} matches")
+        return 0
     stats = run_league(args.dir, workers=args.workers, ray_address=args.ray, progress=not args.quiet)
     print(f"league run: {stats['ran']} matches run, {stats['failed']} failed, {stats['scheduled']} scheduled, "
           f"{stats['wall_seconds']:.1f} s")
@@ -104,4 +116,49 @@ def _cmd_table(args) -> int:
             print(f"wrote {written}")
     else:
         sys.stdout.write(text)
+    return 0
+
+
+def _add_web_commands(league_sub) -> None:
+    """`league serve DIR` and `league entrant add DIR NAME`."""
+    serve = league_sub.add_parser("serve", help="serve the league as a web app (leaderboard, uploads, replays)",
+                                  description="Leaderboard, entrant and match pages with race videos and "
+                                              "rerun's web viewer, uploads with entrant tokens, a JSON API. "
+                                              "Run `league run DIR --watch` beside it to play new entries.")
+    serve.add_argument("dir", help="the league folder")
+    serve.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
+    serve.add_argument("--port", type=int, default=8000, help="port (default 8000)")
+    serve.add_argument("--max-upload-mb", type=float, default=None, help="largest agent file accepted (default 256)")
+    serve.add_argument("--uploads-per-hour", type=int, default=20, help="uploads per entrant per hour (default 20)")
+    serve.set_defaults(func=_cmd_serve)
+    entrant = league_sub.add_parser("entrant", help="entrants who upload from the web")
+    entrant_sub = entrant.add_subparsers(dest="entrant_command", required=True)
+    add = entrant_sub.add_parser("add", help="create an entrant and print its upload token (shown once)")
+    add.add_argument("dir", help="the league folder")
+    add.add_argument("name", help="the entrant's name in the league")
+    add.set_defaults(func=_cmd_entrant_add)
+
+
+@_store_errors
+def _cmd_serve(args) -> int:
+    from .web.server import serve
+
+    if not 0 < args.port < 65536:
+        raise LeagueError("--port: must be 1 to 65535")
+    if args.max_upload_mb is not None and not 0 < args.max_upload_mb <= 256:
+        raise LeagueError("--max-upload-mb: must be above 0 and at most 256")
+    if args.uploads_per_hour < 1:
+        raise LeagueError("--uploads-per-hour: must be at least 1")
+    limit = int(args.max_upload_mb * 2**20) if args.max_upload_mb else None
+    serve(args.dir, args.host, args.port, upload_limit=limit, uploads_per_hour=args.uploads_per_hour)
+    return 0
+
+
+@_store_errors
+def _cmd_entrant_add(args) -> int:
+    from .entrants import add_entrant
+
+    token = add_entrant(args.dir, args.name)
+    print(f"entrant {args.name!r} created. Their upload token (shown only now; the league keeps only its hash):")
+    print(token)
     return 0

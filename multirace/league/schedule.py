@@ -23,13 +23,20 @@ def _match_id(spec: dict) -> str:
     return hashlib.sha256(canonical.encode()).hexdigest()[:16]
 
 
+def _heat_offset(names: list[str]) -> int:
+    """A grid rotation offset that depends only on who is in the heat (stable as entrants join)."""
+    return int(hashlib.sha256("\n".join(sorted(names)).encode()).hexdigest()[:8], 16)
+
+
 def build_schedule(config: LeagueConfig, entries: list[dict]) -> list[dict]:
     """The full deterministic schedule: a list of {"match_id", "kind", "round", "spec"} in schedule order.
 
     Time trials: every entrant, per track, direction, seed and trial. Head-to-head:
     every K-subset of entrants (so every pair meets equally often) per track,
     direction, seed and trial; a heat's grid order is the subset rotated by
-    (block + trial) mod K, so over blocks each entrant starts from each slot.
+    (block + trial + an offset drawn from its entrants' names) mod K, so over
+    blocks each entrant starts from each slot, and a heat's id does not change
+    when another entrant joins (a new entrant or version adds only its own matches).
     A round is one (track, direction, seed, trial) block of heats.
     """
     schedule = []
@@ -55,8 +62,8 @@ def build_schedule(config: LeagueConfig, entries: list[dict]) -> list[dict]:
         round_no = 0
         for b, (track, reverse, seed) in enumerate(blocks):
             for trial in range(h["trials"]):
-                for j, heat in enumerate(heats):
-                    shift = (b * h["trials"] + trial + j) % k
+                for heat in heats:
+                    shift = (b * h["trials"] + trial + _heat_offset([entries[i]["name"] for i in heat])) % k
                     grid = heat[shift:] + heat[:shift]
                     spec = {"kind": "head_to_head", "race": "head_to_head", "track": track, "reverse": reverse,
                             "seed": seed, "trial": trial, "laps": h["laps"], "max_steps": h["max_steps"],

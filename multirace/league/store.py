@@ -135,6 +135,8 @@ def _check(conn: sqlite3.Connection, folder: Path, readonly: bool = False) -> No
     with _Tx(conn, "DEFERRED" if readonly else "IMMEDIATE"):
         rows = conn.execute("SELECT name, sha256, file FROM submissions ORDER BY name").fetchall()
         stored = {Path(row[2]).name for row in rows}
+        if conn.execute("SELECT 1 FROM sqlite_master WHERE type='table' AND name='versions'").fetchone():
+            stored |= {Path(row[0]).name for row in conn.execute("SELECT file FROM versions")}  # earlier uploads
         on_disk = {p.name for p in (folder / SUBMISSIONS).glob("*.pt")}
     missing, unknown = sorted(stored - on_disk), sorted(on_disk - stored)
     if missing:

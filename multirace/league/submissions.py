@@ -87,6 +87,15 @@ def validate_in_subprocess(path, step_budget: float, timeout: float = SUBMIT_TIM
     return json.loads(lines[-1])
 
 
+def check_entrant_name(name, config) -> None:
+    """Raise LeagueError unless `name` can be an entrant of the league: the name pattern, not a bot's name."""
+    if not isinstance(name, str) or not ENTRANT_NAME.fullmatch(name) or name.startswith("bot:"):
+        raise LeagueError(f"--name: {name!r} is not a valid entrant name: 1-64 letters, digits, spaces and "
+                          "_ . - + @ : (starting with a letter or digit), not 'bot:...'")
+    if name in config.bots:
+        raise LeagueError(f"--name: {name!r} is a bot of this league")
+
+
 def submit(folder, path, name: str, step_budget: float | None = None, validate: bool = True) -> dict:
     """Validate an agent file and store it in the league by content hash; returns its submission row.
 
@@ -98,11 +107,7 @@ def submit(folder, path, name: str, step_budget: float | None = None, validate: 
     path = Path(path)
     if not path.exists():
         raise LeagueError(f"{path}: no such agent file")
-    if not isinstance(name, str) or not ENTRANT_NAME.fullmatch(name) or name.startswith("bot:"):
-        raise LeagueError(f"--name: {name!r} is not a valid entrant name: 1-64 letters, digits, spaces and "
-                          "_ . - + @ : (starting with a letter or digit), not 'bot:...'")
-    if name in config.bots:
-        raise LeagueError(f"--name: {name!r} is a bot of this league")
+    check_entrant_name(name, config)
     data = _read_submission(path)
     sha = hashlib.sha256(data).hexdigest()
     conn = connect(folder)
