@@ -35,7 +35,8 @@ def add_train_parser(sub) -> None:
     p.add_argument("--action-space", default=None, metavar="JSON", type=input_file,
                    help="model_metadata.json with the action space")
     p.add_argument("--reward", default=None,
-                   help="'progress' (built-in, default), 'centre' (DeepRacer default) or a reward .py file")
+                   help="'progress' (built-in, default), 'centre' (DeepRacer default) or a reward .py file (the "
+                        "shipped example: reward_speed_progress.py)")
     p.add_argument("--network", default=None, help="MULTIRACE_SMALL_CNN or DEEP_CONVOLUTIONAL_NETWORK_SHALLOW")
     p.add_argument("--envs", type=POSITIVE_INT, default=None, help="worker processes (default 2)")
     p.add_argument("--cars", type=number(int, minimum=1, maximum=8), default=None,
@@ -80,7 +81,7 @@ def config_from_args(args):
     if args.privileged:
         overrides.setdefault("privileged", True)
     config = make_config(args.config, tracks=tracks, reverse=args.reverse, minutes=args.minutes, seed=args.seed,
-                         action_space=args.action_space, reward=args.reward, network=args.network,
+                         action_space=args.action_space, reward=reward_argument(args.reward), network=args.network,
                          num_envs=args.envs, cars_per_env=args.cars,
                          stop_on_success=True if args.stop_on_success else None,
                          progress=False if args.no_progress else None, **overrides)
@@ -92,6 +93,17 @@ def config_from_args(args):
         apply_robust(config, explicit=set(overrides))
     check_inputs(config)
     return config
+
+
+def reward_argument(reward: str | None) -> str | None:
+    """--reward as given, or the shipped example reward file it names (`reward_speed_progress.py`) when no such
+    file is here."""
+    from ..resources import agents_dir
+
+    if reward in (None, "progress", "centre") or Path(reward).exists():
+        return reward
+    shipped = agents_dir() / Path(reward).name
+    return str(shipped) if shipped.suffix == ".py" and shipped.is_file() else reward
 
 
 def check_inputs(config) -> None:
