@@ -11,7 +11,8 @@ from multirace.racing.agentfile import AgentController, load_agent
 from multirace.racing.runner import RaceConfig, run_race
 from multirace.train.config import make_config
 from multirace.train.distill import distill_student, milestones, student_config
-from multirace.train.teacher import evaluate_teacher, load_teacher, train_teacher
+from multirace.train.teacher import evaluate_teacher, train_teacher
+from multirace.train.teacher_net import load_teacher
 
 SPACE = str(Path(__file__).parents[1] / "agents" / "action_space_racer.json")  # steering +-30 deg, 0.5-4 m/s
 

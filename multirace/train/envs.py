@@ -210,7 +210,7 @@ class TrainEnv:
     def _make_expert(self, space):
         """The labelling driver: a teacher file's state policy ("teacher:PATH"), a bot spec, or bot:pass."""
         if self.expert.startswith(TEACHER_PREFIX):
-            from .teacher import load_teacher
+            from .teacher_net import load_teacher
 
             return load_teacher(self.expert[len(TEACHER_PREFIX):])
         from ..environment.bots import Bot, parse_bot

@@ -188,7 +188,7 @@ def check_init_action_space(init_space, space, init_path) -> None:
 def make_expert(config: ImitationConfig, space):
     """The driver whose commands label the images: a teacher file's state policy, or a scripted bot."""
     if config.teacher:
-        from .teacher import load_teacher
+        from .teacher_net import load_teacher
 
         return load_teacher(config.teacher)
     expert = parse_bot(config.expert) if config.expert else Bot(kind="pass", speed=float(config.expert_speed))
