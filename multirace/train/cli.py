@@ -32,8 +32,9 @@ def add_train_parser(sub) -> None:
                    help="override one setting (JSON value), e.g. --set epochs=4 --set gamma=0.995; "
                         "see `multirace train --list-settings`")
     p.add_argument("--list-settings", action="store_true", help="print every setting with its doc and exit")
-    p.add_argument("--action-space", default=None, metavar="JSON", type=input_file,
-                   help="model_metadata.json with the action space")
+    p.add_argument("--action-space", default=None, metavar="JSON", type=shipped_action_space,
+                   help="model_metadata.json with the action space (or a shipped one by name: "
+                        "action_space_racer.json)")
     p.add_argument("--reward", default=None,
                    help="'progress' (built-in, default), 'centre' (DeepRacer default) or a reward .py file (the "
                         "shipped example: reward_speed_progress.py)")
@@ -81,7 +82,8 @@ def config_from_args(args):
     if args.privileged:
         overrides.setdefault("privileged", True)
     config = make_config(args.config, tracks=tracks, reverse=args.reverse, minutes=args.minutes, seed=args.seed,
-                         action_space=args.action_space, reward=reward_argument(args.reward), network=args.network,
+                         action_space=args.action_space,
+                         reward=shipped_or_given(args.reward, ".py"), network=args.network,
                          num_envs=args.envs, cars_per_env=args.cars,
                          stop_on_success=True if args.stop_on_success else None,
                          progress=False if args.no_progress else None, **overrides)
@@ -95,15 +97,20 @@ def config_from_args(args):
     return config
 
 
-def reward_argument(reward: str | None) -> str | None:
-    """--reward as given, or the shipped example reward file it names (`reward_speed_progress.py`) when no such
-    file is here."""
+def shipped_or_given(path: str | None, suffix: str) -> str | None:
+    """A file option as given, or the shipped file of that name (agents/: `action_space_racer.json`,
+    `reward_speed_progress.py`) when there is no such file here."""
     from ..resources import agents_dir
 
-    if reward in (None, "progress", "centre") or Path(reward).exists():
-        return reward
-    shipped = agents_dir() / Path(reward).name
-    return str(shipped) if shipped.suffix == ".py" and shipped.is_file() else reward
+    if path in (None, "progress", "centre") or Path(path).exists():
+        return path
+    shipped = agents_dir() / Path(path).name
+    return str(shipped) if shipped.suffix == suffix and shipped.is_file() else path
+
+
+def shipped_action_space(text: str) -> str:
+    """--action-space's type: an existing file, or a shipped action space by name."""
+    return input_file(shipped_or_given(text, ".json"))
 
 
 def check_inputs(config) -> None:
@@ -134,6 +141,9 @@ def cmd_train(args) -> int:
         raise ValueError("--out FILE.pt is required")
     config = config_from_args(args)
     if args.engine == "rllib":
+        if config.privileged:
+            raise ValueError("--privileged: a local-engine option (the teacher and its student run in multirace's "
+                             "own loops)")
         if args.resume or args.init:
             raise ValueError("--engine rllib: --resume and --init are local-engine options (resume an RLlib run "
                              "with ray.rllib.algorithms.Algorithm.from_checkpoint(FILE.rllib))")

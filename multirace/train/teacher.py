@@ -57,6 +57,7 @@ def train_teacher(config: TrainConfig, out, seconds: float, log=print) -> dict:
     policy = Policy(space)
     runs = training_runs(config)
     check_reward_file(config, runs)
+    net = StatePolicyNet(space, hidden=config.teacher_hidden)  # a discrete space is refused before any env starts
     settings = {**env_settings(config), "observation": "state", "expert_labels": False, "deepracer_log": False}
     from ..environment.vector import SubprocVectorEnv
 
@@ -64,7 +65,6 @@ def train_teacher(config: TrainConfig, out, seconds: float, log=print) -> dict:
                            info_keys=INFO_KEYS)
     E, A, T = config.num_envs, config.cars_per_env, config.rollout_steps
     N = E * A
-    net = StatePolicyNet(space, hidden=config.teacher_hidden)
     optimiser = torch.optim.Adam(net.parameters(), lr=config.teacher_lr, eps=1e-5)
     reward_scale = RewardScale(N, config.gamma) if config.teacher_norm_reward else None
     teacher_config = dataclasses.replace(config, lr=config.teacher_lr, epochs=config.teacher_epochs,
