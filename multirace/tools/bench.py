@@ -219,8 +219,10 @@ def run_bench(seconds: float = 3.0, replay_seconds: float = 240.0, progress=prin
         from ..train.throughput import training_throughput
 
         figures["training"] = training_throughput(seconds=training_seconds)
-        progress(f"training (PPO, sampling + updates, 2 workers): {figures['training']['agent_steps_per_s']:.0f} "
-                 "agent-steps/s")
+        training = figures["training"]
+        progress(f"training (PPO, sampling + updates, 2 workers): {training['agent_steps_per_s']:.0f} agent-steps/s "
+                 f"({100 * training['sampling_share']:.0f} % of the time sampling, "
+                 f"{100 * training['update_share']:.0f} % updating)")
     figures["cli_help_s"] = cli_start_seconds()
     progress(f"`multirace --help`, whole process: {figures['cli_help_s']['median']} s (median)")
     figures["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)

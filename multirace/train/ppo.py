@@ -31,6 +31,7 @@ from .envs import INFO_KEYS, TrainEnv, env_settings
 from .robust import RobustKnobs
 from .rollout import Rollout, expert_actions, finished_episodes
 from .run import TrainingRun
+from .threads import update_threads
 from .warmstart import init_lineage, init_settings, load_init_agent
 
 
@@ -311,7 +312,7 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
             advantages, returns = rollout.advantages(next_value, config.gamma, config.gae_lambda)
             anneal_learning_rate(optimiser, config, fraction)
             value_only = bool(init) and run.iteration - start_iteration < config.value_warmup and checkpoint is None
-            torch.set_num_threads(int(config.update_threads))
+            torch.set_num_threads(update_threads(config.update_threads))  # one thread on a busy machine
             stats = ppo_update(net, policy, optimiser, rollout.learner_batch(advantages, returns), config, space,
                                lidar=bool(R), value_only=value_only)
             torch.set_num_threads(int(config.threads))

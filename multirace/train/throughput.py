@@ -10,8 +10,8 @@ def training_throughput(seconds: float = 40.0, preset: str = "fast", track: str 
     """Run the default training loop for about `seconds` on 2 worker processes and time it.
 
     Steady state: the first iteration (worker start-up, first allocations) is left out. Returns
-    ``{"agent_steps_per_s", "sampling_agent_steps_per_s", "update_agent_steps_per_s", "iterations",
-    "num_envs", "cars_per_env", "batch"}``.
+    ``{"agent_steps_per_s", "sampling_agent_steps_per_s", "update_agent_steps_per_s", "sampling_share",
+    "update_share", "iterations", "num_envs", "cars_per_env", "batch"}`` (the shares: of the run's wall time).
     """
     from .config import make_config
     from .ppo import train
@@ -31,5 +31,7 @@ def training_throughput(seconds: float = 40.0, preset: str = "fast", track: str 
     return {"agent_steps_per_s": round(rate, 1),
             "sampling_agent_steps_per_s": round(steps_total / max(summary["sample_seconds"], 1e-9), 1),
             "update_agent_steps_per_s": round(steps_total / max(summary["update_seconds"], 1e-9), 1),
+            "sampling_share": round(summary["sample_seconds"] / max(summary["wall_seconds"], 1e-9), 3),
+            "update_share": round(summary["update_seconds"] / max(summary["wall_seconds"], 1e-9), 3),
             "iterations": summary["iterations"], "num_envs": config.num_envs,
             "cars_per_env": config.cars_per_env, "batch": config.batch_size, "network": config.network}
