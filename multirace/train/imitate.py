@@ -151,6 +151,23 @@ def imitation_loss(space):
     return nll
 
 
+def fit_labels(net, optimiser, loss_fn, data: Dataset, steps: int, batch: int, stop=lambda: False) -> float:
+    """Up to `steps` gradient steps on random batches of the aggregated labels (after the first, `stop()` may end
+    them early); the mean loss."""
+    net.train()
+    losses = []
+    for step in range(steps):
+        if step and stop():
+            break
+        inputs, labels = data.batch(batch)
+        loss = loss_fn(net(inputs), labels)
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+        losses.append(loss.item())
+    return float(np.mean(losses))
+
+
 def greedy_actions(space, out: torch.Tensor):
     """The learner's actions for a batch of outputs."""
     if space.discrete:
@@ -295,18 +312,8 @@ def run_dagger(config: ImitationConfig) -> dict:
                         observations[k] = reset(k, config.seed * 1000 + k + 100 * episodes[k])
                     else:
                         observations[k] = obs["car_0"]
-            net.train()
-            losses = []
-            for step in range(config.train_steps):
-                if step and time.perf_counter() - started >= budget:
-                    break
-                inputs, labels = data.batch(config.batch_size)
-                loss = loss_fn(net(inputs), labels)
-                optimiser.zero_grad()
-                loss.backward()
-                optimiser.step()
-                losses.append(loss.item())
-            loss_value = float(np.mean(losses))
+            loss_value = fit_labels(net, optimiser, loss_fn, data, config.train_steps, config.batch_size,
+                                    stop=lambda: time.perf_counter() - started >= budget)
             off_rate = round(1000.0 * learner_resets / learner_steps, 2) if learner_steps else None  # None: the
             history.append({"iteration": iteration, "beta": round(beta, 4), "samples": data.seen,  # expert drove
                             "loss": round(loss_value, 4), "learner_steps": learner_steps,
