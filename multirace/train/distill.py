@@ -108,3 +108,53 @@ def _fit(net, optimiser, loss_fn, data: Dataset, config: TrainConfig) -> float:
     loss = fit_labels(net, optimiser, loss_fn, data, config.distill_steps, config.distill_batch)
     torch.set_num_threads(int(config.threads))
     return loss
+
+
+def train_privileged(config: TrainConfig, out, command: str | None = None, log=print) -> dict:
+    """Run both stages within `config.minutes`; returns the summary written to `out.train.json`."""
+    from .evaluate import reference_lap
+
+    started = time.perf_counter()
+    out = Path(out)
+    teacher_path = out.with_name(out.stem + ".teacher.pt")
+    budget = 60.0 * float(config.minutes)
+    teacher = train_teacher(config, teacher_path, budget * (1.0 - config.distill_share), log=log)
+    log(f"wrote {teacher_path}: {teacher['agent_steps']} agent-steps in {teacher['wall_seconds']} s (sampling "
+        f"{teacher['sample_seconds']:.0f} s, updates {teacher['update_seconds']:.0f} s)")
+    remaining = max(30.0, budget - (time.perf_counter() - started))
+    student = distill_student(student_config(config, teacher_path, remaining), out, command=command, log=log)
+    track = config.eval_track or str(config.tracks[0])
+    reference = reference_lap(track)
+    record = json.loads(out.with_suffix(".train.json").read_text())
+    record["teacher"] = {**teacher, "file": str(teacher_path), "ratio": ratio(teacher["selected"], reference),
+                         "milestones": milestones(teacher["evals"], reference)}
+    record["summary"]["milestones"] = milestones(record["evals"], reference, offset=teacher["wall_seconds"])
+    record["racing_line_lap"] = reference
+    record["summary"]["wall_seconds_both_stages"] = round(time.perf_counter() - started, 1)
+    out.with_suffix(".train.json").write_text(json.dumps(record, indent=1))
+    selected = student.get("selected_eval") or {}
+    return {"out": str(out), "teacher_file": str(teacher_path), "track": track, "racing_line_lap": reference,
+            "wall_seconds": record["summary"]["wall_seconds_both_stages"], "teacher": record["teacher"],
+            "student": {**{k: v for k, v in student.items() if k not in ("history", "evals")},
+                        "evaluation": selected, "ratio": ratio(selected, reference),
+                        "milestones": record["summary"]["milestones"]}}
+
+
+def ratio(evaluation: dict, reference) -> float | None:
+    """Best lap over the racing line's, for a run with every lap and no off-track (else None)."""
+    if not evaluation.get("best_lap") or not reference or evaluation.get("resets"):
+        return None
+    return round(evaluation["best_lap"] / reference, 3)
+
+
+def milestones(evals: list, reference, offset: float = 0.0) -> dict:
+    """Seconds from the run's start (`offset` + an evaluation's elapsed) and agent-steps to the first clean
+    evaluation (every lap, no off-track), and to the first clean one within 1.25x and 1.15x of `reference`."""
+    found = {}
+    for name, bound in (("clean", None), ("within_1.25x", 1.25), ("within_1.15x", 1.15)):
+        for e in evals:
+            r = ratio(e, reference)
+            if e["laps"] >= e.get("target", 0) and r is not None and (bound is None or r <= bound):
+                found[name] = {"seconds": round(offset + e["elapsed"], 1), "agent_steps": e["agent_steps"]}
+                break
+    return found
