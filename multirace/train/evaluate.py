@@ -322,7 +322,8 @@ def report_figure(reports: list):
                          for label, r in zip(labels, reports)], "off-tracks per lap under perturbations", 1.0)
     _bar_panel(axes[3], [(label, traffic(r["traffic"])) for label, r in zip(labels, reports)],
                "traffic race (completion 0-1; per lap driven)", 1.0)
-    axes[0].legend(fontsize=7)
+    if axes[0].get_legend_handles_labels()[0]:
+        axes[0].legend(fontsize=7)
     fig.tight_layout()
     return fig
 
