@@ -67,5 +67,12 @@ def resolve_agent_path(spec) -> Path:
 
 
 def agent_argument(spec: str) -> str:
-    """`resolve_agent_path` as an argparse `type`: every command-line argument that takes an agent file."""
-    return str(resolve_agent_path(spec))
+    """`resolve_agent_path` as an argparse `type`: every command-line argument that takes an agent file. A name
+    that is neither a file nor a shipped agent is refused as the arguments are read, before any work."""
+    import argparse
+
+    path = resolve_agent_path(spec)
+    if not path.exists():
+        raise argparse.ArgumentTypeError(f"{spec}: no such agent file, and no shipped agent of that name "
+                                         f"(`multirace agent list` shows them)")
+    return str(path)
