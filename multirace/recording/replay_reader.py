@@ -69,77 +69,95 @@ def replay_summary(path, poses: bool = True) -> dict:
     info = race_info(info, path)
     result_text = static_text(chunks, "race/result")
     result = _json(result_text, path, "race/result") if result_text else None
-    names = {c["id"]: c["name"] for c in info["cars"]}
-    all_steps: set[int] = set()
-    max_time = 0.0
-    pose_rows: dict[str, dict[int, tuple]] = {c["id"]: {} for c in info["cars"]}
-    image_counts = {c["id"]: 0 for c in info["cars"]}
-    lidar_echoes: dict[str, list] = {c["id"]: [] for c in info["cars"]}  # echo count per recorded scan
-    events = []
+    contents = _Contents(info)
     for entity, batches in chunks.items():
-        parts = entity.split("/")
         for batch in batches:
-            steps = index_values(batch, "step")
-            times = index_values(batch, "race_time")
-            if steps is None:
-                continue
-            all_steps.update(int(s) for s in steps)
-            if times is not None and len(times):
-                max_time = max(max_time, float(times.max()))
-            if len(parts) == 3 and parts[2] not in pose_rows:  # a car the race description does not name
-                continue
-            if parts[:2] == ["world", "cars"] and len(parts) == 3:
-                trans = record_column(batch, "Transform3D:translation")
-                quat = record_column(batch, "Transform3D:quaternion")
-                if trans is None or quat is None:
-                    continue
-                for s, t, q in zip(steps, first_items(trans.to_pylist()), first_items(quat.to_pylist())):
-                    if t is None or q is None:
-                        continue
-                    qx, qy, qz, qw = q
-                    yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
-                    pose_rows[parts[2]][int(s)] = (float(t[0]), float(t[1]), float(yaw))
-            elif parts[:2] == ["world", "lidar"] and len(parts) == 3:
-                positions = record_column(batch, "Points3D:positions")
-                if positions is not None:
-                    lidar_echoes[parts[2]].extend(len(p or ()) for p in positions.to_pylist())
-            elif parts[0] == "cameras" and len(parts) == 2:
-                blob = record_column(batch, "EncodedImage:blob")
-                if blob is not None:
-                    image_counts[parts[1]] = image_counts.get(parts[1], 0) + sum(
-                        1 for b in blob.to_pylist() if b)
-            elif parts[0] == "events" and len(parts) == 2:
-                if record_column(batch, "TextLog:text") is None or times is None:
-                    continue
-                texts = first_items(record_column(batch, "TextLog:text").to_pylist())
-                kinds = first_items(record_column(batch, "kind").to_pylist()) if record_column(batch, "kind") is not None \
-                    else [None] * len(texts)
-                clocks = first_items(record_column(batch, "clock").to_pylist()) if record_column(batch, "clock") is not None \
-                    else [None] * len(texts)
-                for s, t, text, kind, clock in zip(steps, times, texts, kinds, clocks):
-                    events.append({"step": int(s), "race_time": round(float(t), 6), "car": parts[1],
-                                   "name": names.get(parts[1], parts[1]), "kind": kind, "clock": clock,
-                                   "text": text})
-    events.sort(key=lambda e: (e["step"], e["car"]))
+            contents.add(entity.split("/"), batch)
+    events = sorted(contents.events, key=lambda e: (e["step"], e["car"]))
+    pose_rows, lidar_echoes = contents.pose_rows, contents.lidar_echoes
     cars = []
     for c in info["cars"]:
         laps = [e for e in events if e["car"] == c["id"] and e["kind"] == "lap"]
         ends = [e["kind"] for e in events if e["car"] == c["id"] and e["kind"] in END_TEXT]
         lap_times = [t for t in (lap_time(e["text"]) for e in laps) if t is not None]
         cars.append({"id": c["id"], "name": c["name"], "laps": len(laps), "lap_times": lap_times,
-                     "images": image_counts.get(c["id"], 0), "pose_steps": len(pose_rows[c["id"]]),
+                     "images": contents.image_counts.get(c["id"], 0), "pose_steps": len(pose_rows[c["id"]]),
                      "lidar_scans": len(lidar_echoes[c["id"]]), "lidar_echoes": sum(lidar_echoes[c["id"]]),
                      "status": ends[-1] if ends else "racing"})
     summary = {
         "file": str(path), "size_mb": round(path.stat().st_size / 1e6, 3),
         "track": info["track"], "reverse": info["reverse"], "format": info["format"], "laps": info["laps"],
-        "cars": cars, "steps": (max(all_steps) if all_steps else 0), "duration": round(max_time, 6),
+        "cars": cars, "steps": max(contents.all_steps, default=0), "duration": round(contents.max_time, 6),
         "events": events, "result": result,
     }
     if poses:
         summary["poses"] = {cid: np.array([(s, *p) for s, p in sorted(rows.items())], dtype=np.float64).reshape(-1, 4)
                             for cid, rows in pose_rows.items()}
     return summary
+
+
+class _Contents:
+    """What the chunks of a replay hold, gathered batch by batch: poses, LIDAR echoes, images, events."""
+
+    def __init__(self, info: dict):
+        self.names = {c["id"]: c["name"] for c in info["cars"]}
+        self.all_steps: set[int] = set()
+        self.max_time = 0.0
+        self.pose_rows: dict[str, dict[int, tuple]] = {c["id"]: {} for c in info["cars"]}
+        self.image_counts = {c["id"]: 0 for c in info["cars"]}
+        self.lidar_echoes: dict[str, list] = {c["id"]: [] for c in info["cars"]}  # echo count per recorded scan
+        self.events: list[dict] = []
+
+    def add(self, parts: list[str], batch) -> None:
+        """Take one record batch of the entity path `parts`."""
+        steps = index_values(batch, "step")
+        times = index_values(batch, "race_time")
+        if steps is None:
+            return
+        self.all_steps.update(int(s) for s in steps)
+        if times is not None and len(times):
+            self.max_time = max(self.max_time, float(times.max()))
+        if len(parts) == 3 and parts[2] not in self.pose_rows:  # a car the race description does not name
+            return
+        if parts[:2] == ["world", "cars"] and len(parts) == 3:
+            self._poses(parts[2], steps, batch)
+        elif parts[:2] == ["world", "lidar"] and len(parts) == 3:
+            positions = record_column(batch, "Points3D:positions")
+            if positions is not None:
+                self.lidar_echoes[parts[2]].extend(len(p or ()) for p in positions.to_pylist())
+        elif parts[0] == "cameras" and len(parts) == 2:
+            blob = record_column(batch, "EncodedImage:blob")
+            if blob is not None:
+                self.image_counts[parts[1]] = self.image_counts.get(parts[1], 0) + sum(
+                    1 for b in blob.to_pylist() if b)
+        elif parts[0] == "events" and len(parts) == 2 and times is not None:
+            self._events(parts[1], steps, times, batch)
+
+    def _poses(self, car: str, steps, batch) -> None:
+        trans = record_column(batch, "Transform3D:translation")
+        quat = record_column(batch, "Transform3D:quaternion")
+        if trans is None or quat is None:
+            return
+        for s, t, q in zip(steps, first_items(trans.to_pylist()), first_items(quat.to_pylist())):
+            if t is None or q is None:
+                continue
+            qx, qy, qz, qw = q
+            yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+            self.pose_rows[car][int(s)] = (float(t[0]), float(t[1]), float(yaw))
+
+    def _events(self, car: str, steps, times, batch) -> None:
+        text_column = record_column(batch, "TextLog:text")
+        if text_column is None:
+            return
+        texts = first_items(text_column.to_pylist())
+
+        def column(name):
+            values = record_column(batch, name)
+            return first_items(values.to_pylist()) if values is not None else [None] * len(texts)
+
+        for s, t, text, kind, clock in zip(steps, times, texts, column("kind"), column("clock")):
+            self.events.append({"step": int(s), "race_time": round(float(t), 6), "car": car,
+                                "name": self.names.get(car, car), "kind": kind, "clock": clock, "text": text})
 
 
 def _json(text: str, path, entity: str):

@@ -229,127 +229,164 @@ def expert_name(expert, config: ImitationConfig) -> str:
     return expert.name if isinstance(expert, Bot) else f"teacher:{Path(config.teacher).name}"
 
 
+def with_init_settings(config: ImitationConfig) -> ImitationConfig:
+    """The config with the init file's network, image size, action space and sensors (the learner is that
+    net); a new action space is accepted only where the init net's outputs still fit it."""
+    if not config.init:
+        return config
+    settings = init_settings(config.init)
+    action_space = settings["action_space"]
+    if config.action_space is not None:
+        action_space = config.action_space
+        check_init_action_space(load_action_space(settings["action_space"]),
+                                load_action_space(action_space), config.init)
+    return dataclasses.replace(config, network=settings["network"], action_space=action_space,
+                               camera=settings["camera"], sensor=settings.get("sensor", config.sensor))
+
+
+class DaggerEnvs:
+    """The DAgger runs' envs (one learner car each, traffic where the run has it) and their observations."""
+
+    def __init__(self, config: ImitationConfig, space, rng):
+        self.config, self.rng = config, rng
+        self.bots = tuple(parse_bot(b).name for b in config.traffic)  # a clear error on a bad spec, first
+        self.envs = [parallel_env(track=t, reverse=r, num_cars=1, race="time_trial", laps=1000,
+                                  action_space=space, camera=tuple(config.camera), sensor=config.sensor,
+                                  lidar=config.lidar, max_steps=config.episode_steps,
+                                  bots=self.bots if with_traffic(k, config.traffic_share) else (),
+                                  randomize=config.randomize)
+                     for k, (t, r) in enumerate(imitation_runs(config))]
+        self.episodes = [0] * len(self.envs)
+        self.observations = [self.reset(k) for k in range(len(self.envs))]
+
+    def reset(self, k: int):
+        """Reset env k; traffic starts at random gaps ahead (up to half a lap), so passes come early."""
+        env = self.envs[k]
+        obs, _ = env.reset(seed=self.config.seed * 1000 + k + 100 * self.episodes[k])
+        if env.bots:
+            half = env.track.length / 2
+            obs = env.move_cars({1 + b: (self.rng.uniform(1.5, half), 0.0) for b in range(len(self.bots))})
+        return obs["car_0"]
+
+    def step_all(self, learner_actions, expert, space, beta: float, data: Dataset) -> tuple[int, int]:
+        """One step of every env under the mixed policy, every image labelled by the expert; returns the
+        steps the learner drove and the resets it caused."""
+        learner_steps = learner_resets = 0
+        for k, env in enumerate(self.envs):
+            label = space.nearest(*expert_command(expert, env))
+            data.add(self.observations[k], label)
+            use_learner = self.rng.random() >= beta
+            resets_before = env.races[0].resets
+            obs, _, terms, truncs, _ = env.step({"car_0": learner_actions[k] if use_learner else label})
+            if use_learner:
+                learner_steps += 1
+                learner_resets += env.races[0].resets - resets_before
+            if terms["car_0"] or truncs["car_0"]:
+                self.episodes[k] += 1
+                self.observations[k] = self.reset(k)
+            else:
+                self.observations[k] = obs["car_0"]
+        return learner_steps, learner_resets
+
+    def close(self):
+        for env in self.envs:
+            env.close()
+
+
+def _progress_bar(config: ImitationConfig, budget: float):
+    if not config.progress:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=int(budget), unit="s", desc="dagger",
+                bar_format="{desc} {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} s {postfix}")
+
+
+def _show_progress(progress, elapsed: float, row: dict) -> None:
+    if progress is None:
+        return
+    off_rate = row["learner_resets_per_1000_steps"]
+    progress.n = min(int(elapsed), progress.total)
+    progress.set_postfix_str(f"iter {row['iteration'] + 1} beta {row['beta']:.2f} samples {row['samples']} "
+                             f"loss {row['loss']:.3f} learner resets/1k steps "
+                             + (f"{off_rate:.1f}" if off_rate is not None else "- (expert drove)"))
+    progress.refresh()
+
+
 def run_dagger(config: ImitationConfig) -> dict:
     """Train a camera agent by DAgger and write it to `config.out`; returns a summary dict."""
     started = time.perf_counter()
     budget = max(1.0, 60.0 * float(config.minutes))
-    if config.init:  # the learner is the init file's net: its network, image size, action space (and sensors)
-        settings = init_settings(config.init)
-        action_space = settings["action_space"]
-        if config.action_space is not None:  # a new action space the init net's outputs still fit
-            action_space = config.action_space
-            check_init_action_space(load_action_space(settings["action_space"]),
-                                    load_action_space(action_space), config.init)
-        config = dataclasses.replace(config, network=settings["network"], action_space=action_space,
-                                     camera=settings["camera"], sensor=settings.get("sensor", config.sensor))
-    threads = config.threads or default_threads()
-    torch.set_num_threads(int(threads))
+    config = with_init_settings(config)
+    torch.set_num_threads(int(config.threads or default_threads()))
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
     space = load_action_space(config.action_space)
     expert = make_expert(config, space)
-    bots = tuple(parse_bot(b).name for b in config.traffic)  # a clear error on a bad spec, before any env starts
-
-    runs = imitation_runs(config)
-    envs = [parallel_env(track=t, reverse=r, num_cars=1, race="time_trial", laps=1000, action_space=space,
-                         camera=tuple(config.camera), sensor=config.sensor, lidar=config.lidar,
-                         max_steps=config.episode_steps, bots=bots if with_traffic(k, config.traffic_share) else (),
-                         randomize=config.randomize) for k, (t, r) in enumerate(runs)]
-    observation_space, sensors = envs[0].observation_space("car_0"), envs[0].sensors
+    runs = DaggerEnvs(config, space, rng)
+    observation_space, sensors = runs.envs[0].observation_space("car_0"), runs.envs[0].sensors
     obs_shape = observation_space["camera"].shape if sensors.lidar else observation_space.shape
     image_shape = image_shape_of(obs_shape)  # (H, W, C), as the net and its metadata record it
-    lidar_samples = sensors.range_inputs
-    net = build_net(config.network, image_shape, space, lidar_samples=lidar_samples)
+    net = build_net(config.network, image_shape, space, lidar_samples=sensors.range_inputs)
     if config.init:
         load_init_agent(config.init, net)
     optimiser = torch.optim.Adam(net.parameters(), lr=config.lr)
     loss_fn = imitation_loss(space)
     label_shape, label_dtype = ((), np.int64) if space.discrete else ((2,), np.float32)
-    data = Dataset(config.max_samples, obs_shape, label_shape, label_dtype, rng, lidar_samples)
-
-    def reset(k: int, seed: int):
-        """Reset env k; traffic starts at random gaps ahead (up to half a lap), so passes come early."""
-        obs, _ = envs[k].reset(seed=seed)
-        if envs[k].bots:
-            half = envs[k].track.length / 2
-            obs = envs[k].move_cars({1 + b: (rng.uniform(1.5, half), 0.0) for b in range(len(bots))})
-        return obs["car_0"]
-
-    observations = [reset(k, config.seed * 1000 + k) for k in range(len(envs))]
-    episodes = [0] * len(envs)
-
-    progress = None
-    if config.progress:
-        from tqdm import tqdm
-
-        progress = tqdm(total=int(budget), unit="s", desc="dagger", bar_format=(
-            "{desc} {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} s {postfix}"))
+    data = Dataset(config.max_samples, obs_shape, label_shape, label_dtype, rng, sensors.range_inputs)
+    out_of_time = lambda: time.perf_counter() - started >= budget  # noqa: E731
+    progress = _progress_bar(config, budget)
     history = []
     iteration, loss_value = 0, float("nan")
     try:
         while True:
             beta = config.beta_decay ** iteration
             learner_steps = learner_resets = 0
-            steps_per_env = max(1, math.ceil(config.rollout_steps / len(envs)))
             net.eval()
-            for step in range(steps_per_env):
-                if step and time.perf_counter() - started >= budget:
+            for step in range(max(1, math.ceil(config.rollout_steps / len(runs.envs)))):
+                if step and out_of_time():
                     break  # out of time: train on what we have and finish
                 with torch.no_grad():
-                    learner = greedy_actions(space, net(stack_observations(observations)))
-                for k, env in enumerate(envs):
-                    label = space.nearest(*expert_command(expert, env))
-                    data.add(observations[k], label)
-                    use_learner = rng.random() >= beta
-                    action = learner[k] if use_learner else label
-                    resets_before = env.races[0].resets
-                    obs, _, terms, truncs, _ = env.step({"car_0": action})
-                    if use_learner:
-                        learner_steps += 1
-                        learner_resets += env.races[0].resets - resets_before
-                    if terms["car_0"] or truncs["car_0"]:
-                        episodes[k] += 1
-                        observations[k] = reset(k, config.seed * 1000 + k + 100 * episodes[k])
-                    else:
-                        observations[k] = obs["car_0"]
+                    learner = greedy_actions(space, net(stack_observations(runs.observations)))
+                steps, resets = runs.step_all(learner, expert, space, beta, data)
+                learner_steps, learner_resets = learner_steps + steps, learner_resets + resets
             loss_value = fit_labels(net, optimiser, loss_fn, data, config.train_steps, config.batch_size,
-                                    stop=lambda: time.perf_counter() - started >= budget)
+                                    stop=out_of_time)
             off_rate = round(1000.0 * learner_resets / learner_steps, 2) if learner_steps else None  # None: the
             history.append({"iteration": iteration, "beta": round(beta, 4), "samples": data.seen,  # expert drove
                             "loss": round(loss_value, 4), "learner_steps": learner_steps,
                             "learner_resets_per_1000_steps": off_rate})
             iteration += 1
-            elapsed = time.perf_counter() - started
-            if progress is not None:
-                progress.n = min(int(elapsed), progress.total)
-                progress.set_postfix_str(f"iter {iteration} beta {beta:.2f} samples {data.seen} "
-                                         f"loss {loss_value:.3f} learner resets/1k steps "
-                                         + (f"{off_rate:.1f}" if off_rate is not None else "- (expert drove)"))
-                progress.refresh()
-            if elapsed >= budget:
+            _show_progress(progress, time.perf_counter() - started, history[-1])
+            if out_of_time():
                 break
     finally:
         if progress is not None:
             progress.close()
-        for env in envs:
-            env.close()
-
-    out = Path(config.out)
-    name = config.name or out.stem
+        runs.close()
+    training = _training_record(config, expert, runs.bots, iteration, data, loss_value,
+                                time.perf_counter() - started)
     net.eval()
-    wall = time.perf_counter() - started
+    out = Path(config.out)
+    metadata = make_metadata(space, config.network, config.name or out.stem, image_shape, sensor=sensors.names,
+                             training=training)
+    save_agent(out, net, metadata)
+    return {"out": str(out), **training, "history": history}
+
+
+def _training_record(config: ImitationConfig, expert, bots, iterations: int, data: Dataset, loss_value: float,
+                     wall: float) -> dict:
+    """The agent file's `training` record of a DAgger run."""
     training = {
-        "method": "dagger", "expert": expert_name(expert, config), "traffic": list(bots), "traffic_share": config.traffic_share,
-        "lidar": bool(config.lidar),
+        "method": "dagger", "expert": expert_name(expert, config), "traffic": list(bots),
+        "traffic_share": config.traffic_share, "lidar": bool(config.lidar),
         "tracks": list(dict.fromkeys(str(t) for t in config.tracks)),
         "directions": ["forward", "reverse"] if config.both_directions else ["forward"],
         "procedural_tracks": int(config.procedural_tracks), "randomize": config.randomize, "seed": config.seed,
         "init": init_lineage(config.init) if config.init else None,
-        "minutes": config.minutes, "iterations": iteration, "samples": data.seen,
+        "minutes": config.minutes, "iterations": iterations, "samples": data.seen,
         "dataset_size": data.size, "final_loss": round(loss_value, 4), "wall_seconds": round(wall, 1),
     }
     if config.command:
         training["command"] = config.command
-    metadata = make_metadata(space, config.network, name, image_shape, sensor=sensors.names, training=training)
-    save_agent(out, net, metadata)
-    return {"out": str(out), **training, "history": history}
+    return training

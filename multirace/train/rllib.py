@@ -314,6 +314,70 @@ def default_env_runners(config, explicit_envs) -> int:
     return max(1, min(int(config.num_envs), (os.cpu_count() or 2) - 1))
 
 
+def _check_config(config, space, log) -> None:
+    """Refuse what the RLlib engine cannot train (with the option named), and note what it ignores."""
+    from ..racing.nets import CameraNet, num_outputs_for
+    from ..sensors.suite import SensorSuite
+
+    if config.sensors() != SensorSuite():
+        what = "lidar=true" if config.lidar else f"sensor={config.sensors().names}"
+        raise ValueError(f"--engine rllib: {what} is a local-engine option for now: the RLlib module reads the "
+                         "single camera (and with camera + LIDAR dict observations RLlib's PettingZoo wrapper "
+                         "loses the per-car episode ids' observations: car_0.1, ...; seen with ray 2.60)")
+    if config.opponent_pool or config.nature or config.curriculum:
+        log("note: --engine rllib ignores the opponent pool, nature adversary and curriculum "
+            "(env randomisation and procedural tracks are kept)")
+    try:  # a network / camera mismatch fails here with our message, not deep inside a Ray actor
+        CameraNet(config.network, (*config.camera, 1), num_outputs_for(space), value_head=True)
+    except ValueError as exc:
+        raise ValueError(f"--set camera / --network: {exc}") from None
+
+
+def _start_ray(address, num_env_runners: int) -> bool:
+    """Join the Ray cluster at `address` or start a local Ray; True when this call started it."""
+    import ray
+
+    if ray.is_initialized():
+        return False
+    if address:
+        try:
+            ray.init(address=address, log_to_driver=False)
+        except (ConnectionError, RuntimeError, ValueError) as exc:
+            raise ValueError(f"--address {address}: could not connect to a Ray cluster there ({exc}); "
+                             "start one with `ray start --head` or leave --address out for a local Ray") from None
+    else:
+        ray.init(num_cpus=max(os.cpu_count() or 1, num_env_runners + 1), include_dashboard=False,
+                 log_to_driver=False, configure_logging=True, logging_level="ERROR")
+    return True
+
+
+def _train_iterations(algo, config, write_snapshot, log) -> list[dict]:
+    """`algo.train()` until the budget is spent, a snapshot agent file every `eval_every` seconds; returns
+    the per-iteration stats."""
+    budget = 60.0 * float(config.minutes)
+    train_start = last_snapshot = time.perf_counter()
+    history = []
+    while True:
+        result = algo.train()
+        stats = iteration_stats(result, config.cars_per_env)
+        stats["elapsed"] = round(time.perf_counter() - train_start, 2)
+        stats["agent_steps_per_s"] = round(stats["agent_steps"] / max(stats["elapsed"], 1e-9), 1)
+        for key in ("policy_loss", "vf_loss", "entropy"):
+            stats[key] = _float(stats[key])
+        history.append(stats)
+        if config.progress:
+            ret = stats["car_return_mean"]
+            log(f"rllib iter {stats['iteration']:4d} {stats['elapsed']:7.1f}/{budget:.0f} s  "
+                f"return/car {'-' if ret is None else f'{ret:8.2f}'}  agent-steps {stats['agent_steps']:8d}  "
+                f"{stats['agent_steps_per_s']:7.1f} agent-steps/s  episodes {stats['episodes']}")
+        if stats["elapsed"] >= budget:
+            return history
+        if config.eval_every and time.perf_counter() - last_snapshot >= config.eval_every:
+            # an agent-file snapshot to race or `multirace evaluate` later (no in-loop evaluation here)
+            last_snapshot = time.perf_counter()
+            write_snapshot(stats)
+
+
 def train_rllib(config, out, envs=None, address=None, log=print) -> int:
     """`multirace train --engine rllib` with `config` (a TrainConfig), writing the agent file `out`.
 
@@ -329,40 +393,18 @@ def train_rllib(config, out, envs=None, address=None, log=print) -> int:
     from ..racing.agentfile import make_metadata, save_agent
     from ..racing.nets import CameraNet, num_outputs_for
     from ..sensors.camera import image_shape_of
-    from ..sensors.suite import SensorSuite
     from .ppo import check_reward_file, training_runs
 
-    if config.sensors() != SensorSuite():
-        what = "lidar=true" if config.lidar else f"sensor={config.sensors().names}"
-        raise ValueError(f"--engine rllib: {what} is a local-engine option for now: the RLlib module reads the "
-                         "single camera (and with camera + LIDAR dict observations RLlib's PettingZoo wrapper "
-                         "loses the per-car episode ids' observations: car_0.1, ...; seen with ray 2.60)")
-    if config.opponent_pool or config.nature or config.curriculum:
-        log("note: --engine rllib ignores the opponent pool, nature adversary and curriculum "
-            "(env randomisation and procedural tracks are kept)")
+    space = load_action_space(config.action_space)
+    _check_config(config, space, log)
     num_env_runners = default_env_runners(config, envs)
     out = Path(out)
     ckpt_dir = out.with_name(out.stem + ".rllib").resolve()
     runs = training_runs(config)
     check_reward_file(config, runs)
-    space = load_action_space(config.action_space)
-    try:  # a network / camera mismatch fails here with our message, not deep inside a Ray actor
-        CameraNet(config.network, (*config.camera, 1), num_outputs_for(space), value_head=True)
-    except ValueError as exc:
-        raise ValueError(f"--set camera / --network: {exc}") from None
 
     started = time.perf_counter()
-    own_ray = not ray.is_initialized()
-    if own_ray:
-        if address:
-            try:
-                ray.init(address=address, log_to_driver=False)
-            except (ConnectionError, RuntimeError, ValueError) as exc:
-                raise ValueError(f"--address {address}: could not connect to a Ray cluster there ({exc}); "
-                                 "start one with `ray start --head` or leave --address out for a local Ray") from None
-        else:
-            ray.init(num_cpus=max(os.cpu_count() or 1, num_env_runners + 1), include_dashboard=False,
-                     log_to_driver=False, configure_logging=True, logging_level="ERROR")
+    own_ray = _start_ray(address, num_env_runners)
     register_env(ENV_NAME, make_rllib_env)
     import logging
 
@@ -385,32 +427,14 @@ def train_rllib(config, out, envs=None, address=None, log=print) -> int:
                                  training={"engine": "rllib", "ray": ray.__version__, **training})
         return save_agent(path, net, metadata)
 
-    budget = 60.0 * float(config.minutes)
-    snapshots = out.with_name(out.stem + ".snapshots")
-    train_start = last_snapshot = time.perf_counter()
-    history = []
+    def write_snapshot(stats: dict) -> Path:
+        return write_agent(out.with_name(out.stem + ".snapshots") / f"{int(stats['elapsed']):05d}s.pt",
+                           {"iterations": stats["iteration"], "agent_steps": stats["agent_steps"],
+                            "wall_seconds": stats["elapsed"]})
+
+    train_start = time.perf_counter()
     try:
-        while True:
-            result = algo.train()
-            stats = iteration_stats(result, config.cars_per_env)
-            stats["elapsed"] = round(time.perf_counter() - train_start, 2)
-            stats["agent_steps_per_s"] = round(stats["agent_steps"] / max(stats["elapsed"], 1e-9), 1)
-            for key in ("policy_loss", "vf_loss", "entropy"):
-                stats[key] = _float(stats[key])
-            history.append(stats)
-            if config.progress:
-                ret = stats["car_return_mean"]
-                log(f"rllib iter {stats['iteration']:4d} {stats['elapsed']:7.1f}/{budget:.0f} s  "
-                    f"return/car {'-' if ret is None else f'{ret:8.2f}'}  agent-steps {stats['agent_steps']:8d}  "
-                    f"{stats['agent_steps_per_s']:7.1f} agent-steps/s  episodes {stats['episodes']}")
-            if stats["elapsed"] >= budget:
-                break
-            if config.eval_every and time.perf_counter() - last_snapshot >= config.eval_every:
-                # an agent-file snapshot to race or `multirace evaluate` later (no in-loop evaluation here)
-                last_snapshot = time.perf_counter()
-                write_agent(snapshots / f"{int(stats['elapsed']):05d}s.pt",
-                            {"iterations": stats["iteration"], "agent_steps": stats["agent_steps"],
-                             "wall_seconds": stats["elapsed"]})
+        history = _train_iterations(algo, config, write_snapshot, log)
         wall = time.perf_counter() - train_start
         checkpoint = algo.save_to_path(str(ckpt_dir))
         last = history[-1]
