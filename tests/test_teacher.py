@@ -69,6 +69,51 @@ def test_student_distils_the_teacher_into_a_camera_agent(teacher, tmp_path):
     assert result["cars"][0]["status"] != "forfeit"
 
 
+def test_student_can_start_from_an_imitation_agent(teacher, tmp_path):
+    """`--init`: the student is the init file's net (its network, image and weights) and records that lineage;
+    with no DAgger step its weights are the init file's."""
+    import torch
+
+    from multirace.racing.agentfile import read_payload
+
+    teacher_path, _ = teacher
+    racer = Path(__file__).parents[1] / "agents" / "racer.pt"
+    base = make_config("tiny", tracks=("reinvent_base",), max_iterations=1, seed=0, progress=False, eval_every=0)
+    config = student_config(base, teacher_path, seconds=1e9, init=racer)
+    assert config.network == "MULTIRACE_SMALL_CNN" and config.camera == (120, 160)
+    config.rollout_steps, config.distill_steps, config.distill_batch, config.distill_lr = 16, 1, 8, 0.0
+    distill_student(config, tmp_path / "s.pt", log=None, init=racer)
+    agent = load_agent(tmp_path / "s.pt", step_budget=None)
+    assert agent.metadata["training"]["init"]["file"] == "racer.pt"
+    before, after = read_payload(racer)["state_dict"], read_payload(tmp_path / "s.pt")["state_dict"]
+    for key, value in before.items():
+        if not key.startswith("value_head."):
+            assert torch.equal(value, after[key]), key
+
+
+def test_a_discrete_init_agent_is_refused_for_a_student(teacher):
+    teacher_path, _ = teacher
+    base = make_config("tiny", tracks=("reinvent_base",), progress=False)
+    with pytest.raises(ValueError, match="dagger_fast.pt: a discrete-action agent"):
+        student_config(base, teacher_path, 60.0, init=Path(__file__).parents[1] / "agents" / "dagger_fast.pt")
+
+
+def test_train_reuses_a_teacher_with_the_cli(teacher, tmp_path, capsys):
+    """`multirace train --teacher FILE`: no teacher stage; the student learns from that file's policy."""
+    from multirace.cli import main
+
+    teacher_path, _ = teacher
+    code = main(["train", "--teacher", str(teacher_path), "--track", "reinvent_base", "--out",
+                 str(tmp_path / "c.pt"), "--config", "tiny", "--set", "max_iterations=1", "--set", "eval_every=0",
+                 "--set", "rollout_steps=16", "--set", "distill_steps=1", "--action-space", SPACE, "--no-progress"])
+    assert code == 0
+    out = capsys.readouterr().out
+    assert "teacher 0.0 s, 0 agent-steps" in out
+    agent = load_agent(tmp_path / "c.pt", step_budget=None)
+    assert agent.metadata["training"]["expert"] == f"teacher:{teacher_path}"
+    assert not (tmp_path / "c.teacher.pt").exists()
+
+
 def test_imitate_takes_a_teacher_as_expert(teacher, tmp_path):
     from multirace.train.imitate import ImitationConfig, run_dagger
 

@@ -53,6 +53,9 @@ def add_train_parser(sub) -> None:
                    help="learning by cheating: PPO of a state policy (the teacher) on the privileged state, then "
                         "DAgger of the camera policy from it (writes FILE.pt and FILE.teacher.pt; continuous "
                         "action spaces)")
+    p.add_argument("--teacher", default=None, metavar="FILE.teacher.pt", type=input_file,
+                   help="--privileged: reuse the teacher an earlier run wrote (its whole budget then goes to the "
+                        "camera student)")
     p.add_argument("--stop-on-success", action="store_true",
                    help="stop at the first evaluation that finishes every lap with no off-track")
     p.add_argument("--engine", default="local", choices=("local", "rllib"),
@@ -79,7 +82,7 @@ def config_from_args(args):
     tracks = tuple(expand_tracks(t.strip() for t in args.track.split(",") if t.strip()))
     if args.robust:
         overrides.setdefault("robust", True)
-    if args.privileged:
+    if args.privileged or args.teacher:
         overrides.setdefault("privileged", True)
     config = make_config(args.config, tracks=tracks, reverse=args.reverse, minutes=args.minutes, seed=args.seed,
                          action_space=args.action_space,
@@ -172,14 +175,18 @@ def cmd_train(args) -> int:
 
 def report_privileged(config, args, command) -> int:
     """Run learning by cheating (`distill.train_privileged`) and print both stages' figures."""
-    if args.init or args.resume:
-        raise ValueError("--set privileged=true trains from nothing; --init and --resume are for PPO from the camera")
+    if args.resume:
+        raise ValueError("--privileged: --resume is for PPO from the camera (--init starts the camera student "
+                         "from an agent file, --teacher reuses a trained teacher)")
     from .distill import train_privileged
 
-    summary = train_privileged(config, args.out, command=command)
+    summary = train_privileged(config, args.out, command=command, init=args.init, teacher_file=args.teacher)
     teacher, student = summary["teacher"], summary["student"]
     for name, evaluation, ratio in (("teacher", teacher["selected"], teacher["ratio"]),
                                     ("student", student["evaluation"], student["ratio"])):
+        if not evaluation:
+            print(f"{name}: not evaluated")
+            continue
         lap = f"{evaluation['best_lap']:.2f} s" if evaluation.get("best_lap") else "none"
         print(f"{name}: {evaluation['laps']}/{config.eval_laps} laps, {evaluation['resets']} off-track resets, best "
               f"lap {lap}" + (f" ({ratio}x the racing line's {summary['racing_line_lap']:.2f} s)" if ratio else ""))

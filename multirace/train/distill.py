@@ -33,22 +33,34 @@ from .ppo import init_continuous_head, make_vector_env
 from .rollout import Rollout, expert_actions, finished_episodes
 from .run import TrainingRun
 from .teacher import train_teacher
+from .teacher_net import load_teacher
+from .warmstart import init_lineage, init_settings, load_init_agent
 from .threads import update_threads
 
 
-def student_config(config: TrainConfig, teacher_path, seconds: float) -> TrainConfig:
+def student_config(config: TrainConfig, teacher_path, seconds: float, init=None) -> TrainConfig:
     """The camera student's settings: the run's own, with the teacher as the labelling expert and the rest of
-    the budget."""
-    return dataclasses.replace(config, privileged=False, network=config.student_network, minutes=seconds / 60.0,
-                               expert=f"{TEACHER_PREFIX}{teacher_path}", expert_coef=1.0)
+    the budget; with `init` (an agent file), that file's network, camera image, action space and sensors."""
+    student = dataclasses.replace(config, privileged=False, network=config.student_network, minutes=seconds / 60.0,
+                                  expert=f"{TEACHER_PREFIX}{teacher_path}", expert_coef=1.0)
+    if init:
+        settings = init_settings(init)
+        if load_action_space(settings["action_space"]).discrete:
+            raise ValueError(f"--init {init}: a discrete-action agent; a teacher's student needs a continuous "
+                             "action space")
+        student = dataclasses.replace(student, **{**settings, "camera": tuple(settings["camera"])})
+    return student
 
 
-def distill_student(config: TrainConfig, out, command: str | None = None, log=print) -> dict:
-    """DAgger of a camera net from `config.expert` (a teacher) in the vectorised envs; writes the agent file
-    (the best-evaluated student) and its curve and history like a PPO run; returns the run's summary."""
+def distill_student(config: TrainConfig, out, command: str | None = None, log=print, init=None) -> dict:
+    """DAgger of a camera net from `config.expert` (a teacher) in the vectorised envs, starting from the agent
+    file `init` if given (else from scratch); writes the agent file (the best-evaluated student) and its curve
+    and history like a PPO run; returns the run's summary."""
     run = TrainingRun(config, out, command, log)
     run.method, run.notes = "dagger", {"expert": config.expert.replace(TEACHER_PREFIX, "teacher:"),
                                        "stage": "student of an RL teacher (learning by cheating)"}
+    if init:
+        run.lineage = init_lineage(init)
     torch.set_num_threads(int(config.threads))
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
@@ -61,7 +73,9 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
         lidar = obs["lidar"].shape[-1] if isinstance(obs, dict) else 0
         image_shape = image_shape_of(obs_shape)
         net = build_net(config.network, image_shape, space, lidar_samples=lidar)
-        if not space.discrete:
+        if init:
+            load_init_agent(init, net)
+        elif not space.discrete:
             init_continuous_head(net, space)
         optimiser = torch.optim.Adam(net.parameters(), lr=config.distill_lr)
         loss_fn = imitation_loss(space)
@@ -110,19 +124,29 @@ def _fit(net, optimiser, loss_fn, data: Dataset, config: TrainConfig) -> float:
     return loss
 
 
-def train_privileged(config: TrainConfig, out, command: str | None = None, log=print) -> dict:
-    """Run both stages within `config.minutes`; returns the summary written to `out.train.json`."""
+def train_privileged(config: TrainConfig, out, command: str | None = None, log=print, init=None,
+                     teacher_file=None) -> dict:
+    """Run both stages within `config.minutes`; returns the summary written to `out.train.json`.
+
+    `init`: the camera student starts from this agent file (e.g. an imitation racer) instead of from
+    scratch. `teacher_file`: a teacher trained before (`FILE.teacher.pt` of an earlier run): the first stage
+    is skipped and the whole budget goes to the student."""
     from .evaluate import reference_lap
 
     started = time.perf_counter()
     out = Path(out)
-    teacher_path = out.with_name(out.stem + ".teacher.pt")
     budget = 60.0 * float(config.minutes)
-    teacher = train_teacher(config, teacher_path, budget * (1.0 - config.distill_share), log=log)
-    log(f"wrote {teacher_path}: {teacher['agent_steps']} agent-steps in {teacher['wall_seconds']} s (sampling "
-        f"{teacher['sample_seconds']:.0f} s, updates {teacher['update_seconds']:.0f} s)")
+    if teacher_file:
+        teacher_path = Path(teacher_file)
+        teacher = earlier_teacher(teacher_path)
+    else:
+        teacher_path = out.with_name(out.stem + ".teacher.pt")
+        teacher = train_teacher(config, teacher_path, budget * (1.0 - config.distill_share), log=log)
+        log(f"wrote {teacher_path}: {teacher['agent_steps']} agent-steps in {teacher['wall_seconds']} s (sampling "
+            f"{teacher['sample_seconds']:.0f} s, updates {teacher['update_seconds']:.0f} s)")
     remaining = max(30.0, budget - (time.perf_counter() - started))
-    student = distill_student(student_config(config, teacher_path, remaining), out, command=command, log=log)
+    student = distill_student(student_config(config, teacher_path, remaining, init), out, command=command,
+                              log=log, init=init)
     track = config.eval_track or str(config.tracks[0])
     reference = reference_lap(track)
     record = json.loads(out.with_suffix(".train.json").read_text())
@@ -138,6 +162,15 @@ def train_privileged(config: TrainConfig, out, command: str | None = None, log=p
             "student": {**{k: v for k, v in student.items() if k not in ("history", "evals")},
                         "evaluation": selected, "ratio": ratio(selected, reference),
                         "milestones": record["summary"]["milestones"]}}
+
+
+def earlier_teacher(path: Path) -> dict:
+    """The figures of a teacher an earlier run trained, read from its file: this run spends no time on it
+    (its own training wall time stays as `trained_seconds`; its evaluations are not in the file)."""
+    load_teacher(path)  # a ValueError naming the file if it is not a teacher
+    training = dict(torch.load(path, map_location="cpu", weights_only=True).get("training") or {})
+    return {**training, "trained_seconds": training.get("wall_seconds"), "wall_seconds": 0.0, "agent_steps": 0,
+            "evals": [], "reused": str(path)}
 
 
 def ratio(evaluation: dict, reference) -> float | None:
