@@ -63,13 +63,14 @@ def test_uncertain_heats_spend_heats_where_the_table_is_unsure():
     ratings = {"a": model.rating(mu=30, sigma=1), "b": model.rating(mu=30.5, sigma=1),
                "c": model.rating(mu=10, sigma=1), "d": model.rating(mu=25, sigma=8),
                "e": model.rating(mu=24, sigma=8)}
-    heats = uncertain_heats(model, ratings, 3, {})
+    heats = uncertain_heats(model, ratings, 3, set())
     assert heats[0] == ("d", "e")  # close and unknown
     assert len({name for heat in heats for name in heat}) == 2 * len(heats)  # nobody twice in a batch
-    assert ("d", "e") not in uncertain_heats(model, ratings, 2, {frozenset("de"): 1})  # unmet pairs first
+    assert ("d", "e") not in uncertain_heats(model, ratings, 2, {frozenset("de")})  # a pair meets once
+    assert uncertain_heats(model, {"a": ratings["a"], "b": ratings["b"]}, 1, {frozenset("ab")}) == []
     fresh = {n: model.rating() for n in "abcdefgh"}  # all equal: the salt orders the choice
-    assert uncertain_heats(model, fresh, 4, {}) == uncertain_heats(model, fresh, 4, {})
-    assert any(uncertain_heats(model, fresh, 4, {}, salt=str(s)) != uncertain_heats(model, fresh, 4, {})
+    assert uncertain_heats(model, fresh, 4, set()) == uncertain_heats(model, fresh, 4, set())
+    assert any(uncertain_heats(model, fresh, 4, set(), salt=str(s)) != uncertain_heats(model, fresh, 4, set())
                for s in range(5))
 
 
@@ -113,7 +114,7 @@ def test_league_run_plans_each_batch_from_the_results_before_it(planned):
     assert all(result is not None for *_, result in heats)
     rounds = sorted({r for r, *_ in heats})
     assert rounds == [0, 1, 2]  # batches of 2, 2 and the 1 pairing left of the budget
-    model, met, recorded = PlackettLuce(), {}, []
+    model, met, recorded = PlackettLuce(), set(), []
     for round_no in rounds:
         batch = [(names, result) for r, names, result in heats if r == round_no]
         pairs = list(dict.fromkeys(tuple(sorted(names)) for names, _ in batch))
@@ -121,8 +122,7 @@ def test_league_run_plans_each_batch_from_the_results_before_it(planned):
         assert pairs == uncertain_heats(model, ratings, min(2, 5 - len(met)), met)
         assert sorted(names for names, _ in batch) == sorted(
             [list(p) for p in pairs] + [list(p)[::-1] for p in pairs])  # each pairing from both grid orders
-        for p in pairs:
-            met[frozenset(p)] = 1
+        met |= {frozenset(p) for p in pairs}
         recorded += [[(c["name"], c["position"]) for c in sorted(result["cars"], key=lambda c: c["position"])]
                      for _, result in batch]
     table = compute_table(folder)

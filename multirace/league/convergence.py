@@ -35,6 +35,7 @@ from .uncertainty import rate, uncertain_heats
 
 SEEDS = (1, 2)
 TARGET = 0.9
+CHECKPOINTS = (48, 96, 144, 192, 240, 288, 336, 400, 448, 496)  # pairings at which the curves are reported
 
 
 def top_tau(table: list[str], rank: dict, k: int = 8) -> float:
@@ -113,18 +114,30 @@ def _chain(outcomes: Outcomes, names, schedule: str, batch: int, seed: int, salt
     model = PlackettLuce()
     pairs = list(itertools.combinations(names, 2))
     random.Random(salt).shuffle(pairs)  # the round robin's order
-    ratings, met = rate(model, names, []), {}
+    ratings, met = rate(model, names, []), set()
     while len(met) < len(pairs):
         if schedule == "uncertainty":
             chosen = uncertain_heats(model, ratings, batch, met, salt=str(salt))
         else:
             chosen = pairs[len(met):len(met) + batch]
         for a, b in chosen:
-            met[frozenset((a, b))] = 1
+            met.add(frozenset((a, b)))
             w = outcomes.winner(a, b, seed)
             new = model.rate([[ratings[w]], [ratings[b if w == a else a]]], ranks=[1, 2])
             ratings[w], ratings[b if w == a else a] = new[0][0], new[1][0]
         yield len(met), sorted(names, key=lambda n: (-ratings[n].ordinal(), n))
+
+
+def _tau_at(curve: dict, pairings: int) -> float:
+    """A chain's tau after its last batch within `pairings`."""
+    return curve[max(n for n in curve if n <= pairings)]
+
+
+def _spread(found: list, never: int) -> dict:
+    """Median and range of pairings over chains; a chain that never got there counts as `never` + 1."""
+    values = [n if n is not None else never + 1 for n in found]
+    return {"median": statistics.median(values), "range": [min(values), max(values)],
+            "chains_there": sum(n is not None for n in found)}
 
 
 def measure(entrants: dict, out: Path, track: str = "reinvent_base", steps: int = 100, batch: int = 16,
@@ -137,21 +150,21 @@ def measure(entrants: dict, out: Path, track: str = "reinvent_base", steps: int 
     rank = reference_rank(names, outcomes.winner)
     result = {"entrants": len(names), "track": track, "max_steps": steps, "batch": batch, "races": 2 * len(
         outcomes.known), "reference": sorted(names, key=lambda n: (rank[n], n)), "reference_rank": rank}
+    pairs = list(itertools.combinations(names, 2))
     for schedule in ("uncertainty", "round_robin"):
         runs = []
         for c in range(chains):
-            curve = [(count, top_tau(ranking, rank)) for count, ranking in
-                     _chain(outcomes, names, schedule, batch, SEEDS[c % 2], c)]
-            settled = next((count for (count, tau), (_, after) in zip(curve, curve[1:])
-                            if tau >= TARGET and after >= TARGET), None)
-            runs.append({"seed": SEEDS[c % 2], "salt": c, "settled_at": settled,
-                         "curve": [round(tau, 3) for _, tau in curve]})
-        found = [r["settled_at"] for r in runs if r["settled_at"] is not None]
-        result[schedule] = {"pairings": [count for count, _ in curve], "chains": runs,
-                            "settled_median": statistics.median(found) if len(found) == chains else None,
-                            "settled_range": [min(found), max(found)] if found else None,
-                            "mean_curve": [round(statistics.mean(r["curve"][i] for r in runs), 3)
-                                           for i in range(len(curve))]}
+            curve = {count: round(top_tau(ranking, rank), 3) for count, ranking in
+                     _chain(outcomes, names, schedule, batch, SEEDS[c % 2], c)}
+            counts = list(curve)
+            agrees = next((n for n, after in zip(counts, counts[1:])
+                           if curve[n] >= TARGET and curve[after] >= TARGET), None)
+            holds = next((n for i, n in enumerate(counts) if all(curve[m] >= TARGET for m in counts[i:])), None)
+            runs.append({"seed": SEEDS[c % 2], "salt": c, "agrees_at": agrees, "settled_at": holds,
+                         "curve": curve})
+        result[schedule] = {"chains": runs, **{key: _spread([r[key] for r in runs], len(pairs))
+                                               for key in ("agrees_at", "settled_at")},
+                            "tau_at": {n: [_tau_at(r["curve"], n) for r in runs] for n in CHECKPOINTS}}
     out.write_text(json.dumps(result, indent=2))
     return result
 
@@ -170,5 +183,5 @@ def league_of_32() -> dict:
 
 if __name__ == "__main__":
     found = measure(league_of_32(), Path(sys.argv[1]))
-    print(json.dumps({"races": found["races"], **{s: {k: found[s][k] for k in ("settled_median", "settled_range")}
-                                                  for s in ("uncertainty", "round_robin")}}, indent=2))
+    print(json.dumps({"races": found["races"], **{s: {k: found[s][k] for k in ("agrees_at", "settled_at", "tau_at")}
+                                                  for s in ("uncertainty", "round_robin")}}))

@@ -115,7 +115,7 @@ def _planned_heats(config: LeagueConfig, entries: list[dict], conn) -> list[dict
     if waiting or any(row["match_id"] not in stored_ids for row in rows):
         return rows  # a batch is still running: the next one is planned from its results
     next_round = 1 + max((row[1] for row in stored), default=-1)
-    for a, b in next_pairs(PlackettLuce(), sorted(by_name), orders, {frozenset(p): 1 for p in pairs},
+    for a, b in next_pairs(PlackettLuce(), sorted(by_name), orders, {frozenset(p) for p in pairs},
                            config.head_to_head):
         rows += [_row("head_to_head", next_round, spec) for _, spec in _heat_matches(config, [by_name[a], by_name[b]])]
     return rows
