@@ -3,7 +3,12 @@ batch by batch (deterministic, resumable), and the convergence measurement's ref
 from __future__ import annotations
 
 import json
+import os
+import signal
 import sqlite3
+import subprocess
+import sys
+import time
 
 import pytest
 from openskill.models import PlackettLuce
@@ -136,5 +141,30 @@ def test_the_same_league_gives_the_same_table_on_one_worker(planned, tmp_path):
     folder, _ = planned
     other = _league(tmp_path)
     run_league(other, workers=1, progress=False)
+    assert [(r, n) for r, n, _ in _heats(other)] == [(r, n) for r, n, _ in _heats(folder)]
+    assert json.dumps(compute_table(other), sort_keys=True) == json.dumps(compute_table(folder), sort_keys=True)
+
+
+@pytest.mark.slow
+def test_kill_9_between_batches_then_resume_gives_the_same_table(planned, tmp_path):
+    folder, _ = planned
+    other = _league(tmp_path)
+    proc = subprocess.Popen([sys.executable, "-m", "multirace.cli", "league", "run", str(other), "--workers", "2",
+                             "--quiet"], start_new_session=True, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    try:
+        for _ in range(100_000):  # until the second batch has a result
+            assert proc.poll() is None, "the run finished before it could be killed"
+            try:
+                if sum(result is not None for *_, result in _heats(other)) >= 5:
+                    break
+            except sqlite3.OperationalError:  # not created yet, or busy
+                pass
+            time.sleep(0.05)
+        os.killpg(proc.pid, signal.SIGKILL)
+    finally:
+        proc.wait()
+    assert 5 <= sum(result is not None for *_, result in _heats(other)) < 10
+    run_league(other, workers=2, progress=False)
     assert [(r, n) for r, n, _ in _heats(other)] == [(r, n) for r, n, _ in _heats(folder)]
     assert json.dumps(compute_table(other), sort_keys=True) == json.dumps(compute_table(folder), sort_keys=True)

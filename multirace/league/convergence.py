@@ -11,8 +11,9 @@ not between two halves of the results:
   other pair (the strongly connected groups of its who-beat-whom graph, in their one order).
 - A chain plays one schedule on one seed's outcomes, a batch of pairings at a time, and ranks the entrants
   by OpenSkill ordinal as `league table` does. Its agreement is Kendall's tau between its top 8 and the
-  reference, over the pairs of that top 8 the reference orders. The figure is the number of pairings until
-  tau >= 0.9 for two batches running; chains differ in seed and in the order of equal choices.
+  reference, over the pairs of that top 8 the reference orders. The figures are the pairings until
+  tau >= 0.9 for two batches running, and until it stays there; chains differ in seed and in the order of
+  equal choices (the round robin's in its random order).
 
 Why not two independent halves: with outcomes this repeatable, two halves are independent only if they race
 disjoint pairings, and then the race that orders two neighbours of the table (they beat everyone else
