@@ -15,7 +15,7 @@ from openskill.models import PlackettLuce
 
 from multirace.cli import main as cli_main
 from multirace.league.config import LeagueError, load_config
-from multirace.league.convergence import reference_rank, top_tau
+from multirace.league.convergence import measure, reference_rank, top_tau
 from multirace.league.runner import run_league
 from multirace.league.submissions import init_league
 from multirace.league.table import compute_table
@@ -168,3 +168,20 @@ def test_kill_9_between_batches_then_resume_gives_the_same_table(planned, tmp_pa
     run_league(other, workers=2, progress=False)
     assert [(r, n) for r, n, _ in _heats(other)] == [(r, n) for r, n, _ in _heats(folder)]
     assert json.dumps(compute_table(other), sort_keys=True) == json.dumps(compute_table(folder), sort_keys=True)
+
+
+def test_the_convergence_measurement_runs_on_real_races_and_reuses_them(tmp_path):
+    entrants = {b: b for b in ("bot:follow@0.6", "bot:follow@1.0", "bot:follow@1.5", "bot:pass@1.2")}
+    out = tmp_path / "cv.json"
+    found = measure(entrants, out, steps=60, batch=2, workers=2, chains=2)
+    rank = found["reference_rank"]
+    assert rank["bot:follow@1.5"] < rank["bot:follow@0.6"] and rank["bot:follow@1.0"] < rank["bot:follow@0.6"]
+    assert found["races"] == 2 * 2 * 6  # both grid orders of 6 pairings on 2 seeds
+    for schedule in ("uncertainty", "round_robin"):
+        for chain in found[schedule]["chains"]:
+            assert max(map(int, chain["curve"])) == 6  # every pairing played in the end
+    cache = out.with_suffix(".heats.json")
+    stamp = cache.stat().st_mtime_ns
+    again = measure(entrants, out, steps=60, batch=2, workers=2, chains=2)
+    assert json.loads(json.dumps(again)) == json.loads(json.dumps(found)) == json.loads(out.read_text())
+    assert cache.stat().st_mtime_ns == stamp  # the second measurement raced nothing

@@ -149,9 +149,10 @@ def measure(entrants: dict, out: Path, track: str = "reinvent_base", steps: int 
     outcomes = Outcomes(out.with_suffix(".heats.json"), entrants, track, steps, workers)
     outcomes.race([(a, b, s) for a, b in itertools.combinations(names, 2) for s in SEEDS])
     rank = reference_rank(names, outcomes.winner)
-    result = {"entrants": len(names), "track": track, "max_steps": steps, "batch": batch, "races": 2 * len(
-        outcomes.known), "reference": sorted(names, key=lambda n: (rank[n], n)), "reference_rank": rank}
     pairs = list(itertools.combinations(names, 2))
+    result = {"entrants": len(names), "track": track, "max_steps": steps, "batch": batch,
+              "races": 2 * len(SEEDS) * len(pairs),  # both grid orders of every pairing on every seed
+              "reference": sorted(names, key=lambda n: (rank[n], n)), "reference_rank": rank}
     for schedule in ("uncertainty", "round_robin"):
         runs = []
         for c in range(chains):

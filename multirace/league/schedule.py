@@ -1,4 +1,5 @@
-"""The deterministic schedule: time trials and head-to-head heats of every entrant, kept in the store."""
+"""The schedule, kept in the store: time trials and head-to-head heats, a round robin built at once or the
+uncertainty schedule's pairings planned batch by batch from the results so far."""
 from __future__ import annotations
 
 import hashlib
