@@ -378,21 +378,3 @@ def test_in_a_browser_upload_watch_the_board_change_play_the_video_open_the_repl
     finally:
         runner.stop()
         srv.stop()
-
-
-# ------------------------------------------------------------------ the uncertainty schedule
-def test_uncertain_heats_spend_heats_where_the_table_is_unsure():
-    from openskill.models import PlackettLuce
-
-    from multirace.league.convergence import top_tau, uncertain_heats
-
-    model = PlackettLuce()
-    ratings = {"a": model.rating(mu=30, sigma=1), "b": model.rating(mu=30.5, sigma=1),
-               "c": model.rating(mu=10, sigma=1), "d": model.rating(mu=25, sigma=8),
-               "e": model.rating(mu=24, sigma=8)}
-    heats = uncertain_heats(model, ratings, 3, {})
-    assert heats[0] == ("d", "e")  # close and unknown
-    assert len({name for heat in heats for name in heat}) == 2 * len(heats)  # nobody twice in a batch
-    assert ("d", "e") not in uncertain_heats(model, ratings, 2, {frozenset("de"): 1})  # unmet pairs first
-    assert top_tau(list("abcdefghij"), list("abcdefghij")) == pytest.approx(1.0)
-    assert top_tau(list("abcdefghij"), list("hgfedcbaij")) == pytest.approx(-1.0)

@@ -20,4 +20,9 @@ the schedule row it fulfils (``INSERT OR IGNORE`` keyed by the match id), and
 its replay is written under a temporary name and renamed into place before the
 result is committed. Killed at any moment and run again, the league runs only
 the matches that have no result yet.
+
+Schedules: a round robin (every pair or K-subset meets equally often) or, with
+``schedule = "uncertainty"``, pairings planned in batches where the ratings are
+close and unsure, each batch from the results before it (``uncertainty.py``;
+``convergence.py`` measures how fast it settles the table).
 """

@@ -34,7 +34,8 @@ def add_league_commands(sub) -> None:
     sub_.set_defaults(func=_cmd_submit)
     run = league_sub.add_parser("run", help="run every pending match (resumable)",
                                 description="Builds the schedule and runs the matches without a result, in "
-                                            "worker processes; safe to kill and run again.")
+                                            "worker processes (with schedule = \"uncertainty\", batch after "
+                                            "batch until its budget); safe to kill and run again.")
     run.add_argument("dir", help="the league folder")
     run.add_argument("--workers", type=POSITIVE_INT, default=None, help="worker processes (default: one per core)")
     run.add_argument("--ray", metavar="ADDRESS", default=None,

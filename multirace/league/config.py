@@ -48,7 +48,7 @@ class LeagueConfig:
     replays: bool
     replay_image_every: int
     time_trial: dict | None  # {"laps", "trials", "max_steps"}
-    head_to_head: dict | None  # {"cars", "laps", "trials", "max_steps"}
+    head_to_head: dict | None  # {"cars", "laps", "trials", "max_steps", "schedule", "opponents", ...}
     source: str = TOML
 
 
@@ -77,7 +77,9 @@ SCHEMA = {  # every section, key, type and range league.toml may hold
                    "trials": _TRIALS, "max_steps": _MAX_STEPS},
     "head_to_head": {"enabled": Field(bool, True), "format": Field(str, "head_to_head"),
                      "cars": Field(int, 2, minimum=2, maximum=8), "laps": _LAPS, "trials": _TRIALS,
-                     "max_steps": _MAX_STEPS},
+                     "max_steps": _MAX_STEPS, "schedule": Field(str, "round_robin"),
+                     "opponents": Field(int, None, minimum=1), "stop_sigma": Field((float, int), None, above=0),
+                     "batch": Field(int, None, minimum=1)},
 }
 
 
@@ -106,6 +108,25 @@ def _section(table, fields: dict, source: str, where: str) -> dict:
             raise LeagueError(f"{source}: '{where}{key}' must be {low}{high}, got {value}")
         out[key] = value
     return out
+
+
+SCHEDULES = ("round_robin", "uncertainty")
+UNCERTAINTY_ONLY = ("opponents", "stop_sigma", "batch")
+
+
+def _check_schedule(h2h: dict, raw: dict, source: str) -> None:
+    """head_to_head.schedule is a known schedule; the uncertainty schedule's settings only come with it, and
+    it races pairs."""
+    if h2h["schedule"] not in SCHEDULES:
+        raise LeagueError(f"{source}: 'head_to_head.schedule' must be \"round_robin\" (every pair meets) or "
+                          f"\"uncertainty\" (pairs planned where the table is unsure), got {h2h['schedule']!r}")
+    if h2h["schedule"] == "round_robin":
+        for key in UNCERTAINTY_ONLY:
+            if key in raw:
+                raise LeagueError(f"{source}: 'head_to_head.{key}' applies only with schedule = \"uncertainty\"")
+    elif h2h["cars"] != 2:
+        raise LeagueError(f"{source}: 'head_to_head.cars' must be 2 with schedule = \"uncertainty\" (it plans "
+                          f"pairs), got {h2h['cars']}")
 
 
 def parse_config(text: str, source: str = TOML) -> LeagueConfig:
@@ -182,6 +203,8 @@ def parse_config(text: str, source: str = TOML) -> LeagueConfig:
     if h2h is not None and h2h.pop("format") != "head_to_head":
         raise LeagueError(f"{source}: 'head_to_head.format' must be 'head_to_head', got "
                           f"{data['head_to_head']['format']!r}")
+    if h2h is not None:
+        _check_schedule(h2h, data["head_to_head"], source)
     if tt is None and h2h is None:
         raise LeagueError(f"{source}: needs a [time_trial] or a [head_to_head] section")
     return LeagueConfig(name=name, tracks=tracks, seeds=list(seeds), bots=list(bots),

@@ -1,60 +1,63 @@
-"""Ratings that settle fast: head-to-head heats chosen where the table is uncertain, and how to measure it.
+"""How fast the uncertainty schedule settles the table, against a round robin, on real races.
 
-`uncertain_heats` picks the next heats of 2 cars: pairs whose outcome is least predictable and whose ratings
-are least known (OpenSkill's draw probability of the pair times the sum of their variances), each entrant at
-most once per batch, pairs that met least often first. `measure` compares it with a round robin on real
-races: each pairing is raced from both grid orders (bots that never overtake would otherwise lose from
-behind whatever their speed); two independent chains of results (on seeds 1 and 2) are rated apart, and
-the number of pairings per chain until their top 8 agree (Kendall tau >= 0.9, two batches running) is the
-figure. The round robin's chains race disjoint halves of its pairings: the races of these entrants hardly
-depend on the seed, so the same pairings on two seeds would agree at once. The schedule is not yet what
-`league run` plays: it is measured here first.
-`python -m multirace.league.convergence OUT.json` runs the measurement on 32 entrants.
+`python -m multirace.league.convergence OUT.json` measures it on 32 entrants (the shipped agents and bots
+of four kinds at many speeds). Each pairing is a 1-lap heat raced from both grid orders (bots that never
+overtake would otherwise lose from behind whatever their speed); the winner has the better sum of places,
+then the more distance. The races hardly depend on the seed, so the measure is agreement with a reference,
+not between two halves of the results:
+
+- The reference is every pairing raced on seeds 1 and 2 (the full round robin, twice). Entrants it cannot
+  order, those that beat each other round a cycle or split their two races, are tied; it orders every
+  other pair (the strongly connected groups of its who-beat-whom graph, in their one order).
+- A chain plays one schedule on one seed's outcomes, a batch of pairings at a time, and ranks the entrants
+  by OpenSkill ordinal as `league table` does. Its agreement is Kendall's tau between its top 8 and the
+  reference, over the pairs of that top 8 the reference orders. The figures are the pairings until
+  tau >= 0.9 for two batches running, and until it stays there; chains differ in seed and in the order of
+  equal choices (the round robin's in its random order).
+
+Why not two independent halves: with outcomes this repeatable, two halves are independent only if they race
+disjoint pairings, and then the race that orders two neighbours of the table (they beat everyone else
+alike) is in one half only; the other half orders them by a coin flip. Over the 7 neighbours of a top 8
+that is about 3.5 discordant pairs (tau about 0.75) whatever the schedule: the first measurement ended at
+0.64-0.71. Two chains on the same pairings instead agree at once, telling nothing.
 """
 from __future__ import annotations
 
+import hashlib
 import itertools
 import json
 import random
+import statistics
 import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
+from .uncertainty import rate, uncertain_heats
 
-def uncertain_heats(model, ratings: dict, count: int, met: dict) -> list[tuple[str, str]]:
-    """Up to `count` disjoint pairs of entrants for the next heats, most informative first."""
-    def score(pair):
-        a, b = ratings[pair[0]], ratings[pair[1]]
-        return (-met.get(frozenset(pair), 0), model.predict_draw([[a], [b]]) * (a.sigma ** 2 + b.sigma ** 2))
-
-    candidates = sorted(itertools.combinations(sorted(ratings), 2), key=score, reverse=True)
-    chosen, busy = [], set()
-    for a, b in candidates:
-        if a not in busy and b not in busy:
-            chosen.append((a, b))
-            busy |= {a, b}
-            if len(chosen) == count:
-                break
-    return chosen
+SEEDS = (1, 2)
+TARGET = 0.9
+CHECKPOINTS = (48, 96, 144, 192, 240, 288, 336, 400, 448, 496)  # pairings at which the curves are reported
 
 
-def top_tau(first: list[str], second: list[str], k: int = 8) -> float:
-    """Kendall tau between two rankings over the first ranking's top k (the second ranks them too)."""
-    from scipy.stats import kendalltau
+def top_tau(table: list[str], rank: dict, k: int = 8) -> float:
+    """Kendall tau between the table's top k and a reference `rank` (lower is better; equal ranks are ties,
+    left out): (concordant - discordant) / the pairs the reference orders."""
+    concordant = discordant = 0
+    for x, y in itertools.combinations(table[:k], 2):
+        concordant += rank[x] < rank[y]
+        discordant += rank[x] > rank[y]
+    return (concordant - discordant) / (concordant + discordant) if concordant + discordant else 1.0
 
-    top = first[:k]
-    where = {name: i for i, name in enumerate(second)}
-    return float(kendalltau(range(len(top)), [where[n] for n in top]).statistic)
 
-
-def _ranking(model, names, heats, tie_order: dict) -> tuple[dict, list[str]]:
-    """Ratings after `heats` (winner, loser) and the ranking; equal ratings in the chain's own random order,
-    so that two chains never agree merely because they break ties alike."""
-    ratings = {n: model.rating(name=n) for n in names}
-    for winner, loser in heats:
-        new = model.rate([[ratings[winner]], [ratings[loser]]], ranks=[1, 2])
-        ratings[winner], ratings[loser] = new[0][0], new[1][0]
-    return ratings, sorted(names, key=lambda n: (-round(ratings[n].ordinal(), 9), tie_order[n]))
+def reference_rank(names: list[str], winner) -> dict:
+    """Each entrant's rank in the full round robin (`winner(a, b, seed)` on every seed): the number of
+    entrants above it, entrants in one strongly connected group of who-beat-whom (a cycle, or a split) tied."""
+    reach = {a: {b for b in names if b != a and any(winner(a, b, s) == a for s in SEEDS)} for a in names}
+    for middle in names:  # transitive closure (Warshall)
+        for a in names:
+            if middle in reach[a]:
+                reach[a] |= reach[middle] - {a}
+    return {a: sum(1 for b in names if a in reach[b] and b not in reach[a]) for a in names}
 
 
 def _play(task) -> tuple:
@@ -66,7 +69,7 @@ def _play(task) -> tuple:
     a, b, seed, specs, track, steps = task
     score = {a: [0, 0.0], b: [0, 0.0]}
     for grid in ((a, b), (b, a)):
-        entrants = [{"name": n, "spec": specs[n], "sha256": None, "step_budget": 0.5} for n in grid]
+        entrants = [{"name": n, "spec": specs[n], "sha256": _sha256(specs[n]), "step_budget": 0.5} for n in grid]
         spec = {"kind": "head_to_head", "race": "head_to_head", "track": track, "reverse": False, "seed": seed,
                 "trial": 0, "laps": 1, "max_steps": steps, "entrants": entrants}
         for car in run_match(spec, Path("/"), None)["cars"]:
@@ -75,86 +78,101 @@ def _play(task) -> tuple:
     return a, b, seed, max((a, b), key=lambda n: (score[n], n == min(a, b)))
 
 
+def _sha256(spec: str) -> str | None:
+    return None if spec.startswith("bot:") else hashlib.sha256(Path(spec).read_bytes()).hexdigest()
+
+
 class Outcomes:
     """Real heat results, cached in a JSON file (a pair on a seed is raced once)."""
 
     def __init__(self, path: Path, specs: dict, track: str, steps: int, workers: int):
-        self.path, self.specs, self.track, self.steps = path, specs, track, steps
-        self.pool = ProcessPoolExecutor(workers)
+        self.path, self.specs, self.track, self.steps, self.workers = path, specs, track, steps, workers
         self.known = json.loads(path.read_text()) if path.is_file() else {}
 
-    def winners(self, heats: list[tuple[str, str, int]]) -> list[str]:
+    def race(self, heats: list[tuple[str, str, int]]) -> None:
+        """Race the heats not in the cache, saving the cache after each."""
         todo = [h for h in heats if self._key(*h) not in self.known]
-        tasks = [(a, b, s, self.specs, self.track, self.steps) for a, b, s in todo]
-        for a, b, seed, winner in self.pool.map(_play, tasks):
-            self.known[self._key(a, b, seed)] = winner
-        if todo:
-            self.path.write_text(json.dumps(self.known, sort_keys=True))
-        return [self.known[self._key(*h)] for h in heats]
+        if not todo:
+            return
+        with ProcessPoolExecutor(self.workers) as pool:
+            tasks = [(a, b, s, self.specs, self.track, self.steps) for a, b, s in todo]
+            for a, b, seed, winner in pool.map(_play, tasks):
+                self.known[self._key(a, b, seed)] = winner
+                self.path.write_text(json.dumps(self.known, sort_keys=True))
+
+    def winner(self, a: str, b: str, seed: int) -> str:
+        return self.known[self._key(a, b, seed)]
 
     @staticmethod
     def _key(a, b, seed) -> str:
         return f"{min(a, b)}|{max(a, b)}|{seed}"
 
 
-def _chains(outcomes: Outcomes, names, schedule, batch: int):
-    """Two chains of a schedule (outcomes on seeds 1 and 2), a batch of pairings each per step: yields the
-    pairings per chain so far and the Kendall tau of the two chains' top 8."""
+def _chain(outcomes: Outcomes, names, schedule: str, batch: int, seed: int, salt: int):
+    """One chain of a schedule on one seed's outcomes: yields (pairings so far, ranking by ordinal)."""
     from openskill.models import PlackettLuce
 
     model = PlackettLuce()
-    played = {1: [], 2: []}
-    ties = {seed: dict(zip(names, random.Random(seed).sample(range(len(names)), len(names)))) for seed in (1, 2)}
-    while True:
-        for seed in (1, 2):
-            ratings, _ = _ranking(model, names, played[seed], ties[seed])
-            met = {}
-            for w, l in played[seed]:
-                met[frozenset((w, l))] = met.get(frozenset((w, l)), 0) + 1
-            pairs = schedule(model, ratings, batch, met, len(played[seed]), seed)
-            winners = outcomes.winners([(a, b, seed) for a, b in pairs])
-            played[seed] += [(w, b if w == a else a) for (a, b), w in zip(pairs, winners)]
-        rankings = [_ranking(model, names, played[seed], ties[seed])[1] for seed in (1, 2)]
-        yield len(played[1]), top_tau(*rankings)
+    pairs = list(itertools.combinations(names, 2))
+    random.Random(salt).shuffle(pairs)  # the round robin's order
+    ratings, met = rate(model, names, []), set()
+    while len(met) < len(pairs):
+        if schedule == "uncertainty":
+            chosen = uncertain_heats(model, ratings, batch, met, salt=str(salt))
+        else:
+            chosen = pairs[len(met):len(met) + batch]
+        for a, b in chosen:
+            met.add(frozenset((a, b)))
+            w = outcomes.winner(a, b, seed)
+            new = model.rate([[ratings[w]], [ratings[b if w == a else a]]], ranks=[1, 2])
+            ratings[w], ratings[b if w == a else a] = new[0][0], new[1][0]
+        yield len(met), sorted(names, key=lambda n: (-ratings[n].ordinal(), n))
+
+
+def _tau_at(curve: dict, pairings: int) -> float:
+    """A chain's tau after its last batch within `pairings`."""
+    return curve[max(n for n in curve if n <= pairings)]
+
+
+def _spread(found: list, never: int) -> dict:
+    """Median and range of pairings over chains; a chain that never got there counts as `never` + 1."""
+    values = [n if n is not None else never + 1 for n in found]
+    return {"median": statistics.median(values), "range": [min(values), max(values)],
+            "chains_there": sum(n is not None for n in found)}
 
 
 def measure(entrants: dict, out: Path, track: str = "reinvent_base", steps: int = 100, batch: int = 16,
-            workers: int = 2, seed: int = 0) -> dict:
-    """Pairings per chain until two independent chains' top 8 agree (tau >= 0.9 for two batches running):
-    the uncertainty schedule against a round robin in random order, a batch of each in turn (so a run
-    stopped early compares them at equal cost). `entrants` maps names to agent files or bot specs."""
+            workers: int = 2, chains: int = 8) -> dict:
+    """Pairings until a chain's top 8 agrees with the full round robin (tau >= 0.9 for two batches running),
+    per schedule and chain; `entrants` maps names to agent files or bot specs. Writes OUT and its heat cache."""
     names = sorted(entrants)
-    order = list(itertools.combinations(names, 2))
-    random.Random(seed).shuffle(order)
-    halves = {1: order[0::2], 2: order[1::2]}  # a round robin's two independent halves: disjoint pairings
-    schedules = {"uncertainty": lambda model, ratings, count, met, done, seed: uncertain_heats(model, ratings, count,
-                                                                                              met),
-                 "round_robin": lambda model, ratings, count, met, done, seed: halves[seed][done:done + count]}
-    result = {"entrants": len(names), "track": track, "max_steps": steps, "batch": batch}
     outcomes = Outcomes(out.with_suffix(".heats.json"), entrants, track, steps, workers)
-    chains = {key: _chains(outcomes, names, schedule, batch) for key, schedule in schedules.items()}
-    for key in chains:
-        result[key] = {"converged_at": None, "curve": [], "agreed": 0}
-    try:
-        while any(r["converged_at"] is None and len(r["curve"]) * batch < len(order) // 2
-                  for r in (result[k] for k in chains)):
-            for key, chain in chains.items():
-                state = result[key]
-                if state["converged_at"] is not None:
-                    continue
-                count, tau = next(chain)
-                state["curve"].append({"pairings_per_chain": count, "tau_top8": round(tau, 4)})
-                state["agreed"] = state["agreed"] + 1 if tau >= 0.9 else 0
-                if state["agreed"] == 2:  # two batches in a row: agreement that holds, not a coincidence
-                    state["converged_at"] = count - batch
-                out.write_text(json.dumps({**result, "races": 2 * len(outcomes.known)}, indent=2))
-    finally:
-        outcomes.pool.shutdown()
-    return {**result, "races": 2 * len(outcomes.known)}
+    outcomes.race([(a, b, s) for a, b in itertools.combinations(names, 2) for s in SEEDS])
+    rank = reference_rank(names, outcomes.winner)
+    pairs = list(itertools.combinations(names, 2))
+    result = {"entrants": len(names), "track": track, "max_steps": steps, "batch": batch,
+              "races": 2 * len(SEEDS) * len(pairs),  # both grid orders of every pairing on every seed
+              "reference": sorted(names, key=lambda n: (rank[n], n)), "reference_rank": rank}
+    for schedule in ("uncertainty", "round_robin"):
+        runs = []
+        for c in range(chains):
+            curve = {count: round(top_tau(ranking, rank), 3) for count, ranking in
+                     _chain(outcomes, names, schedule, batch, SEEDS[c % 2], c)}
+            counts = list(curve)
+            agrees = next((n for n, after in zip(counts, counts[1:])
+                           if curve[n] >= TARGET and curve[after] >= TARGET), None)
+            holds = next((n for i, n in enumerate(counts) if all(curve[m] >= TARGET for m in counts[i:])), None)
+            runs.append({"seed": SEEDS[c % 2], "salt": c, "agrees_at": agrees, "settled_at": holds,
+                         "curve": curve})
+        result[schedule] = {"chains": runs, **{key: _spread([r[key] for r in runs], len(pairs))
+                                               for key in ("agrees_at", "settled_at")},
+                            "tau_at": {n: [_tau_at(r["curve"], n) for r in runs] for n in CHECKPOINTS}}
+    out.write_text(json.dumps(result, indent=2))
+    return result
 
 
 def league_of_32() -> dict:
-    """32 entrants: the 4 shipped agents and 28 bots of four kinds and many speeds."""
+    """32 entrants: the shipped agents and bots of four kinds and many speeds."""
     from ..resources import agents_dir
 
     entrants = {p.stem: str(p) for p in sorted(agents_dir().glob("*.pt"))}
@@ -166,4 +184,6 @@ def league_of_32() -> dict:
 
 
 if __name__ == "__main__":
-    print(json.dumps(measure(league_of_32(), Path(sys.argv[1])), indent=2))
+    found = measure(league_of_32(), Path(sys.argv[1]))
+    print(json.dumps({"races": found["races"], **{s: {k: found[s][k] for k in ("agrees_at", "settled_at", "tau_at")}
+                                                  for s in ("uncertainty", "round_robin")}}))

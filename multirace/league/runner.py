@@ -83,9 +83,9 @@ class _WorkerFailed(Exception):
     pass
 
 
-def run_league(folder, workers: int | None = None, ray_address: str | None = None, progress: bool = True,
-               only_ids=None) -> dict:
-    """Run every pending match of the league; returns {"ran", "failed", "skipped", "wall_seconds"}."""
+def run_league(folder, workers: int | None = None, ray_address: str | None = None, progress: bool = True) -> dict:
+    """Run every pending match of the league (with the uncertainty schedule, batch after batch until it
+    stops); returns {"scheduled", "ran", "failed", "pending_at_start", "wall_seconds"}."""
     folder = Path(folder).resolve()
     config = load_config(folder)
     if ray_address:
@@ -101,17 +101,20 @@ def run_league(folder, workers: int | None = None, ray_address: str | None = Non
         lock.close()
         raise
     try:
-        schedule = sync_schedule(folder, config, conn)
-        current = {row["match_id"] for row in schedule}
-        todo = [(mid, spec) for mid, spec in pending_matches(conn) if mid in current]
-        if only_ids is not None:
-            todo = [(mid, spec) for mid, spec in todo if mid in set(only_ids)]
         (folder / REPLAYS).mkdir(exist_ok=True)
         for stale in (folder / REPLAYS).glob("*.tmp"):
             stale.unlink(missing_ok=True)  # left by a killed run; the match is still pending
         start = time.perf_counter()
-        stats = {"scheduled": len(schedule), "ran": 0, "failed": 0, "pending_at_start": len(todo)}
-        if todo:
+        stats = {"scheduled": 0, "ran": 0, "failed": 0, "pending_at_start": None}
+        while True:  # the uncertainty schedule plans its next batch once the last one has its results
+            schedule = sync_schedule(folder, config, conn)
+            current = {row["match_id"] for row in schedule}
+            todo = [(mid, spec) for mid, spec in pending_matches(conn) if mid in current]
+            stats["scheduled"] = len(schedule)
+            if stats["pending_at_start"] is None:
+                stats["pending_at_start"] = len(todo)
+            if not todo:
+                break
             if ray_address:
                 _run_on_ray(folder, config, conn, todo, ray_address, stats, progress)
             else:

@@ -1,4 +1,5 @@
-"""The deterministic schedule: time trials and head-to-head heats of every entrant, kept in the store."""
+"""The schedule, kept in the store: time trials and head-to-head heats, a round robin built at once or the
+uncertainty schedule's pairings planned batch by batch from the results so far."""
 from __future__ import annotations
 
 import hashlib
@@ -7,6 +8,7 @@ import json
 
 from .config import TIME_TRIAL_FORMAT, LeagueConfig
 from .store import _Tx
+from .uncertainty import next_pairs
 
 
 def entrants(folder, config: LeagueConfig, conn) -> list[dict]:
@@ -28,58 +30,111 @@ def _heat_offset(names: list[str]) -> int:
     return int(hashlib.sha256("\n".join(sorted(names)).encode()).hexdigest()[:8], 16)
 
 
-def build_schedule(config: LeagueConfig, entries: list[dict]) -> list[dict]:
-    """The full deterministic schedule: a list of {"match_id", "kind", "round", "spec"} in schedule order.
+def _blocks(config: LeagueConfig) -> list[tuple[str, bool, int]]:
+    return [(t.name, d == "reverse", seed) for t in config.tracks for d in t.directions for seed in config.seeds]
 
-    Time trials: every entrant, per track, direction, seed and trial. Head-to-head:
-    every K-subset of entrants (so every pair meets equally often) per track,
-    direction, seed and trial; a heat's grid order is the subset rotated by
-    (block + trial + an offset drawn from its entrants' names) mod K, so over
-    blocks each entrant starts from each slot, and a heat's id does not change
-    when another entrant joins (a new entrant or version adds only its own matches).
-    A round is one (track, direction, seed, trial) block of heats.
+
+def _entrant_spec(config: LeagueConfig, e: dict) -> dict:
+    budget = e["step_budget"] if e["step_budget"] is not None else config.step_budget
+    return {"name": e["name"], "spec": e["spec"], "sha256": e["sha256"], "step_budget": budget}
+
+
+def _heat_matches(config: LeagueConfig, heat: list[dict]) -> list[tuple[int, dict]]:
+    """Every match of one heat's entrants, (block * trials + trial, spec) per (track, direction, seed) block
+    and trial; the grid is the heat rotated by (block + trial + an offset drawn from its entrants' names)."""
+    h, out = config.head_to_head, []
+    for b, (track, reverse, seed) in enumerate(_blocks(config)):
+        for trial in range(h["trials"]):
+            shift = (b * h["trials"] + trial + _heat_offset([e["name"] for e in heat])) % len(heat)
+            grid = heat[shift:] + heat[:shift]
+            out.append((b * h["trials"] + trial,
+                        {"kind": "head_to_head", "race": "head_to_head", "track": track, "reverse": reverse,
+                         "seed": seed, "trial": trial, "laps": h["laps"], "max_steps": h["max_steps"],
+                         "entrants": [_entrant_spec(config, e) for e in grid]}))
+    return out
+
+
+def _row(kind: str, round_no: int, spec: dict) -> dict:
+    match_id = _match_id(spec)
+    return {"kind": kind, "round": round_no, "spec": {**spec, "match_id": match_id}, "match_id": match_id}
+
+
+def build_schedule(config: LeagueConfig, entries: list[dict]) -> list[dict]:
+    """The deterministic schedule: a list of {"match_id", "kind", "round", "spec"} in schedule order.
+
+    Time trials: every entrant, per track, direction, seed and trial. Head-to-head with the round robin:
+    every K-subset of entrants (so every pair meets equally often) per track, direction, seed and trial
+    (`_heat_matches`), so over blocks each entrant starts from each slot, and a heat's id does not change
+    when another entrant joins (a new entrant or version adds only its own matches). A round is one
+    (track, direction, seed, trial) block of heats. The uncertainty schedule's heats are planned as
+    results arrive (`sync_schedule`), not here.
     """
     schedule = []
-    blocks = [(t.name, d == "reverse", seed) for t in config.tracks for d in t.directions for seed in config.seeds]
-
-    def entrant_spec(e):
-        budget = e["step_budget"] if e["step_budget"] is not None else config.step_budget
-        return {"name": e["name"], "spec": e["spec"], "sha256": e["sha256"], "step_budget": budget}
-
     if config.time_trial:
         tt = config.time_trial
-        for b, (track, reverse, seed) in enumerate(blocks):
+        for b, (track, reverse, seed) in enumerate(_blocks(config)):
             for trial in range(tt["trials"]):
                 for e in entries:
                     spec = {"kind": "time_trial", "race": TIME_TRIAL_FORMAT, "track": track, "reverse": reverse,
                             "seed": seed, "trial": trial, "laps": tt["laps"], "max_steps": tt["max_steps"],
-                            "entrants": [entrant_spec(e)]}
-                    schedule.append({"kind": "time_trial", "round": b * tt["trials"] + trial, "spec": spec})
-    if config.head_to_head and len(entries) >= 2:
-        h = config.head_to_head
-        k = min(h["cars"], len(entries))
-        heats = list(itertools.combinations(range(len(entries)), k))
-        round_no = 0
-        for b, (track, reverse, seed) in enumerate(blocks):
-            for trial in range(h["trials"]):
-                for heat in heats:
-                    shift = (b * h["trials"] + trial + _heat_offset([entries[i]["name"] for i in heat])) % k
-                    grid = heat[shift:] + heat[:shift]
-                    spec = {"kind": "head_to_head", "race": "head_to_head", "track": track, "reverse": reverse,
-                            "seed": seed, "trial": trial, "laps": h["laps"], "max_steps": h["max_steps"],
-                            "entrants": [entrant_spec(entries[i]) for i in grid]}
-                    schedule.append({"kind": "head_to_head", "round": round_no, "spec": spec})
-                round_no += 1
-    for row in schedule:
-        row["match_id"] = _match_id(row["spec"])
-        row["spec"]["match_id"] = row["match_id"]
+                            "entrants": [_entrant_spec(config, e)]}
+                    schedule.append(_row("time_trial", b * tt["trials"] + trial, spec))
+    if config.head_to_head and len(entries) >= 2 and config.head_to_head["schedule"] == "round_robin":
+        k = min(config.head_to_head["cars"], len(entries))
+        heats = [(i, match) for i, heat in enumerate(itertools.combinations(entries, k))
+                 for match in _heat_matches(config, list(heat))]
+        heats.sort(key=lambda item: item[1][0])  # block by block, heats in the same order within each
+        schedule += [_row("head_to_head", round_no, spec) for _, (round_no, spec) in heats]
+    return schedule
+
+
+def _planned_heats(config: LeagueConfig, entries: list[dict], conn) -> list[dict]:
+    """The uncertainty schedule's heats among the current entrants: those planned so far (stored), and the
+    next batch (`uncertainty.next_pairs`) once every planned heat has a result. Heats of earlier versions
+    or another league definition are not current: their ids differ."""
+    from openskill.models import PlackettLuce
+
+    by_name = {e["name"]: e for e in entries}
+    stored = conn.execute("SELECT s.match_id, s.round, s.spec, r.status, r.result FROM schedule s LEFT JOIN "
+                          "results r USING (match_id) WHERE s.kind = 'head_to_head' ORDER BY s.seq").fetchall()
+    pairs, ids, orders, waiting = {}, {}, [], False
+    for match_id, round_no, spec, status, result in stored:
+        names = tuple(sorted(e["name"] for e in json.loads(spec)["entrants"]))
+        if len(names) != 2 or not all(n in by_name for n in names):
+            continue
+        if names not in ids:
+            ids[names] = {_match_id(spec) for _, spec in _heat_matches(config, [by_name[n] for n in names])}
+        if match_id in ids[names]:
+            pairs.setdefault(names, round_no)
+            waiting |= status is None
+            if status == "ok":
+                cars = sorted(json.loads(result)["cars"], key=lambda c: c["position"])
+                orders.append([(c["name"], c["position"]) for c in cars if c["name"] in by_name])
+    rows = [_row("head_to_head", round_no, spec) for names, round_no in pairs.items()
+            for _, spec in _heat_matches(config, [by_name[n] for n in names])]
+    stored_ids = {row[0] for row in stored}
+    if waiting or any(row["match_id"] not in stored_ids for row in rows):
+        return rows  # a batch is still running: the next one is planned from its results
+    next_round = 1 + max((row[1] for row in stored), default=-1)
+    for a, b in next_pairs(PlackettLuce(), sorted(by_name), orders, {frozenset(p) for p in pairs},
+                           config.head_to_head):
+        rows += [_row("head_to_head", next_round, spec) for _, spec in _heat_matches(config, [by_name[a], by_name[b]])]
+    return rows
+
+
+def current_schedule(config: LeagueConfig, entries: list[dict], conn) -> list[dict]:
+    """The schedule of the current entrants: `build_schedule`, and with the uncertainty schedule the heats
+    planned so far plus the next batch when it is due (reads the store only)."""
+    schedule = build_schedule(config, entries)
+    if config.head_to_head and config.head_to_head["schedule"] == "uncertainty":
+        schedule += _planned_heats(config, entries, conn)
     return schedule
 
 
 def sync_schedule(folder, config: LeagueConfig, conn) -> list[dict]:
     """Insert the schedule's new rows (existing rows keep their seq); returns the current schedule."""
-    schedule = build_schedule(config, entrants(folder, config, conn))
     with _Tx(conn):
+        schedule = current_schedule(config, entrants(folder, config, conn), conn)
         known = {row[0] for row in conn.execute("SELECT match_id FROM schedule")}
         seq = conn.execute("SELECT COALESCE(MAX(seq), -1) FROM schedule").fetchone()[0]
         for row in schedule:

@@ -21,7 +21,7 @@ from pathlib import Path
 from ..atomic import write_bytes, write_text
 from ..text import TEXT_LENGTH, display_name
 from .config import load_config
-from .schedule import build_schedule, entrants
+from .schedule import current_schedule, entrants
 from .store import connect
 
 COLUMNS = ["rank", "entrant", "rating", "mu", "sigma", "heats", "wins", "avg_position", "tt_best_lap",
@@ -49,7 +49,7 @@ def compute_table(folder) -> dict:
     conn = connect(folder, readonly=True)
     try:
         league_entrants = entrants(folder, config, conn)
-        current = {row["match_id"] for row in build_schedule(config, league_entrants)}
+        current = {row["match_id"] for row in current_schedule(config, league_entrants, conn)}
         rows = conn.execute(
             "SELECT s.match_id, s.seq, s.kind, s.round, s.spec, r.status, r.result, r.reason, r.replay "
             "FROM schedule s LEFT JOIN results r USING (match_id) ORDER BY s.seq").fetchall()
