@@ -128,3 +128,4 @@ def advance(state, commands, grip, motor, params, step_time):
         state[k, 0], state[k, 1], state[k, 2] = u, v, r
         out[k, 0], out[k, 1], out[k, 2] = x, y, yaw
     return out
+

@@ -28,6 +28,7 @@ import os
 import numpy as np
 
 from .car import CarSpec
+from .broadphase import may_touch
 from .dynamics import DynamicsParams, advance
 
 
@@ -56,6 +57,8 @@ PARKED_Z = -50.0  # where parked cars wait, far below the scene
 SOLVER_ITERATIONS = 10
 CONTACT_DISTANCE = 0.002  # metres; closer than this counts as touching
 CONTACT_EVERY = 2  # physics steps between contact queries
+TOUCH_MARGIN = 0.05  # metres; bodies farther apart than this at the end of a step cannot have touched in it
+# (PyBullet keeps contact points of bodies up to its contact breaking threshold, 0.02 m, apart)
 RESTING_SPEED = 0.05  # m/s; two cars that close and slide slower than this are only resting against each other
 DYNAMICS = ("dynamic", "kinematic")
 
@@ -95,7 +98,8 @@ class World:
     """PyBullet scene of `num_cars` cars and `num_obstacles` boxes."""
 
     def __init__(self, spec: CarSpec, num_cars: int, num_obstacles: int = 0,
-                 physics_hz: int = 60, action_hz: int = 15, dynamics: str = "dynamic"):
+                 physics_hz: int = 60, action_hz: int = 15, dynamics: str = "dynamic",
+                 contact_shortcut: bool = True):
         if physics_hz % action_hz:
             raise ValueError(f"physics_hz ({physics_hz}) must be a multiple of action_hz ({action_hz})")
         if dynamics not in DYNAMICS:
@@ -116,6 +120,12 @@ class World:
         self.parked = np.zeros(num_cars, dtype=bool)
         self._set_velocity = [(0.0, 0.0, 0.0)] * num_cars  # last velocity we imposed
         self._struck_by: dict[int, set[int]] = {}  # car -> the cars that struck it in the last action step
+        self.contact_shortcut = contact_shortcut
+        self.bullet_steps = 0  # action steps PyBullet was stepped in (the others moved the cars without it)
+        self._pushes_pending = False  # PyBullet was stepped since the velocities were set: read its pushes
+        self._stale = np.zeros(num_cars, dtype=bool)  # cars moved since PyBullet's body was last put in place
+        self._car_radius = math.hypot(spec.length / 2, spec.width / 2)
+        self._obstacle_radius = math.hypot(OBSTACLE_SIZE[0] / 2, OBSTACLE_SIZE[1] / 2)
         step_time = self.physics_dt * self.substeps  # the car's command changes once per action step
         self._speed_blend = 1.0 - math.exp(-step_time / spec.speed_time_constant)
         self._grip_keep = math.exp(-step_time / spec.grip_time_constant)
@@ -189,6 +199,7 @@ class World:
         self.motion[i] = (speed, 0.0, 0.0)
         self.poses[i] = (x, y, yaw)
         self.parked[i] = False
+        self._stale[i] = False
         self._struck_by.pop(i, None)  # a car put back on the track is no longer being pushed
 
     def park(self, i: int) -> None:
@@ -201,6 +212,7 @@ class World:
         self.drive_speed[i] = 0.0
         self.motion[i] = 0.0
         self.parked[i] = True
+        self._stale[i] = False
 
     def place_obstacle(self, k: int, x: float, y: float, yaw: float) -> None:
         """Put box `k` at a pose."""
@@ -213,6 +225,7 @@ class World:
     def cast_rays(self, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
         """Hit fraction (0 at the start .. 1 at the end, 1 for no hit) of each ray, rows of (M, 3) points."""
         cid = self.connect()
+        self.sync()
         # one thread: each env has one core (numThreads=1 measured 15 % faster than the default here)
         hits = pybullet.rayTestBatch(starts.tolist(), ends.tolist(), numThreads=1, physicsClientId=cid)
         return np.array([hit[2] for hit in hits])
@@ -222,22 +235,92 @@ class World:
         """Advance one action step (several physics steps) under (steer rad, speed m/s) commands.
 
         Each car's velocity is set once per action step to carry it where its
-        motion model says; PyBullet then integrates the physics steps and
-        resolves contacts within them. Returns the contacts that happened
-        during the step, one per touching pair.
+        motion model says. Where two bodies can touch within the step (`may_touch`),
+        PyBullet integrates the physics steps and resolves the contacts within
+        them; elsewhere (with `contact_shortcut`, the default) each car moves
+        at its velocity as PyBullet would move a body that touches nothing, and
+        PyBullet is not stepped. Returns the contacts that happened during the
+        step, one per touching pair.
         """
         active = [i for i in range(self.num_cars) if not self.parked[i]]
+        pushes = self._pushes(active)
         if self.dynamics == "dynamic":
-            self._command_dynamic(active, commands)
+            velocities = self._command_dynamic(active, commands, pushes)
         else:
-            self._command_kinematic(active, commands)
+            velocities = self._command_kinematic(active, commands, pushes)
+        for i, velocity in zip(active, velocities):
+            self._set_velocity[i] = velocity
+        if self.contact_shortcut and not self._may_touch(active):
+            self._move_freely(active)
+            self._struck_by = {}  # as after a step without contacts
+            return []
+        self.bullet_steps += 1
+        self._sync_bodies()
+        cid = self.client
+        for i in active:
+            vx, vy, turn = self._set_velocity[i]
+            pybullet.resetBaseVelocity(self.car_ids[i], (vx, vy, 0.0), (0.0, 0.0, turn), cid)
         contacts: dict[tuple, Contact] = {}
         for substep in range(self.substeps):
-            pybullet.stepSimulation(self.client)
+            pybullet.stepSimulation(cid)
             if substep % CONTACT_EVERY == CONTACT_EVERY - 1 or substep == self.substeps - 1:
                 self._collect_contacts(contacts)
         self._read_poses(active)
+        self._pushes_pending = True
         return self._clear_pushed_strikers(list(contacts.values()))
+
+    def _pushes(self, active: list[int]) -> list[tuple[float, float, float]]:
+        """What PyBullet's last step added to each active car's velocity (x, y, yaw rate, world frame): the
+        contacts' pushes. Zero where PyBullet was not stepped since the velocities were last set."""
+        if not self._pushes_pending:
+            return [(0.0, 0.0, 0.0)] * len(active)
+        self._pushes_pending = False
+        pushes = []
+        for i in active:
+            (lvx, lvy, _), (_, _, wz) = pybullet.getBaseVelocity(self.car_ids[i], self.client)
+            sx, sy, sr = self._set_velocity[i]
+            pushes.append((lvx - sx, lvy - sy, wz - sr))
+        return pushes
+
+    def _may_touch(self, active: list[int]) -> bool:
+        """Whether any two bodies' bounding circles can come within `TOUCH_MARGIN` of each other during the
+        step, moving at their set velocities (a conservative broad phase: it never misses a contact)."""
+        rows = np.asarray(active, np.int64)
+        return may_touch(self.poses[rows, :2], np.asarray([self._set_velocity[i][:2] for i in active]).reshape(-1, 2),
+                         self.obstacle_poses[:, :2], self._car_radius, self._obstacle_radius,
+                         self.physics_dt * self.substeps, TOUCH_MARGIN)
+
+    def _move_freely(self, active: list[int]) -> None:
+        """Move the active cars as PyBullet moves a body that touches nothing: each physics step adds the
+        velocity times the physics step to the position and the yaw rate times it to the heading."""
+        dt = self.physics_dt
+        for i in active:
+            vx, vy, turn = self._set_velocity[i]
+            x, y, yaw = self.poses[i].tolist()
+            for _ in range(self.substeps):
+                x += vx * dt
+                y += vy * dt
+            yaw += turn * dt * self.substeps
+            if yaw > math.pi:
+                yaw -= 2 * math.pi
+            elif yaw < -math.pi:
+                yaw += 2 * math.pi
+            self.poses[i] = (x, y, yaw)
+            self._stale[i] = True
+
+    def sync(self) -> None:
+        """Bring PyBullet's bodies to the cars' poses (after steps that moved the cars without PyBullet):
+        call before anything reads the scene from PyBullet (rays, its camera)."""
+        if self._stale.any():
+            self._sync_bodies()
+
+    def _sync_bodies(self) -> None:
+        cid, height = self.client, self.spec.height / 2
+        for i in np.flatnonzero(self._stale).tolist():
+            x, y, yaw = self.poses[i].tolist()
+            pybullet.resetBasePositionAndOrientation(self.car_ids[i], (x, y, height),
+                                                     (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)), cid)
+        self._stale[:] = False
 
     def _clear_pushed_strikers(self, contacts: list[Contact]) -> list[Contact]:
         """The step's contacts with no striker where the striker was being pushed by a third car (struck by it
@@ -253,46 +336,40 @@ class World:
         self._struck_by = struck_by
         return contacts
 
-    def _command_dynamic(self, active: list[int], commands) -> None:
-        """Run the tyre model for the active cars (a push since the last step joins their motion)."""
+    def _command_dynamic(self, active: list[int], commands, pushes) -> list[tuple[float, float, float]]:
+        """Run the tyre model for the active cars (a push since the last step joins their motion); returns
+        their new velocities (x, y, yaw rate) in the world frame."""
         if not active:
-            return
-        cid = self.client
+            return []
         step_time = self.physics_dt * self.substeps
         yaws = self.poses[:, 2].tolist()  # plain floats: fast maths
-        pushes = []
-        for i in active:
-            (lvx, lvy, _), (_, _, wz) = pybullet.getBaseVelocity(self.car_ids[i], cid)
-            sx, sy, sr = self._set_velocity[i]
+        local = []
+        for i, (push_x, push_y, push_r) in zip(active, pushes):
             cos_y, sin_y = math.cos(yaws[i]), math.sin(yaws[i])
-            push_x, push_y = lvx - sx, lvy - sy
-            pushes.append((push_x * cos_y + push_y * sin_y, -push_x * sin_y + push_y * cos_y, wz - sr))
+            local.append((push_x * cos_y + push_y * sin_y, -push_x * sin_y + push_y * cos_y, push_r))
         rows = np.asarray(active)
-        state = self.motion[rows] + pushes
+        state = self.motion[rows] + local
         moved = advance(state, np.asarray(commands, np.float64)[rows], self.grip[rows], self.motor[rows],
                         self._params, step_time)
         self.motion[rows] = state
         self.drive_speed[rows] = state[:, 0]
+        velocities = []
         for i, (forward, left, turn) in zip(active, (moved / step_time).tolist()):
             cos_y, sin_y = math.cos(yaws[i]), math.sin(yaws[i])
-            vx, vy = forward * cos_y - left * sin_y, forward * sin_y + left * cos_y
-            pybullet.resetBaseVelocity(self.car_ids[i], (vx, vy, 0.0), (0.0, 0.0, turn), cid)
-            self._set_velocity[i] = (vx, vy, turn)
+            velocities.append((forward * cos_y - left * sin_y, forward * sin_y + left * cos_y, turn))
+        return velocities
 
-    def _command_kinematic(self, active: list[int], commands) -> None:
+    def _command_kinematic(self, active: list[int], commands, pushes) -> list[tuple[float, float, float]]:
         """The kinematic bicycle: the velocity points along the heading the car will have half-way
-        through the step (the midpoint rule, so arcs are followed closely), with the yaw rate held."""
-        cid = self.client
+        through the step (the midpoint rule, so arcs are followed closely), with the yaw rate held.
+        Returns the active cars' new velocities (x, y, yaw rate) in the world frame."""
         step_time = self.physics_dt * self.substeps
         commands = [(float(steer), float(speed)) for steer, speed in commands]  # plain floats: fast maths
         yaws, drive_speed = self.poses[:, 2].tolist(), self.drive_speed.tolist()
-        for i in active:
-            body = self.car_ids[i]
-            (lvx, lvy, _), _ = pybullet.getBaseVelocity(body, cid)
-            yaw = yaws[i]
+        velocities = []
+        for i, (push_x, push_y, _) in zip(active, pushes):
             # what a collision (or anything but our own command) changed since we set the velocity
-            sx, sy, _ = self._set_velocity[i]
-            push_x, push_y = lvx - sx, lvy - sy
+            yaw = yaws[i]
             cos_y, sin_y = math.cos(yaw), math.sin(yaw)
             steer, target = commands[i]
             speed = drive_speed[i] + push_x * cos_y + push_y * sin_y
@@ -304,10 +381,9 @@ class World:
             direction = yaw + 0.5 * yaw_rate * step_time + beta
             # the sideways part of a push decays with the tyres' grip
             side = (-push_x * sin_y + push_y * cos_y) * self._grip_keep
-            vx = speed * math.cos(direction) - side * sin_y
-            vy = speed * math.sin(direction) + side * cos_y
-            pybullet.resetBaseVelocity(body, (vx, vy, 0.0), (0.0, 0.0, yaw_rate), cid)
-            self._set_velocity[i] = (vx, vy, yaw_rate)
+            velocities.append((speed * math.cos(direction) - side * sin_y, speed * math.sin(direction) + side * cos_y,
+                               yaw_rate))
+        return velocities
 
     def _collect_contacts(self, contacts: dict) -> None:
         for point in pybullet.getContactPoints(physicsClientId=self.client):
