@@ -57,8 +57,8 @@ PARKED_Z = -50.0  # where parked cars wait, far below the scene
 SOLVER_ITERATIONS = 10
 CONTACT_DISTANCE = 0.002  # metres; closer than this counts as touching
 CONTACT_EVERY = 2  # physics steps between contact queries
-TOUCH_MARGIN = 0.05  # metres; bodies farther apart than this at the end of a step cannot have touched in it
-# (PyBullet keeps contact points of bodies up to its contact breaking threshold, 0.02 m, apart)
+TOUCH_PAD = 0.15  # metres around each body's bounding box where PyBullet is stepped (`broadphase.may_touch`):
+# PyBullet pairs bodies up to its contact breaking threshold (0.02 m) plus its tree's margin (0.05 m) apart
 RESTING_SPEED = 0.05  # m/s; two cars that close and slide slower than this are only resting against each other
 DYNAMICS = ("dynamic", "kinematic")
 
@@ -124,8 +124,8 @@ class World:
         self.bullet_steps = 0  # action steps PyBullet was stepped in (the others moved the cars without it)
         self._pushes_pending = False  # PyBullet was stepped since the velocities were set: read its pushes
         self._stale = np.zeros(num_cars, dtype=bool)  # cars moved since PyBullet's body was last put in place
-        self._car_radius = math.hypot(spec.length / 2, spec.width / 2)
-        self._obstacle_radius = math.hypot(OBSTACLE_SIZE[0] / 2, OBSTACLE_SIZE[1] / 2)
+        self._car_size = np.array([spec.length, spec.width])
+        self._obstacle_size = np.array(OBSTACLE_SIZE[:2])
         step_time = self.physics_dt * self.substeps  # the car's command changes once per action step
         self._speed_blend = 1.0 - math.exp(-step_time / spec.speed_time_constant)
         self._grip_keep = math.exp(-step_time / spec.grip_time_constant)
@@ -283,12 +283,11 @@ class World:
         return pushes
 
     def _may_touch(self, active: list[int]) -> bool:
-        """Whether any two bodies' bounding circles can come within `TOUCH_MARGIN` of each other during the
-        step, moving at their set velocities (a conservative broad phase: it never misses a contact)."""
-        rows = np.asarray(active, np.int64)
-        return may_touch(self.poses[rows, :2], np.asarray([self._set_velocity[i][:2] for i in active]).reshape(-1, 2),
-                         self.obstacle_poses[:, :2], self._car_radius, self._obstacle_radius,
-                         self.physics_dt * self.substeps, TOUCH_MARGIN)
+        """Whether any two bodies' padded bounding boxes can overlap during the step, moving at their set
+        velocities (a conservative broad phase: it never misses a pair PyBullet would make)."""
+        velocities = np.asarray([self._set_velocity[i][:2] for i in active]).reshape(-1, 2)
+        return may_touch(self.poses[np.asarray(active, np.int64)], velocities, self.obstacle_poses,
+                         self._car_size, self._obstacle_size, self.physics_dt * self.substeps, TOUCH_PAD)
 
     def _move_freely(self, active: list[int]) -> None:
         """Move the active cars as PyBullet moves a body that touches nothing: each physics step adds the
