@@ -83,6 +83,11 @@ def advance(state, commands, grip, motor, params, step_time):
         mu_rear = mu * rear_grip
         fz_front = mass * GRAVITY * lr / wheelbase
         fz_rear = mass * GRAVITY * lf / wheelbase
+        # what the steering sets for the whole step (computed once: the same values in every substep)
+        cos_d, sin_d = math.cos(delta), math.sin(delta)
+        tan_d = math.tan(delta)
+        beta = math.atan(lr / wheelbase * tan_d)
+        cos_beta, tan_beta = math.cos(beta), math.tan(beta)
         x, y, yaw = 0.0, 0.0, 0.0
         for _ in range(substeps):
             # drive train: chase the target speed within the motor's and the brakes' limits
@@ -104,16 +109,14 @@ def advance(state, commands, grip, motor, params, step_time):
             alpha_r = -math.atan2(v - lr * r, u_safe)
             fy_front = cap_f * math.sin(c_tyre * math.atan(b_tyre * alpha_f))
             fy_rear = cap_r * math.sin(c_tyre * math.atan(b_tyre * alpha_r))
-            cos_d, sin_d = math.cos(delta), math.sin(delta)
             du = (fx_front * cos_d - fy_front * sin_d + fx_rear) / mass + v * r
             dv = (fx_front * sin_d + fy_front * cos_d + fy_rear) / mass - u * r
             dr = (lf * (fx_front * sin_d + fy_front * cos_d) - lr * fy_rear) / iz
             u_dyn, v_dyn, r_dyn = u + du * dt, v + dv * dt, r + dr * dt
             # kinematic bicycle at walking pace: no slip, yaw rate from the steering geometry
             u_kin = u + (fx_front + fx_rear) / mass * dt
-            beta = math.atan(lr / wheelbase * math.tan(delta))
-            r_kin = u_kin * math.cos(beta) * math.tan(delta) / wheelbase
-            v_kin_state = u_kin * math.tan(beta)
+            r_kin = u_kin * cos_beta * tan_d / wheelbase
+            v_kin_state = u_kin * tan_beta
             w = min(max((speed - v_kin) / v_kin, 0.0), 1.0)  # 0: kinematic .. 1: dynamic
             u = w * u_dyn + (1.0 - w) * u_kin
             v = w * v_dyn + (1.0 - w) * v_kin_state
