@@ -1,4 +1,5 @@
-"""Which bodies can touch within a step: the conservative test that decides whether PyBullet must run.
+"""Which bodies can touch within a step (the conservative test that decides whether PyBullet must run), and
+how cars move in a step that does not need it.
 
 Cars move by their motion model; PyBullet is only needed where two bodies can
 meet. The test mirrors PyBullet's own broad phase: each body is its
@@ -50,3 +51,21 @@ def may_touch(car_poses, car_velocity, box_poses, car_size, box_size, step_time,
                     + step_time * abs(car_velocity[i, 1])):
                 return True
     return False
+
+
+@numba.njit(cache=True)
+def move_freely(poses, velocity, rows, substeps, dt):
+    """Move the cars `rows` as PyBullet moves a body that touches nothing: each of `substeps` physics steps
+    adds velocity x dt to the position; the heading turns by the yaw rate x the whole step, kept in [-pi, pi]."""
+    for k in range(rows.shape[0]):
+        i = rows[k]
+        x, y = poses[i, 0], poses[i, 1]
+        for _ in range(substeps):
+            x += velocity[i, 0] * dt
+            y += velocity[i, 1] * dt
+        yaw = poses[i, 2] + velocity[i, 2] * dt * substeps
+        if yaw > math.pi:
+            yaw -= 2 * math.pi
+        elif yaw < -math.pi:
+            yaw += 2 * math.pi
+        poses[i, 0], poses[i, 1], poses[i, 2] = x, y, yaw

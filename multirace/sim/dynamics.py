@@ -132,3 +132,32 @@ def advance(state, commands, grip, motor, params, step_time):
         out[k, 0], out[k, 1], out[k, 2] = x, y, yaw
     return out
 
+
+
+@numba.njit(cache=True)
+def drive(poses, motion, velocity, rows, pushes, commands, grip, motor, params, step_time):
+    """Advance the cars `rows` over one action step and set the world velocities that carry them there.
+
+    poses (n, 3) of (x, y, yaw); motion (n, 3) of (u, v, r), updated in place after adding each car's push
+    (pushes (len(rows), 3): x, y, yaw rate in the world frame, what contacts added since the last step);
+    velocity (n, 3) receives (x, y, yaw rate) in the world frame: the step's displacement over its time.
+    """
+    m = rows.shape[0]
+    state, chosen = np.empty((m, 3)), np.empty((m, 2))
+    cos_y, sin_y = np.empty(m), np.empty(m)
+    for k in range(m):
+        i = rows[k]
+        cos_y[k], sin_y[k] = math.cos(poses[i, 2]), math.sin(poses[i, 2])
+        push_x, push_y = pushes[k, 0], pushes[k, 1]
+        state[k, 0] = motion[i, 0] + (push_x * cos_y[k] + push_y * sin_y[k])
+        state[k, 1] = motion[i, 1] + (-push_x * sin_y[k] + push_y * cos_y[k])
+        state[k, 2] = motion[i, 2] + pushes[k, 2]
+        chosen[k, 0], chosen[k, 1] = commands[i, 0], commands[i, 1]
+    moved = advance(state, chosen, grip[rows], motor[rows], params, step_time)
+    for k in range(m):
+        i = rows[k]
+        motion[i, 0], motion[i, 1], motion[i, 2] = state[k, 0], state[k, 1], state[k, 2]
+        forward, left = moved[k, 0] / step_time, moved[k, 1] / step_time
+        velocity[i, 0] = forward * cos_y[k] - left * sin_y[k]
+        velocity[i, 1] = forward * sin_y[k] + left * cos_y[k]
+        velocity[i, 2] = moved[k, 2] / step_time

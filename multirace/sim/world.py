@@ -28,8 +28,8 @@ import os
 import numpy as np
 
 from .car import CarSpec
-from .broadphase import may_touch
-from .dynamics import DynamicsParams, advance
+from .broadphase import may_touch, move_freely
+from .dynamics import DynamicsParams, drive
 
 
 def _import_pybullet():
@@ -118,7 +118,7 @@ class World:
         self.obstacle_poses = np.zeros((num_obstacles, 3))
         self.drive_speed = np.zeros(num_cars)  # the drive train's current speed, m/s
         self.parked = np.zeros(num_cars, dtype=bool)
-        self._set_velocity = [(0.0, 0.0, 0.0)] * num_cars  # last velocity we imposed
+        self._set_velocity = np.zeros((num_cars, 3))  # last velocity we imposed: x, y, yaw rate
         self._struck_by: dict[int, set[int]] = {}  # car -> the cars that struck it in the last action step
         self.contact_shortcut = contact_shortcut
         self.bullet_steps = 0  # action steps PyBullet was stepped in (the others moved the cars without it)
@@ -242,23 +242,22 @@ class World:
         PyBullet is not stepped. Returns the contacts that happened during the
         step, one per touching pair.
         """
-        active = [i for i in range(self.num_cars) if not self.parked[i]]
+        rows = np.flatnonzero(~self.parked)
+        active = rows.tolist()
         pushes = self._pushes(active)
+        commands = np.asarray(commands, np.float64)
         if self.dynamics == "dynamic":
-            velocities = self._command_dynamic(active, commands, pushes)
+            self._command_dynamic(rows, commands, pushes)
         else:
-            velocities = self._command_kinematic(active, commands, pushes)
-        for i, velocity in zip(active, velocities):
-            self._set_velocity[i] = velocity
-        if self.contact_shortcut and not self._may_touch(active):
-            self._move_freely(active)
+            self._command_kinematic(active, commands, pushes)
+        if self.contact_shortcut and not self._may_touch(rows):
+            self._move_freely(rows)
             self._struck_by = {}  # as after a step without contacts
             return []
         self.bullet_steps += 1
         self._sync_bodies()
         cid = self.client
-        for i in active:
-            vx, vy, turn = self._set_velocity[i]
+        for i, (vx, vy, turn) in zip(active, self._set_velocity[rows].tolist()):
             pybullet.resetBaseVelocity(self.car_ids[i], (vx, vy, 0.0), (0.0, 0.0, turn), cid)
         contacts: dict[tuple, Contact] = {}
         for substep in range(self.substeps):
@@ -269,43 +268,28 @@ class World:
         self._pushes_pending = True
         return self._clear_pushed_strikers(list(contacts.values()))
 
-    def _pushes(self, active: list[int]) -> list[tuple[float, float, float]]:
-        """What PyBullet's last step added to each active car's velocity (x, y, yaw rate, world frame): the
-        contacts' pushes. Zero where PyBullet was not stepped since the velocities were last set."""
+    def _pushes(self, active: list[int]) -> np.ndarray:
+        """What PyBullet's last step added to each active car's velocity (rows of x, y, yaw rate, world frame):
+        the contacts' pushes. Zero where PyBullet was not stepped since the velocities were last set."""
+        pushes = np.zeros((len(active), 3))
         if not self._pushes_pending:
-            return [(0.0, 0.0, 0.0)] * len(active)
+            return pushes
         self._pushes_pending = False
-        pushes = []
-        for i in active:
+        for k, i in enumerate(active):
             (lvx, lvy, _), (_, _, wz) = pybullet.getBaseVelocity(self.car_ids[i], self.client)
-            sx, sy, sr = self._set_velocity[i]
-            pushes.append((lvx - sx, lvy - sy, wz - sr))
-        return pushes
+            pushes[k] = (lvx, lvy, wz)
+        return pushes - self._set_velocity[active]
 
-    def _may_touch(self, active: list[int]) -> bool:
+    def _may_touch(self, rows: np.ndarray) -> bool:
         """Whether any two bodies' padded bounding boxes can overlap during the step, moving at their set
         velocities (a conservative broad phase: it never misses a pair PyBullet would make)."""
-        velocities = np.asarray([self._set_velocity[i][:2] for i in active]).reshape(-1, 2)
-        return may_touch(self.poses[np.asarray(active, np.int64)], velocities, self.obstacle_poses,
-                         self._car_size, self._obstacle_size, self.physics_dt * self.substeps, TOUCH_PAD)
+        return may_touch(self.poses[rows], self._set_velocity[rows, :2], self.obstacle_poses, self._car_size,
+                         self._obstacle_size, self.physics_dt * self.substeps, TOUCH_PAD)
 
-    def _move_freely(self, active: list[int]) -> None:
-        """Move the active cars as PyBullet moves a body that touches nothing: each physics step adds the
-        velocity times the physics step to the position and the yaw rate times it to the heading."""
-        dt = self.physics_dt
-        for i in active:
-            vx, vy, turn = self._set_velocity[i]
-            x, y, yaw = self.poses[i].tolist()
-            for _ in range(self.substeps):
-                x += vx * dt
-                y += vy * dt
-            yaw += turn * dt * self.substeps
-            if yaw > math.pi:
-                yaw -= 2 * math.pi
-            elif yaw < -math.pi:
-                yaw += 2 * math.pi
-            self.poses[i] = (x, y, yaw)
-            self._stale[i] = True
+    def _move_freely(self, rows: np.ndarray) -> None:
+        """Move these cars as PyBullet moves a body that touches nothing (`broadphase.move_freely`)."""
+        move_freely(self.poses, self._set_velocity, rows, self.substeps, self.physics_dt)
+        self._stale[rows] = True
 
     def sync(self) -> None:
         """Bring PyBullet's bodies to the cars' poses (after steps that moved the cars without PyBullet):
@@ -335,38 +319,20 @@ class World:
         self._struck_by = struck_by
         return contacts
 
-    def _command_dynamic(self, active: list[int], commands, pushes) -> list[tuple[float, float, float]]:
-        """Run the tyre model for the active cars (a push since the last step joins their motion); returns
-        their new velocities (x, y, yaw rate) in the world frame."""
-        if not active:
-            return []
-        step_time = self.physics_dt * self.substeps
-        yaws = self.poses[:, 2].tolist()  # plain floats: fast maths
-        local = []
-        for i, (push_x, push_y, push_r) in zip(active, pushes):
-            cos_y, sin_y = math.cos(yaws[i]), math.sin(yaws[i])
-            local.append((push_x * cos_y + push_y * sin_y, -push_x * sin_y + push_y * cos_y, push_r))
-        rows = np.asarray(active)
-        state = self.motion[rows] + local
-        moved = advance(state, np.asarray(commands, np.float64)[rows], self.grip[rows], self.motor[rows],
-                        self._params, step_time)
-        self.motion[rows] = state
-        self.drive_speed[rows] = state[:, 0]
-        velocities = []
-        for i, (forward, left, turn) in zip(active, (moved / step_time).tolist()):
-            cos_y, sin_y = math.cos(yaws[i]), math.sin(yaws[i])
-            velocities.append((forward * cos_y - left * sin_y, forward * sin_y + left * cos_y, turn))
-        return velocities
+    def _command_dynamic(self, rows: np.ndarray, commands: np.ndarray, pushes: np.ndarray) -> None:
+        """Run the tyre model for these cars (a push since the last step joins their motion) and set the
+        velocities that carry them where it says (`dynamics.drive`)."""
+        drive(self.poses, self.motion, self._set_velocity, rows, pushes, commands, self.grip, self.motor,
+              self._params, self.physics_dt * self.substeps)
+        self.drive_speed[rows] = self.motion[rows, 0]
 
-    def _command_kinematic(self, active: list[int], commands, pushes) -> list[tuple[float, float, float]]:
+    def _command_kinematic(self, active: list[int], commands, pushes) -> None:
         """The kinematic bicycle: the velocity points along the heading the car will have half-way
-        through the step (the midpoint rule, so arcs are followed closely), with the yaw rate held.
-        Returns the active cars' new velocities (x, y, yaw rate) in the world frame."""
+        through the step (the midpoint rule, so arcs are followed closely), with the yaw rate held."""
         step_time = self.physics_dt * self.substeps
         commands = [(float(steer), float(speed)) for steer, speed in commands]  # plain floats: fast maths
         yaws, drive_speed = self.poses[:, 2].tolist(), self.drive_speed.tolist()
-        velocities = []
-        for i, (push_x, push_y, _) in zip(active, pushes):
+        for i, (push_x, push_y, _) in zip(active, pushes.tolist()):
             # what a collision (or anything but our own command) changed since we set the velocity
             yaw = yaws[i]
             cos_y, sin_y = math.cos(yaw), math.sin(yaw)
@@ -380,9 +346,8 @@ class World:
             direction = yaw + 0.5 * yaw_rate * step_time + beta
             # the sideways part of a push decays with the tyres' grip
             side = (-push_x * sin_y + push_y * cos_y) * self._grip_keep
-            velocities.append((speed * math.cos(direction) - side * sin_y, speed * math.sin(direction) + side * cos_y,
-                               yaw_rate))
-        return velocities
+            self._set_velocity[i] = (speed * math.cos(direction) - side * sin_y,
+                                     speed * math.sin(direction) + side * cos_y, yaw_rate)
 
     def _collect_contacts(self, contacts: dict) -> None:
         for point in pybullet.getContactPoints(physicsClientId=self.client):
@@ -414,7 +379,7 @@ class World:
             contacts[key] = Contact(a=first, b=second, striker=striker)
 
     def _planar_velocity(self, owner: tuple[str, int]) -> tuple[float, float]:
-        return self._set_velocity[owner[1]][:2] if owner[0] == "car" else (0.0, 0.0)
+        return tuple(self._set_velocity[owner[1], :2].tolist()) if owner[0] == "car" else (0.0, 0.0)
 
     def _read_poses(self, active: list[int]) -> None:
         cid = self.client
