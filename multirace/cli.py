@@ -253,8 +253,8 @@ def cmd_imitate(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from .tools.bench import format_table, run_bench
-    from .tools.profile import format_profile, run_profile
+    from .tools.bench import format_table, run_bench, run_profile
+    from .tools.profile import format_profile
 
     console = Console(width=120)
     progress = lambda line: console.print(f"[dim]{line}[/dim]")  # noqa: E731

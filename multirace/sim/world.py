@@ -121,6 +121,7 @@ class World:
         self._set_velocity = np.zeros((num_cars, 3))  # last velocity we imposed: x, y, yaw rate
         self._struck_by: dict[int, set[int]] = {}  # car -> the cars that struck it in the last action step
         self.contact_shortcut = contact_shortcut
+        self.action_steps = 0  # action steps taken
         self.bullet_steps = 0  # action steps PyBullet was stepped in (the others moved the cars without it)
         self._pushes_pending = False  # PyBullet was stepped since the velocities were set: read its pushes
         self._stale = np.zeros(num_cars, dtype=bool)  # cars moved since PyBullet's body was last put in place
@@ -242,6 +243,7 @@ class World:
         PyBullet is not stepped. Returns the contacts that happened during the
         step, one per touching pair.
         """
+        self.action_steps += 1
         rows = np.flatnonzero(~self.parked)
         active = rows.tolist()
         pushes = self._pushes(active)

@@ -76,25 +76,6 @@ def renderer_frames_per_s(env, frames: int = 2000) -> float:
     return frames / (time.perf_counter() - start)
 
 
-def run_profile(num_cars: int = 4, steps: int = 3000, progress=print) -> dict:
-    """The per-stage split of the bench's env step (`num_cars` cars, random actions) and the renderer alone."""
-    from .bench import _random_driving
-
-    env, step = _random_driving(num_cars)
-    try:
-        for _ in range(200):  # untimed lead-in
-            step()
-        bullet_before = env.world.bullet_steps
-        split = profile_step(step, env, steps)
-        pybullet_share = (env.world.bullet_steps - bullet_before) / steps
-        fps = renderer_frames_per_s(env)
-    finally:
-        env.close()
-    progress(f"profiled {steps} steps of a {num_cars}-car env; renderer alone: {fps:.0f} frames/s")
-    return {"cars": num_cars, "steps": steps, "us_per_step": split, "pybullet_step_share": round(pybullet_share, 3),
-            "renderer_frames_per_s": round(fps, 1)}
-
-
 def format_profile(profile: dict) -> list[tuple[str, str]]:
     """(stage, value) rows for printing."""
     split = profile["us_per_step"]
