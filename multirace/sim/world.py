@@ -16,6 +16,13 @@ body's velocity since is fed back into the model: a hard hit can spin a car.
 Contacts are real PyBullet contacts, so cars push each other and stop at
 boxes; `World.step` reports who touched whom and who ran into whom.
 
+PyBullet is stepped only in action steps where two bodies can meet
+(`broadphase.may_touch`, padded wider than PyBullet's own pairing); in the
+others each car moves at its velocity exactly as PyBullet moves a body that
+touches nothing (to rounding, 1e-15 m a step), and PyBullet's bodies are put
+in place before it is next used (`World.sync`). A time trial never steps it.
+`contact_shortcut=False` steps it in every action step, as before.
+
 The PyBullet client is created lazily (first `reset`), so a `World` pickles
 and can be sent to worker processes before use.
 """
