@@ -6,9 +6,9 @@ meet. The test mirrors PyBullet's own broad phase: each body is its
 axis-aligned bounding box, padded, swept over the step at the velocity set for
 the step. It can say "may touch" for bodies that will not, but never
 "cannot" for bodies PyBullet would pair. The pad is wider than PyBullet's own
-(its contact breaking threshold plus its tree's margin), so PyBullet keeps no
-pair of bodies that the shortcut moves: a body put back in place while PyBullet
-holds a pair for it changes how that pair's later contacts resolve.
+pairing distance, so PyBullet holds no pair of bodies that the shortcut moves:
+a body put back in place while PyBullet holds a pair for it changes how that
+pair's later contacts resolve.
 """
 from __future__ import annotations
 

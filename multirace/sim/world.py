@@ -65,7 +65,8 @@ SOLVER_ITERATIONS = 10
 CONTACT_DISTANCE = 0.002  # metres; closer than this counts as touching
 CONTACT_EVERY = 2  # physics steps between contact queries
 TOUCH_PAD = 0.15  # metres around each body's bounding box where PyBullet is stepped (`broadphase.may_touch`):
-# PyBullet pairs bodies up to its contact breaking threshold (0.02 m) plus its tree's margin (0.05 m) apart
+# PyBullet pairs bodies some centimetres apart (contact breaking threshold, its tree's margins); in traffic
+# races a pad of 0.05 m changed later contacts, 0.1 m did not (tests/test_contact_shortcut.py)
 RESTING_SPEED = 0.05  # m/s; two cars that close and slide slower than this are only resting against each other
 DYNAMICS = ("dynamic", "kinematic")
 
