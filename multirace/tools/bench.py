@@ -4,11 +4,14 @@ Measures agent-steps per second (one car's observation, reward and info per
 15 Hz step) of the full env (cameras, physics with collisions, obstacles,
 random actions, full reward params and infos) for 1, 2, 4 and 8 cars with the
 fast renderer and with the PyBullet renderer, for 4 cars with the LIDAR
-scanned too and for 4 cars on the kinematic car model (`kinematic`, beside
-the default tyre model); the floor (the same run's
+scanned too, for 4 cars on the kinematic car model (`kinematic`, beside
+the default tyre model) and for 4 cars with PyBullet stepped in every step
+(`no_shortcut`, beside the contact shortcut); the floor (the same run's
 physics steps alone, replayed, plus one bare texture warp per camera); the
+share of steps that stepped PyBullet; the fast renderer alone; the
 speed-up of two worker processes over one; memory; and the cost of recording
-a replay.
+a replay. `run_profile` is `multirace bench --profile`: where a step's time
+goes (`profile.py`).
 """
 from __future__ import annotations
 
