@@ -232,7 +232,8 @@ class World:
         self.obstacle_poses[k] = (x, y, yaw)
 
     def cast_rays(self, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
-        """Hit fraction (0 at the start .. 1 at the end, 1 for no hit) of each ray, rows of (M, 3) points."""
+        """Hit fraction (0 at the start .. 1 at the end, 1 for no hit) of each ray, rows of (M, 3) points: PyBullet's
+        own ray cast, the reference the LIDAR's compiled beams (`sensors.beams`) are tested against."""
         cid = self.connect()
         self.sync()
         # one thread: each env has one core (numThreads=1 measured 15 % faster than the default here)
