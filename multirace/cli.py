@@ -253,15 +253,21 @@ def cmd_imitate(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from .tools.bench import format_table, run_bench
+    from .tools.bench import format_table, run_bench, run_profile
+    from .tools.profile import format_profile
 
     console = Console(width=120)
-    figures = run_bench(seconds=args.seconds, replay_seconds=args.replay_seconds,
-                        progress=lambda line: console.print(f"[dim]{line}[/dim]"))
-    table = Table(title="multirace bench (one run, this machine)")
+    progress = lambda line: console.print(f"[dim]{line}[/dim]")  # noqa: E731
+    if args.profile:
+        figures = run_profile(progress=progress)
+        rows, title = format_profile(figures), f"where a {figures['cars']}-car env step goes (this machine)"
+    else:
+        figures = run_bench(seconds=args.seconds, replay_seconds=args.replay_seconds, progress=progress)
+        rows, title = format_table(figures), "multirace bench (one run, this machine)"
+    table = Table(title=title)
     table.add_column("figure")
     table.add_column("value", justify="right")
-    for label, value in format_table(figures):
+    for label, value in rows:
         table.add_row(label, value)
     console.print(table)
     if args.json:
@@ -426,6 +432,9 @@ def build_parser() -> Parser:
     bench.add_argument("--seconds", type=POSITIVE, default=3.0, help="time per measurement (default 3)")
     bench.add_argument("--replay-seconds", type=NON_NEGATIVE, default=240.0,
                        help="race time of the replay-cost race (0 skips it; default 240, the reset-rule window)")
+    bench.add_argument("--profile", action="store_true",
+                       help="instead: the per-stage split of a 4-car env step (dynamics, contacts, rules, params, "
+                            "reward, render) and the renderer's frames/s alone")
     bench.set_defaults(func=cmd_bench)
 
     from .train.cli import add_evaluate_parser, add_train_parser

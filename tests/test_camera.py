@@ -97,3 +97,45 @@ def test_camera_mount_is_deepracer_like():
     pose = camera_pose(spec, (0.0, 0.0, 0.0))
     assert pose.forward[2] == pytest.approx(-math.sin(math.radians(15)))
     assert np.allclose(pose.rotation @ pose.rotation.T, np.eye(3))
+
+
+def _warped(renderer, pose):
+    """The image of the ground and sky alone as the homography warp draws it (`cv2.warpPerspective`)."""
+    import cv2
+
+    spec = renderer.spec
+    image = np.empty((spec.height, spec.width, spec.channels), np.uint8)
+    horizon = renderer.horizon_row(pose)
+    image[:horizon] = renderer._sky
+    ground = image[horizon:, :, 0] if spec.grayscale else image[horizon:]
+    cv2.warpPerspective(renderer._ground, renderer.ground_homography(pose, horizon), (spec.width, spec.height - horizon),
+                        dst=ground, flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                        borderValue=renderer._floor)
+    return image
+
+
+@pytest.mark.parametrize("grayscale", [True, False])
+def test_the_ground_cast_picks_the_texels_of_the_homography_warp(grayscale):
+    """The row-by-row cast and the exact homography differ only where a pixel falls on a texel boundary to
+    within rounding: at most 0.5 % of the pixels of any view on the track, 0.1 % on average; a rolled camera
+    (a division per pixel) as well."""
+    env = multirace.parallel_env(num_cars=1, obstacles=0)
+    env.reset(seed=0)
+    world = env.world
+    world.park(0)  # no boxes: the ground alone
+    spec = CameraSpec(grayscale=grayscale)
+    renderer = FastRenderer(spec, env.texture)
+    rng = np.random.default_rng(4)
+    shares = []
+    for k in range(40):
+        s = rng.uniform(0, env.track.length)
+        x, y, yaw = env.track.point_at(s, rng.uniform(-0.4, 0.4))
+        pose = camera_pose(spec, (x, y, yaw + rng.normal(0, 0.3)), rng.normal(0, [0.05, 0.05, 0.01]))
+        if k % 4 == 3:  # roll the camera about its forward axis
+            angle = rng.normal(0, 0.1)
+            right, down = pose.rotation[0].copy(), pose.rotation[1].copy()
+            pose.rotation[0] = math.cos(angle) * right + math.sin(angle) * down
+            pose.rotation[1] = -math.sin(angle) * right + math.cos(angle) * down
+        cast, warped = renderer.render(world, 0, pose), _warped(renderer, pose)
+        shares.append(np.any(cast != warped, axis=2).mean())
+    assert max(shares) <= 0.005 and np.mean(shares) <= 0.001, (max(shares), np.mean(shares))

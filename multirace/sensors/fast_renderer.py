@@ -1,10 +1,14 @@
-"""The fast camera renderer: a perspective warp of the flat track plus projected boxes.
+"""The fast camera renderer: a perspective view of the flat track plus projected boxes.
 
 The ground is flat, so the camera's view of it is a homography of the track's
-top-down texture: one `cv2.warpPerspective` per frame, nearest-texel like
-PyBullet's TinyRenderer (2.5x cheaper than bilinear; the texture has 1 cm
-texels), with the homographies of all cameras computed in one compiled call.
-Above the horizon the sky is filled in. Other cars and the obstacles are
+top-down texture. It is cast row by row in one compiled call for all cameras
+(`cast_ground`): the camera does not roll, so each image row below the horizon
+sees the ground at one depth, and its pixels walk a straight line of the
+texture in equal steps (the "mode 7" walk), nearest-texel like PyBullet's
+TinyRenderer (the texture has 1 cm texels). Above the horizon the sky is
+filled in. The same map as a 3x3 homography (`ground_homography`, for
+`cv2.warpPerspective`) is kept for tools; the cast and the warp pick the same
+texel but where a pixel falls on a texel boundary to within rounding. Other cars and the obstacles are
 flat-coloured boxes, as in the PyBullet reference: a box's silhouette is the
 convex hull of its corners (clipped at the near plane), filled far to near so
 nearer boxes hide farther ones, all in one compiled call
@@ -52,6 +56,12 @@ class FastRenderer(Renderer):
             self._car_colours = np.array(CAR_COLOURS, np.uint8)
             self._obstacle_colour = np.array(OBSTACLE_COLOUR, np.uint8)
         self._obstacle_size = np.array(OBSTACLE_SIZE, dtype=float)
+        # the sky and floor as one value per channel and the bordered texture, for the cast
+        self._sky_value = np.array(np.atleast_1d(self._sky), np.uint8)
+        self._floor_value = np.array(np.atleast_1d(self._floor), np.uint8)
+        self._texture_size = self._ground.shape[:2]
+        self._texels = bordered_texels(self._ground.reshape(*self._texture_size, -1), self._floor_value)
+        self._car_size: np.ndarray | None = None
 
     # ------------------------------------------------------------- ground
     def ground_homography(self, pose: CameraPose, first_row: int = 0) -> np.ndarray:
@@ -80,24 +90,112 @@ class FastRenderer(Renderer):
         return self.render_many(world, [car], pose.eye[None], pose.rotation[None])[0]
 
     def render_many(self, world, cars: list[int], eyes: np.ndarray, rotations: np.ndarray) -> list[np.ndarray]:
-        """Images of several cameras at once: one ground warp each, then all boxes in one compiled call."""
+        """Images of several cameras at once: the ground of all of them in one compiled call, then all boxes in
+        another."""
         spec = self.spec
         images = np.empty((len(cars), spec.height, spec.width, spec.channels), np.uint8)
-        homographies, horizons = self._ground_maps(eyes, rotations)
-        for image, horizon, homography in zip(images, horizons.tolist(), homographies):
-            image[:horizon] = self._sky
-            if horizon < spec.height:  # warp only the rows below the horizon
-                ground = image[horizon:, :, 0] if spec.grayscale else image[horizon:]
-                cv2.warpPerspective(self._ground, homography, (spec.width, spec.height - horizon), dst=ground,
-                                    flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
-                                    borderValue=self._floor)
-        car = world.spec
+        x0, y0 = self.texture.origin
+        cast_ground(images, self._texels, *self._texture_size, eyes, rotations, float(self.texture.ppm), float(x0),
+                    float(y0), self._focal, self._cx, self._cy, self._sky_value, self._floor_value)
+        if self._car_size is None:
+            car = world.spec
+            self._car_size = np.array((car.length, car.width, car.height))
         draw_boxes(images, eyes, rotations,
                    np.asarray(cars, dtype=np.int64), world.poses, world.parked,
-                   np.array((car.length, car.width, car.height)), self._car_colours,
+                   self._car_size, self._car_colours,
                    world.obstacle_poses, self._obstacle_size, self._obstacle_colour,
                    self._focal, self._cx, self._cy, NEAR_PLANE)
         return list(images)
+
+
+def bordered_texels(texels: np.ndarray, floor: np.ndarray) -> np.ndarray:
+    """The texture (rows, columns, C) with a one-texel border of the floor colour, flattened: the cast clamps
+    every texel index into this border, so ground beyond the texture is floor without a test per pixel."""
+    rows, columns, channels = texels.shape
+    bordered = np.empty((rows + 2, columns + 2, channels), np.uint8)
+    bordered[:] = floor
+    bordered[1:-1, 1:-1] = texels
+    return bordered.ravel()
+
+
+@numba.njit(cache=True)
+def cast_ground(images, flat_texels, rows, columns, eyes, rotations, ppm, x0, y0, focal, cx, cy, sky, floor):
+    """Fill images (n, H, W, C) with the sky above each camera's horizon and the ground texture below it.
+
+    flat_texels is `bordered_texels` of a (rows, columns, C) top-down texture whose texel (u, v) is centred at
+    world (x0 + u / ppm, y0 - v / ppm); rotations (n, 3, 3) have rows right, down, forward. The ray of pixel
+    (x, y) has the direction right (x - cx) / f + down (y - cy) / f + forward and meets the ground at
+    eye - eye_z / dir_z dir. Without roll (right_z = 0) dir_z, hence the depth, is the same along a row and
+    the texel walks a straight line in equal steps; a rolled camera takes a division per pixel.
+    """
+    n, height, width, channels = images.shape
+    inv_f = 1.0 / focal
+    index = np.empty(width, np.int32)
+    for k in range(n):
+        r = rotations[k]
+        ez = eyes[k, 2]
+        east, south = eyes[k, 0] - x0, y0 - eyes[k, 1]
+        pitch_down = math.asin(max(-1.0, min(1.0, -r[2, 2])))
+        horizon = min(max(math.ceil(cy - focal * math.tan(pitch_down)), 0), height)
+        for y in range(horizon):
+            for x in range(width):
+                for c in range(channels):
+                    images[k, y, x, c] = sky[c]
+        ax, ay, az = r[0, 0] * inv_f, r[0, 1] * inv_f, r[0, 2] * inv_f  # the direction's change per pixel
+        for y in range(horizon, height):
+            down = (y - cy) * inv_f
+            bx = r[2, 0] + r[1, 0] * down - ax * cx  # the direction at x = 0
+            by = r[2, 1] + r[1, 1] * down - ay * cx
+            bz = r[2, 2] + r[1, 2] * down - az * cx
+            if az == 0.0:
+                _walk_row(index, bz, ez, east, south, bx, by, ax, ay, ppm, rows, columns)
+            else:
+                _divide_row(index, bz, az, ez, east, south, bx, by, ax, ay, ppm, rows, columns)
+            row = images[k, y]
+            if channels == 1:
+                for x in range(width):
+                    row[x, 0] = flat_texels[index[x]]
+            else:
+                for x in range(width):
+                    for c in range(channels):
+                        row[x, c] = flat_texels[index[x] * channels + c]
+
+
+@numba.njit(cache=True, fastmath=True)
+def _walk_row(index, bz, ez, east, south, bx, by, ax, ay, ppm, rows, columns):
+    """The texels of one image row of a camera without roll: a straight walk through the texture in equal
+    steps. In single precision (vectorised; a texel is 1 cm, the walk's rounding far below it) and within
+    the bordered texture: the walk's coordinates are clamped into the border before the conversion."""
+    width = index.shape[0]
+    if bz >= 0.0:  # the row looks at or above the horizon: no ground, floor colour
+        for x in range(width):
+            index[x] = 0
+        return
+    scale = -ez / bz * ppm  # texels per unit of the ray's direction, on the ground
+    # + 0.5, then truncation: the nearest texel; + 1: the border's offset
+    u0, du = np.float32(east * ppm + scale * bx + 1.5), np.float32(scale * ax)
+    v0, dv = np.float32(south * ppm - scale * by + 1.5), np.float32(-scale * ay)
+    zero, last_u, last_v = np.float32(0.0), np.float32(columns + 1), np.float32(rows + 1)
+    stride = np.int32(columns + 2)
+    for x in range(width):
+        step = np.float32(x)
+        u = np.int32(min(max(u0 + du * step, zero), last_u))
+        v = np.int32(min(max(v0 + dv * step, zero), last_v))
+        index[x] = v * stride + u
+
+
+@numba.njit(cache=True)
+def _divide_row(index, bz, az, ez, east, south, bx, by, ax, ay, ppm, rows, columns):
+    """The texels of one image row of a rolled camera: the depth changes along the row, a division per pixel."""
+    for x in range(index.shape[0]):
+        dz = bz + az * x
+        if dz >= 0.0:
+            index[x] = 0
+            continue
+        scale = -ez / dz * ppm
+        u = min(max(east * ppm + scale * (bx + ax * x) + 0.5, -1.0), columns)  # clamped before the conversion
+        v = min(max(south * ppm - scale * (by + ay * x) + 0.5, -1.0), rows)
+        index[x] = (int(math.floor(v)) + 1) * (columns + 2) + int(math.floor(u)) + 1
 
 
 @numba.njit(cache=True)

@@ -1,4 +1,4 @@
-"""The optional LIDAR: DeepRacer's 64-beam scanner, cast with PyBullet's `rayTestBatch`.
+"""The optional LIDAR: DeepRacer's 64-beam scanner, cast against the scene's boxes (`beams`).
 
 DeepRacer's ``LIDAR`` sensor (``sensor: ["FRONT_FACING_CAMERA", "LIDAR"]`` in
 model_metadata) gives 64 ranges over 300 degrees (-150 to +150 degrees, 0 straight
@@ -10,6 +10,10 @@ that it is below the camera's view.
 The scanner sits at the body centre at mid-body height, so its horizontal
 beams meet other cars' bodies and obstacle boxes (never the flat track).
 Each beam starts at the edge of the car's own body, which it must not see.
+The beams are cast in the plane against the bodies' rectangles in one
+compiled call (`beams.beam_fractions`); they read what PyBullet's
+`rayTestBatch` reads (`World.cast_rays`, the reference), to rounding, but
+where a beam starts inside another body (see `beams`).
 """
 from __future__ import annotations
 
@@ -18,6 +22,7 @@ import dataclasses
 import numpy as np
 
 from ..sim.car import CarSpec
+from .beams import beam_fractions, scene_boxes
 
 SENSOR_NAME = "LIDAR"
 SECTORS = 8  # DeepRacer's SECTOR_LIDAR: the 64 beams in 8 sectors of 8 ...
@@ -67,7 +72,7 @@ class Lidar:
         centres = poses[:, None, :2]
         starts = centres + directions * self.start[None, :, None]
         ends = centres + directions * spec.max_range
-        fractions = world.cast_rays(_with_height(starts, self.height), _with_height(ends, self.height))
+        fractions = beam_fractions(starts.reshape(-1, 2), ends.reshape(-1, 2), scene_boxes(world))
         fractions = fractions.reshape(len(poses), spec.samples)
         ranges = self.start + fractions * (spec.max_range - self.start)
         if rng is not None and spec.noise_stddev:
@@ -82,12 +87,6 @@ class Lidar:
         headings = yaw + self.angles[hit]
         return np.column_stack([x + ranges[hit] * np.cos(headings), y + ranges[hit] * np.sin(headings),
                                 np.full(int(hit.sum()), self.height)])
-
-
-def _with_height(points: np.ndarray, z: float) -> np.ndarray:
-    """(..., 2) points as flat (M, 3) rows at height z."""
-    flat = points.reshape(-1, 2)
-    return np.column_stack([flat, np.full(len(flat), z)])
 
 
 def sector_lidar(ranges: np.ndarray) -> np.ndarray:

@@ -54,6 +54,7 @@ class PyBulletRenderer(Renderer):
 
     def _camera_image(self, world, pose: CameraPose, segmentation: bool):
         client = world.connect()
+        world.sync()  # the cars where they are, also after steps that moved them without PyBullet
         if self._ground_client != client:
             self._add_ground(client)
         spec = self.spec

@@ -83,6 +83,11 @@ def advance(state, commands, grip, motor, params, step_time):
         mu_rear = mu * rear_grip
         fz_front = mass * GRAVITY * lr / wheelbase
         fz_rear = mass * GRAVITY * lf / wheelbase
+        # what the steering sets for the whole step (computed once: the same values in every substep)
+        cos_d, sin_d = math.cos(delta), math.sin(delta)
+        tan_d = math.tan(delta)
+        beta = math.atan(lr / wheelbase * tan_d)
+        cos_beta, tan_beta = math.cos(beta), math.tan(beta)
         x, y, yaw = 0.0, 0.0, 0.0
         for _ in range(substeps):
             # drive train: chase the target speed within the motor's and the brakes' limits
@@ -104,16 +109,14 @@ def advance(state, commands, grip, motor, params, step_time):
             alpha_r = -math.atan2(v - lr * r, u_safe)
             fy_front = cap_f * math.sin(c_tyre * math.atan(b_tyre * alpha_f))
             fy_rear = cap_r * math.sin(c_tyre * math.atan(b_tyre * alpha_r))
-            cos_d, sin_d = math.cos(delta), math.sin(delta)
             du = (fx_front * cos_d - fy_front * sin_d + fx_rear) / mass + v * r
             dv = (fx_front * sin_d + fy_front * cos_d + fy_rear) / mass - u * r
             dr = (lf * (fx_front * sin_d + fy_front * cos_d) - lr * fy_rear) / iz
             u_dyn, v_dyn, r_dyn = u + du * dt, v + dv * dt, r + dr * dt
             # kinematic bicycle at walking pace: no slip, yaw rate from the steering geometry
             u_kin = u + (fx_front + fx_rear) / mass * dt
-            beta = math.atan(lr / wheelbase * math.tan(delta))
-            r_kin = u_kin * math.cos(beta) * math.tan(delta) / wheelbase
-            v_kin_state = u_kin * math.tan(beta)
+            r_kin = u_kin * cos_beta * tan_d / wheelbase
+            v_kin_state = u_kin * tan_beta
             w = min(max((speed - v_kin) / v_kin, 0.0), 1.0)  # 0: kinematic .. 1: dynamic
             u = w * u_dyn + (1.0 - w) * u_kin
             v = w * v_dyn + (1.0 - w) * v_kin_state
@@ -128,3 +131,33 @@ def advance(state, commands, grip, motor, params, step_time):
         state[k, 0], state[k, 1], state[k, 2] = u, v, r
         out[k, 0], out[k, 1], out[k, 2] = x, y, yaw
     return out
+
+
+
+@numba.njit(cache=True)
+def drive(poses, motion, velocity, rows, pushes, commands, grip, motor, params, step_time):
+    """Advance the cars `rows` over one action step and set the world velocities that carry them there.
+
+    poses (n, 3) of (x, y, yaw); motion (n, 3) of (u, v, r), updated in place after adding each car's push
+    (pushes (len(rows), 3): x, y, yaw rate in the world frame, what contacts added since the last step);
+    velocity (n, 3) receives (x, y, yaw rate) in the world frame: the step's displacement over its time.
+    """
+    m = rows.shape[0]
+    state, chosen = np.empty((m, 3)), np.empty((m, 2))
+    cos_y, sin_y = np.empty(m), np.empty(m)
+    for k in range(m):
+        i = rows[k]
+        cos_y[k], sin_y[k] = math.cos(poses[i, 2]), math.sin(poses[i, 2])
+        push_x, push_y = pushes[k, 0], pushes[k, 1]
+        state[k, 0] = motion[i, 0] + (push_x * cos_y[k] + push_y * sin_y[k])
+        state[k, 1] = motion[i, 1] + (-push_x * sin_y[k] + push_y * cos_y[k])
+        state[k, 2] = motion[i, 2] + pushes[k, 2]
+        chosen[k, 0], chosen[k, 1] = commands[i, 0], commands[i, 1]
+    moved = advance(state, chosen, grip[rows], motor[rows], params, step_time)
+    for k in range(m):
+        i = rows[k]
+        motion[i, 0], motion[i, 1], motion[i, 2] = state[k, 0], state[k, 1], state[k, 2]
+        forward, left = moved[k, 0] / step_time, moved[k, 1] / step_time
+        velocity[i, 0] = forward * cos_y[k] - left * sin_y[k]
+        velocity[i, 1] = forward * sin_y[k] + left * cos_y[k]
+        velocity[i, 2] = moved[k, 2] / step_time

@@ -16,6 +16,13 @@ body's velocity since is fed back into the model: a hard hit can spin a car.
 Contacts are real PyBullet contacts, so cars push each other and stop at
 boxes; `World.step` reports who touched whom and who ran into whom.
 
+PyBullet is stepped only in action steps where two bodies can meet
+(`broadphase.may_touch`, padded wider than PyBullet's own pairing); in the
+others each car moves at its velocity exactly as PyBullet moves a body that
+touches nothing (to rounding, 1e-15 m a step), and PyBullet's bodies are put
+in place before it is next used (`World.sync`). A time trial never steps it.
+`contact_shortcut=False` steps it in every action step, as before.
+
 The PyBullet client is created lazily (first `reset`), so a `World` pickles
 and can be sent to worker processes before use.
 """
@@ -28,7 +35,8 @@ import os
 import numpy as np
 
 from .car import CarSpec
-from .dynamics import DynamicsParams, advance
+from .broadphase import may_touch, move_freely
+from .dynamics import DynamicsParams, drive
 
 
 def _import_pybullet():
@@ -56,6 +64,9 @@ PARKED_Z = -50.0  # where parked cars wait, far below the scene
 SOLVER_ITERATIONS = 10
 CONTACT_DISTANCE = 0.002  # metres; closer than this counts as touching
 CONTACT_EVERY = 2  # physics steps between contact queries
+TOUCH_PAD = 0.15  # metres around each body's bounding box where PyBullet is stepped (`broadphase.may_touch`):
+# PyBullet pairs bodies some centimetres apart (contact breaking threshold, its tree's margins); in traffic
+# races a pad of 0.05 m changed later contacts, 0.1 m did not (tests/test_contact_shortcut.py)
 RESTING_SPEED = 0.05  # m/s; two cars that close and slide slower than this are only resting against each other
 DYNAMICS = ("dynamic", "kinematic")
 
@@ -95,7 +106,8 @@ class World:
     """PyBullet scene of `num_cars` cars and `num_obstacles` boxes."""
 
     def __init__(self, spec: CarSpec, num_cars: int, num_obstacles: int = 0,
-                 physics_hz: int = 60, action_hz: int = 15, dynamics: str = "dynamic"):
+                 physics_hz: int = 60, action_hz: int = 15, dynamics: str = "dynamic",
+                 contact_shortcut: bool = True):
         if physics_hz % action_hz:
             raise ValueError(f"physics_hz ({physics_hz}) must be a multiple of action_hz ({action_hz})")
         if dynamics not in DYNAMICS:
@@ -114,8 +126,15 @@ class World:
         self.obstacle_poses = np.zeros((num_obstacles, 3))
         self.drive_speed = np.zeros(num_cars)  # the drive train's current speed, m/s
         self.parked = np.zeros(num_cars, dtype=bool)
-        self._set_velocity = [(0.0, 0.0, 0.0)] * num_cars  # last velocity we imposed
+        self._set_velocity = np.zeros((num_cars, 3))  # last velocity we imposed: x, y, yaw rate
         self._struck_by: dict[int, set[int]] = {}  # car -> the cars that struck it in the last action step
+        self.contact_shortcut = contact_shortcut
+        self.action_steps = 0  # action steps taken
+        self.bullet_steps = 0  # action steps PyBullet was stepped in (the others moved the cars without it)
+        self._pushes_pending = False  # PyBullet was stepped since the velocities were set: read its pushes
+        self._stale = np.zeros(num_cars, dtype=bool)  # cars moved since PyBullet's body was last put in place
+        self._car_size = np.array([spec.length, spec.width])
+        self._obstacle_size = np.array(OBSTACLE_SIZE[:2])
         step_time = self.physics_dt * self.substeps  # the car's command changes once per action step
         self._speed_blend = 1.0 - math.exp(-step_time / spec.speed_time_constant)
         self._grip_keep = math.exp(-step_time / spec.grip_time_constant)
@@ -189,6 +208,7 @@ class World:
         self.motion[i] = (speed, 0.0, 0.0)
         self.poses[i] = (x, y, yaw)
         self.parked[i] = False
+        self._stale[i] = False
         self._struck_by.pop(i, None)  # a car put back on the track is no longer being pushed
 
     def park(self, i: int) -> None:
@@ -201,6 +221,7 @@ class World:
         self.drive_speed[i] = 0.0
         self.motion[i] = 0.0
         self.parked[i] = True
+        self._stale[i] = False
 
     def place_obstacle(self, k: int, x: float, y: float, yaw: float) -> None:
         """Put box `k` at a pose."""
@@ -211,8 +232,10 @@ class World:
         self.obstacle_poses[k] = (x, y, yaw)
 
     def cast_rays(self, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
-        """Hit fraction (0 at the start .. 1 at the end, 1 for no hit) of each ray, rows of (M, 3) points."""
+        """Hit fraction (0 at the start .. 1 at the end, 1 for no hit) of each ray, rows of (M, 3) points: PyBullet's
+        own ray cast, the reference the LIDAR's compiled beams (`sensors.beams`) are tested against."""
         cid = self.connect()
+        self.sync()
         # one thread: each env has one core (numThreads=1 measured 15 % faster than the default here)
         hits = pybullet.rayTestBatch(starts.tolist(), ends.tolist(), numThreads=1, physicsClientId=cid)
         return np.array([hit[2] for hit in hits])
@@ -222,22 +245,76 @@ class World:
         """Advance one action step (several physics steps) under (steer rad, speed m/s) commands.
 
         Each car's velocity is set once per action step to carry it where its
-        motion model says; PyBullet then integrates the physics steps and
-        resolves contacts within them. Returns the contacts that happened
-        during the step, one per touching pair.
+        motion model says. Where two bodies can touch within the step (`may_touch`),
+        PyBullet integrates the physics steps and resolves the contacts within
+        them; elsewhere (with `contact_shortcut`, the default) each car moves
+        at its velocity as PyBullet would move a body that touches nothing, and
+        PyBullet is not stepped. Returns the contacts that happened during the
+        step, one per touching pair.
         """
-        active = [i for i in range(self.num_cars) if not self.parked[i]]
+        self.action_steps += 1
+        rows = np.flatnonzero(~self.parked)
+        active = rows.tolist()
+        pushes = self._pushes(active)
+        commands = np.asarray(commands, np.float64)
         if self.dynamics == "dynamic":
-            self._command_dynamic(active, commands)
+            self._command_dynamic(rows, commands, pushes)
         else:
-            self._command_kinematic(active, commands)
+            self._command_kinematic(active, commands, pushes)
+        if self.contact_shortcut and not self._may_touch(rows):
+            self._move_freely(rows)
+            self._struck_by = {}  # as after a step without contacts
+            return []
+        self.bullet_steps += 1
+        self._sync_bodies()
+        cid = self.client
+        for i, (vx, vy, turn) in zip(active, self._set_velocity[rows].tolist()):
+            pybullet.resetBaseVelocity(self.car_ids[i], (vx, vy, 0.0), (0.0, 0.0, turn), cid)
         contacts: dict[tuple, Contact] = {}
         for substep in range(self.substeps):
-            pybullet.stepSimulation(self.client)
+            pybullet.stepSimulation(cid)
             if substep % CONTACT_EVERY == CONTACT_EVERY - 1 or substep == self.substeps - 1:
                 self._collect_contacts(contacts)
         self._read_poses(active)
+        self._pushes_pending = True
         return self._clear_pushed_strikers(list(contacts.values()))
+
+    def _pushes(self, active: list[int]) -> np.ndarray:
+        """What PyBullet's last step added to each active car's velocity (rows of x, y, yaw rate, world frame):
+        the contacts' pushes. Zero where PyBullet was not stepped since the velocities were last set."""
+        pushes = np.zeros((len(active), 3))
+        if not self._pushes_pending:
+            return pushes
+        self._pushes_pending = False
+        for k, i in enumerate(active):
+            (lvx, lvy, _), (_, _, wz) = pybullet.getBaseVelocity(self.car_ids[i], self.client)
+            pushes[k] = (lvx, lvy, wz)
+        return pushes - self._set_velocity[active]
+
+    def _may_touch(self, rows: np.ndarray) -> bool:
+        """Whether any two bodies' padded bounding boxes can overlap during the step, moving at their set
+        velocities (a conservative broad phase: it never misses a pair PyBullet would make)."""
+        return may_touch(self.poses[rows], self._set_velocity[rows, :2], self.obstacle_poses, self._car_size,
+                         self._obstacle_size, self.physics_dt * self.substeps, TOUCH_PAD)
+
+    def _move_freely(self, rows: np.ndarray) -> None:
+        """Move these cars as PyBullet moves a body that touches nothing (`broadphase.move_freely`)."""
+        move_freely(self.poses, self._set_velocity, rows, self.substeps, self.physics_dt)
+        self._stale[rows] = True
+
+    def sync(self) -> None:
+        """Bring PyBullet's bodies to the cars' poses (after steps that moved the cars without PyBullet):
+        call before anything reads the scene from PyBullet (rays, its camera)."""
+        if self._stale.any():
+            self._sync_bodies()
+
+    def _sync_bodies(self) -> None:
+        cid, height = self.client, self.spec.height / 2
+        for i in np.flatnonzero(self._stale).tolist():
+            x, y, yaw = self.poses[i].tolist()
+            pybullet.resetBasePositionAndOrientation(self.car_ids[i], (x, y, height),
+                                                     (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)), cid)
+        self._stale[:] = False
 
     def _clear_pushed_strikers(self, contacts: list[Contact]) -> list[Contact]:
         """The step's contacts with no striker where the striker was being pushed by a third car (struck by it
@@ -253,46 +330,22 @@ class World:
         self._struck_by = struck_by
         return contacts
 
-    def _command_dynamic(self, active: list[int], commands) -> None:
-        """Run the tyre model for the active cars (a push since the last step joins their motion)."""
-        if not active:
-            return
-        cid = self.client
-        step_time = self.physics_dt * self.substeps
-        yaws = self.poses[:, 2].tolist()  # plain floats: fast maths
-        pushes = []
-        for i in active:
-            (lvx, lvy, _), (_, _, wz) = pybullet.getBaseVelocity(self.car_ids[i], cid)
-            sx, sy, sr = self._set_velocity[i]
-            cos_y, sin_y = math.cos(yaws[i]), math.sin(yaws[i])
-            push_x, push_y = lvx - sx, lvy - sy
-            pushes.append((push_x * cos_y + push_y * sin_y, -push_x * sin_y + push_y * cos_y, wz - sr))
-        rows = np.asarray(active)
-        state = self.motion[rows] + pushes
-        moved = advance(state, np.asarray(commands, np.float64)[rows], self.grip[rows], self.motor[rows],
-                        self._params, step_time)
-        self.motion[rows] = state
-        self.drive_speed[rows] = state[:, 0]
-        for i, (forward, left, turn) in zip(active, (moved / step_time).tolist()):
-            cos_y, sin_y = math.cos(yaws[i]), math.sin(yaws[i])
-            vx, vy = forward * cos_y - left * sin_y, forward * sin_y + left * cos_y
-            pybullet.resetBaseVelocity(self.car_ids[i], (vx, vy, 0.0), (0.0, 0.0, turn), cid)
-            self._set_velocity[i] = (vx, vy, turn)
+    def _command_dynamic(self, rows: np.ndarray, commands: np.ndarray, pushes: np.ndarray) -> None:
+        """Run the tyre model for these cars (a push since the last step joins their motion) and set the
+        velocities that carry them where it says (`dynamics.drive`)."""
+        drive(self.poses, self.motion, self._set_velocity, rows, pushes, commands, self.grip, self.motor,
+              self._params, self.physics_dt * self.substeps)
+        self.drive_speed[rows] = self.motion[rows, 0]
 
-    def _command_kinematic(self, active: list[int], commands) -> None:
+    def _command_kinematic(self, active: list[int], commands, pushes) -> None:
         """The kinematic bicycle: the velocity points along the heading the car will have half-way
         through the step (the midpoint rule, so arcs are followed closely), with the yaw rate held."""
-        cid = self.client
         step_time = self.physics_dt * self.substeps
         commands = [(float(steer), float(speed)) for steer, speed in commands]  # plain floats: fast maths
         yaws, drive_speed = self.poses[:, 2].tolist(), self.drive_speed.tolist()
-        for i in active:
-            body = self.car_ids[i]
-            (lvx, lvy, _), _ = pybullet.getBaseVelocity(body, cid)
-            yaw = yaws[i]
+        for i, (push_x, push_y, _) in zip(active, pushes.tolist()):
             # what a collision (or anything but our own command) changed since we set the velocity
-            sx, sy, _ = self._set_velocity[i]
-            push_x, push_y = lvx - sx, lvy - sy
+            yaw = yaws[i]
             cos_y, sin_y = math.cos(yaw), math.sin(yaw)
             steer, target = commands[i]
             speed = drive_speed[i] + push_x * cos_y + push_y * sin_y
@@ -304,10 +357,8 @@ class World:
             direction = yaw + 0.5 * yaw_rate * step_time + beta
             # the sideways part of a push decays with the tyres' grip
             side = (-push_x * sin_y + push_y * cos_y) * self._grip_keep
-            vx = speed * math.cos(direction) - side * sin_y
-            vy = speed * math.sin(direction) + side * cos_y
-            pybullet.resetBaseVelocity(body, (vx, vy, 0.0), (0.0, 0.0, yaw_rate), cid)
-            self._set_velocity[i] = (vx, vy, yaw_rate)
+            self._set_velocity[i] = (speed * math.cos(direction) - side * sin_y,
+                                     speed * math.sin(direction) + side * cos_y, yaw_rate)
 
     def _collect_contacts(self, contacts: dict) -> None:
         for point in pybullet.getContactPoints(physicsClientId=self.client):
@@ -339,7 +390,7 @@ class World:
             contacts[key] = Contact(a=first, b=second, striker=striker)
 
     def _planar_velocity(self, owner: tuple[str, int]) -> tuple[float, float]:
-        return self._set_velocity[owner[1]][:2] if owner[0] == "car" else (0.0, 0.0)
+        return tuple(self._set_velocity[owner[1], :2].tolist()) if owner[0] == "car" else (0.0, 0.0)
 
     def _read_poses(self, active: list[int]) -> None:
         cid = self.client

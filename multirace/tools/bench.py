@@ -4,11 +4,14 @@ Measures agent-steps per second (one car's observation, reward and info per
 15 Hz step) of the full env (cameras, physics with collisions, obstacles,
 random actions, full reward params and infos) for 1, 2, 4 and 8 cars with the
 fast renderer and with the PyBullet renderer, for 4 cars with the LIDAR
-scanned too and for 4 cars on the kinematic car model (`kinematic`, beside
-the default tyre model); the floor (the same run's
+scanned too, for 4 cars on the kinematic car model (`kinematic`, beside
+the default tyre model) and for 4 cars with PyBullet stepped in every step
+(`no_shortcut`, beside the contact shortcut); the floor (the same run's
 physics steps alone, replayed, plus one bare texture warp per camera); the
+share of steps that stepped PyBullet; the fast renderer alone; the
 speed-up of two worker processes over one; memory; and the cost of recording
-a replay.
+a replay. `run_profile` is `multirace bench --profile`: where a step's time
+goes (`profile.py`).
 """
 from __future__ import annotations
 
@@ -21,6 +24,7 @@ import numpy as np
 
 from ..sensors.camera import camera_pose
 from ..environment.race_env import RaceEnv
+from .profile import profile_step, renderer_frames_per_s
 
 CAR_COUNTS = (1, 2, 4, 8)
 WINDOWS = 15  # each figure is the best of this many equal time windows, taken in turns
@@ -59,10 +63,13 @@ def _interleaved_rates(workloads: dict, seconds: float, windows: int = WINDOWS) 
 
 
 def _random_driving(num_cars: int, renderer: str = "fast", seed: int = 0, lidar: bool = False,
-                    dynamics: str = "dynamic"):
-    """The benchmark's env, reset, and a step function driving it with random actions (resetting when done)."""
+                    dynamics: str = "dynamic", shortcut: bool = True):
+    """The benchmark's env, reset, and a step function driving it with random actions (resetting when done).
+
+    `shortcut` False steps PyBullet in every step (`World.contact_shortcut`)."""
     env = RaceEnv(num_cars=num_cars, obstacles=OBSTACLES, renderer=renderer, max_steps=2000, lidar=lidar,
                   dynamics=dynamics)
+    env.world.contact_shortcut = shortcut
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)
     n_actions = env.actions.space.n
@@ -75,10 +82,12 @@ def _random_driving(num_cars: int, renderer: str = "fast", seed: int = 0, lidar:
     return env, step
 
 
-def _env_stepper(num_cars: int, renderer: str, seed: int = 0, lidar: bool = False, dynamics: str = "dynamic"):
-    """(step, close) of the env with random actions."""
-    env, step = _random_driving(num_cars, renderer, seed, lidar, dynamics)
+def _env_stepper(num_cars: int, renderer: str, seed: int = 0, lidar: bool = False, dynamics: str = "dynamic",
+                 shortcut: bool = True):
+    """(step, close) of the env with random actions; `step.env` is the env."""
+    env, step = _random_driving(num_cars, renderer, seed, lidar, dynamics, shortcut)
     step()  # warm-up
+    step.env = env
     return step, env.close
 
 
@@ -114,6 +123,7 @@ def _floor_stepper(num_cars: int, seed: int = 0, steps: int = 900):
         drive()
     for name in actions:
         delattr(world, name)  # the world's own methods again
+    world.contact_shortcut = False  # the floor is PyBullet's world stepped in every step, as before the shortcut
 
     def restart():
         car_poses, obstacle_poses = start
@@ -177,17 +187,22 @@ def run_bench(seconds: float = 3.0, replay_seconds: float = 240.0, progress=prin
     steppers.update({("pybullet", n): _env_stepper(n, "pybullet") for n in (1, 4)})
     steppers[("lidar", 4)] = _env_stepper(4, "fast", lidar=True)
     steppers[("kinematic", 4)] = _env_stepper(4, "fast", dynamics="kinematic")
+    steppers[("no_shortcut", 4)] = _env_stepper(4, "fast", shortcut=False)
     steppers.update({("floor", n): _floor_stepper(n) for n in (1, 4)})
     steppers.update({("workers", n): _workers_stepper(n, CARS_PER_WORKER) for n in (1, 2)})
     try:
         workloads = {key: (step, key[1] * CARS_PER_WORKER if key[0] == "workers" else key[1])
                      for key, (step, _) in steppers.items()}
         progress(f"measuring {len(workloads)} workloads, {WINDOWS} interleaved windows each ...")
+        world = steppers[("fast", 4)][0].env.world
+        before = (world.bullet_steps, world.action_steps)
         rates = _interleaved_rates(workloads, seconds)
+        pybullet_share = (world.bullet_steps - before[0]) / max(world.action_steps - before[1], 1)
+        renderer_fps = renderer_frames_per_s(steppers[("fast", 4)][0].env)
     finally:
         for _, close in steppers.values():
             close()
-    kinds = ("fast", "pybullet", "lidar", "kinematic", "floor")
+    kinds = ("fast", "pybullet", "lidar", "kinematic", "no_shortcut", "floor")
     figures: dict = {"agent_steps_per_s": {kind: {} for kind in kinds},
                      "agent_steps_per_cpu_s": {kind: {} for kind in kinds}}
     per_s, per_cpu_s = figures["agent_steps_per_s"], figures["agent_steps_per_cpu_s"]
@@ -201,6 +216,11 @@ def run_bench(seconds: float = 3.0, replay_seconds: float = 240.0, progress=prin
         figures["fast_over_floor_4" + suffix] = round(rates_of["fast"]["4"] / rates_of["floor"]["4"], 3)
         figures["lidar_over_fast_4" + suffix] = round(rates_of["lidar"]["4"] / rates_of["fast"]["4"], 3)
         figures["dynamic_over_kinematic_4" + suffix] = round(rates_of["fast"]["4"] / rates_of["kinematic"]["4"], 3)
+        figures["shortcut_gain_4" + suffix] = round(rates_of["fast"]["4"] / rates_of["no_shortcut"]["4"], 3)
+    figures["pybullet_step_share_4"] = round(pybullet_share, 3)
+    figures["renderer_frames_per_s"] = round(renderer_fps, 1)
+    progress(f"PyBullet stepped in {100 * pybullet_share:.0f} % of the 4-car env's steps; "
+             f"renderer alone: {renderer_fps:.0f} frames/s")
     per_agent_us = {n: 1e6 / per_cpu_s["fast"][str(n)] for n in CAR_COUNTS}
     figures["per_agent_cost_growth_1_to_8"] = round(per_agent_us[8] / per_agent_us[1], 3)
     one, two = rates[("workers", 1)][0], rates[("workers", 2)][0]
@@ -227,6 +247,23 @@ def run_bench(seconds: float = 3.0, replay_seconds: float = 240.0, progress=prin
     progress(f"`multirace --help`, whole process: {figures['cli_help_s']['median']} s (median)")
     figures["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
     return figures
+
+
+def run_profile(num_cars: int = 4, steps: int = 3000, progress=print) -> dict:
+    """The per-stage split of the bench's env step (`num_cars` cars, random actions) and the renderer alone."""
+    env, step = _random_driving(num_cars)
+    try:
+        for _ in range(200):  # untimed lead-in
+            step()
+        before = (env.world.bullet_steps, env.world.action_steps)
+        split = profile_step(step, env, steps)
+        pybullet_share = (env.world.bullet_steps - before[0]) / max(env.world.action_steps - before[1], 1)
+        fps = renderer_frames_per_s(env)
+    finally:
+        env.close()
+    progress(f"profiled {steps} steps of a {num_cars}-car env; renderer alone: {fps:.0f} frames/s")
+    return {"cars": num_cars, "steps": steps, "us_per_step": split, "pybullet_step_share": round(pybullet_share, 3),
+            "renderer_frames_per_s": round(fps, 1)}
 
 
 def cli_start_seconds(runs: int = 9) -> dict:
@@ -259,6 +296,10 @@ def format_table(figures: dict) -> list[tuple[str, str]]:
                                                      f"{figures['lidar_over_fast_4_cpu']}"),
         ("tyre model / kinematic model, 4 cars (wall; CPU)", f"{figures['dynamic_over_kinematic_4']}; "
                                                              f"{figures['dynamic_over_kinematic_4_cpu']}"),
+        ("with / without the contact shortcut, 4 cars (wall; CPU)", f"{figures['shortcut_gain_4']}; "
+                                                                    f"{figures['shortcut_gain_4_cpu']}"),
+        ("steps that stepped PyBullet, 4 cars", f"{100 * figures['pybullet_step_share_4']:.0f} %"),
+        ("fast renderer alone, 120x160 grey (frames/s)", f"{figures['renderer_frames_per_s']:,.0f}"),
         ("per-agent CPU cost, 8 cars / 1 car", f"{figures['per_agent_cost_growth_1_to_8']}x"),
         ("2 workers / 1 worker", f"{figures['workers_speedup_2']}x"),
         ("memory of one 4-car env (MB)", f"{figures['env_memory_mb_4_cars']}"),

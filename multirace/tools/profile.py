@@ -1,0 +1,86 @@
+"""`multirace bench --profile`: where the time of an env step goes, stage by stage, and the renderer alone.
+
+The stages of `RaceEnv.step`: dynamics (the car model: pushes, tyre kernel,
+free moves, the broad phase), contacts (PyBullet: syncing bodies, stepping,
+contact points, reading poses), rules (track measurement, contacts and the
+race rules), params (the reward params and infos), reward (the reward
+function) and render (the observations). Each is timed by wrapping the env's
+and world's own methods on one instance with `time.perf_counter`, so the
+code of an unprofiled env is untouched; what no stage covers (actions,
+commands, bots) is "other".
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ..sensors.camera import CameraSpec, camera_poses
+from ..sensors.fast_renderer import FastRenderer
+
+STAGES = ("dynamics", "contacts", "rules", "params", "reward", "render", "other")
+# the methods timed as each stage: (object: "env", "world" or "reward"; method names)
+_TIMED = {
+    "dynamics": ("world", ("_pushes", "_command_dynamic", "_command_kinematic", "_may_touch", "_move_freely")),
+    "rules": ("env", ("_measure_all", "_advance_distances", "_apply_contacts", "_apply_rules")),
+    "params": ("env", ("_object_table", "_params", "ranks", "_info")),
+    "reward": ("reward", ("rewards",)),
+    "render": ("env", ("_observe",)),
+}
+
+
+def _timed(method, totals: dict, stage: str):
+    def wrapper(*args, **kwargs):
+        start = time.perf_counter()
+        try:
+            return method(*args, **kwargs)
+        finally:
+            totals[stage] += time.perf_counter() - start
+    return wrapper
+
+
+def profile_step(step, env, steps: int) -> dict:
+    """Microseconds per env step of each stage, over `steps` calls of `step` (which steps `env`)."""
+    totals = dict.fromkeys(STAGES + ("world", "total"), 0.0)
+    owners = {"env": env, "world": env.world, "reward": env.reward_function}
+    for stage, (owner, names) in _TIMED.items():
+        for name in names:
+            setattr(owners[owner], name, _timed(getattr(owners[owner], name), totals, stage))
+    env.world.step = _timed(env.world.step, totals, "world")
+    try:
+        for _ in range(steps):
+            start = time.perf_counter()
+            step()
+            totals["total"] += time.perf_counter() - start
+    finally:
+        for owner, names in _TIMED.values():
+            for name in names:
+                delattr(owners[owner], name)  # the class's own methods again
+        del env.world.step
+    totals["contacts"] = totals.pop("world") - totals["dynamics"]
+    covered = sum(totals[stage] for stage in STAGES if stage != "other")
+    totals["other"] = totals["total"] - covered
+    return {stage: round(1e6 * seconds / steps, 1) for stage, seconds in totals.items()}
+
+
+def renderer_frames_per_s(env, frames: int = 2000) -> float:
+    """Frames per second of the fast renderer alone: one 120x160 grey camera on `env`'s track and world."""
+    spec = CameraSpec(height=120, width=160, grayscale=True)
+    renderer = FastRenderer(spec, env.texture)
+    eyes, rotations = camera_poses(spec, env.world.poses[:1])
+    cars = np.zeros(1, np.int64)
+    renderer.render_many(env.world, cars, eyes, rotations)  # compile / warm up
+    start = time.perf_counter()
+    for _ in range(frames):
+        renderer.render_many(env.world, cars, eyes, rotations)
+    return frames / (time.perf_counter() - start)
+
+
+def format_profile(profile: dict) -> list[tuple[str, str]]:
+    """(stage, value) rows for printing."""
+    split = profile["us_per_step"]
+    rows = [(stage, f"{split[stage]:.1f} us ({100 * split[stage] / split['total']:.0f} %)") for stage in STAGES]
+    rows += [("whole step", f"{split['total']:.1f} us"),
+             ("steps that ran PyBullet", f"{100 * profile['pybullet_step_share']:.0f} %"),
+             ("renderer alone, 120x160 grey (frames/s)", f"{profile['renderer_frames_per_s']:,.0f}")]
+    return rows
