@@ -31,7 +31,7 @@ from ..sensors.suite import declared_sensors
 from ..sim.objects import objects_seen
 from .randomize import Randomization, apply_command, apply_image
 from .reward_process import load_reward_function
-from .rules import CarRace, StepMeasure, make_rules
+from .rules import CarRace, StepMeasure, Stewards, make_rules
 from .state import CAR_FEATURES, GLOBAL_PER_CAR, STATE_BOUND, car_features, global_state
 from ..sim.texture import DEFAULT_PALETTE, TrackTexture
 from ..sim.tracks import Track, load_track
@@ -220,7 +220,6 @@ class RaceEnv(ParallelEnv):
             self._renderer = make_renderer(self.renderer_name, self.camera, self.texture)
         self.steps = 0
         self.sim_time = 0.0
-        self._touching: set = set()
         track = self.track
         self.races = []
         self._s = [0.0] * self.total_cars
@@ -237,6 +236,7 @@ class RaceEnv(ParallelEnv):
             self.races.append(CarRace(name=self.car_names[i], distance=signed, start_distance=signed,
                                       lap_start_distance=signed, last_on_track_s=s,
                                       segment_hint=geo["proj"].segment))
+        self._stewards = Stewards(self.rules, self.races, self.car_names, self.car_spec.length, track.length, self.dt)
         self.agents = list(self.possible_agents)
         table = self._object_table()
         params = [self._params(i, set(), table) for i in range(self.num_cars)]
@@ -364,23 +364,15 @@ class RaceEnv(ParallelEnv):
                 self._s[i] = s
 
     def _apply_contacts(self, contacts) -> list[set]:
-        """Record contacts; penalise a striker in head-to-head. Returns who each car touched."""
+        """Hand the step's contacts to the stewards (incidents, fault, penalties). Returns who each car touched."""
         touched = [set() for _ in range(self.total_cars)]
-        now = set()
         for contact in contacts:
-            pair = (contact.a, contact.b)
-            now.add(pair)
-            is_new = pair not in self._touching
             for me, other in ((contact.a, contact.b), (contact.b, contact.a)):
-                if me[0] != "car":
-                    continue
-                touched[me[1]].add(other)
-                if is_new:
-                    other_name = self.car_names[other[1]] if other[0] == "car" else f"obstacle_{other[1]}"
-                    race = self.races[me[1]]
-                    self.rules.contact(race, race.clock(self.sim_time), other_name, caused=contact.striker == me,
-                                       with_car=other[0] == "car")
-        self._touching = now
+                if me[0] == "car":
+                    touched[me[1]].add(other)
+        places = {i: (self.races[i].distance, geo["proj"].lateral)
+                  for i, geo in enumerate(self._geometry) if geo is not None}
+        self._stewards.judge(contacts, places, self.sim_time)
         return touched
 
     # ------------------------------------------------------------- rules
