@@ -393,17 +393,17 @@ class RaceEnv(ParallelEnv):
             self._end_run(i, *ruling.end)
         return ruling.events
 
-    def _reset_car(self, i: int, s: float, lateral: float) -> None:
+    def _reset_car(self, i: int, s: float, lateral: float, clear: bool = True) -> None:
         """Put car i back on the track at arc length s, facing along the track, at rest.
 
-        If another car or a box occupies the spot, the car is put further back until it is clear.
+        If another car or a box occupies the spot, the car is put further back until it is clear (`clear`).
         """
         track = self.track
         others = [self.world.poses[j][:2] for j in range(self.total_cars)
                   if j != i and not self.world.parked[j]] + [p[:2] for p in self.world.obstacle_poses]
         for _ in range(8):
             x, y, yaw = track.point_at(s, lateral)
-            if all(math.hypot(x - ox, y - oy) > CLEAR_RADIUS for ox, oy in others):
+            if not clear or all(math.hypot(x - ox, y - oy) > CLEAR_RADIUS for ox, oy in others):
                 break
             s -= CLEAR_RADIUS
         self.world.place_car(i, x, y, yaw)
@@ -412,13 +412,14 @@ class RaceEnv(ParallelEnv):
         self._s[i] = geo["proj"].s
         self._geometry[i] = geo
 
-    def move_cars(self, slots: dict) -> dict:
-        """Put cars at rest at {car index: (arc length from the start line, lateral offset)}, as a reset does.
+    def move_cars(self, slots: dict, clear: bool = True) -> dict:
+        """Put cars at rest at {car index: (arc length from the start line, lateral offset)}, as a reset does
+        (`clear=False`: exactly there, side by side if asked, not moved back off a spot next to a car).
 
         For training set-ups (bots started ahead of the learners). Returns the camera cars' new observations.
         """
         for i, (s, lateral) in slots.items():
-            self._reset_car(i, s % self.track.length, lateral)
+            self._reset_car(i, s % self.track.length, lateral, clear)
         return self._observe()
 
     def traffic(self, i: int) -> list[tuple[float, float, float]]:
