@@ -39,6 +39,7 @@ STATUSES = ("finished", "out_of_resets", "timed_out", "forfeit", "not_finished")
 STANDINGS_MIN_SHARE = 0.05  # share of the race every racing car drives before standings project finishing times
 OVERLAP_SHARE = 0.25  # of a car length: a car this far alongside another has overlap and keeps its line
 LATERAL_MOVE = 0.1  # m/s towards the other car: a car moving across slower than this holds its line
+CLOSING_SPEED = 0.05  # m/s faster along the track than the car ahead: the car behind is catching it
 INCIDENT_GAP = 0.5  # s: the same pair touching again within this of its last touch is the same incident
 PUSH_OFF_WINDOW = 1.0  # s: a car off track this soon after an incident another car was at fault for was pushed off
 
@@ -288,24 +289,31 @@ def at_fault(a: CarMotion, b: CarMotion, striker: int | None, car_length: float,
     """Who of two touching cars is at fault (0: `a`, 1: `b`, None: nobody) and the kind of incident.
 
     The README's "Race rules": nobody where neither drove into the other or the one that did was pushed
-    into it (`striker` None: `world.Contact`). Less than `OVERLAP_SHARE` of a car length alongside, the
-    car behind has no overlap: a ``rear_end``, the car behind's fault (unless the car ahead backed into
-    it faster than it drove on). Alongside, the car that moved across towards the other (at least
-    `LATERAL_MOVE`, the faster of the two) is at fault: a ``cut_across`` where it is the car ahead and
-    the other had overlap, a ``side_swipe`` otherwise; where neither moved across, the striker of the
-    contact (a graze: the faster car) is, in a ``side_swipe``."""
+    into it (`striker` None: `world.Contact`). With less than `OVERLAP_SHARE` of a car length alongside,
+    the car behind has no overlap (a ``rear_end``): the car ahead owns the line and the car behind is at
+    fault if it was catching it (by `CLOSING_SPEED` or more); the car ahead if it went backwards into it.
+    Alongside (overlap), and in a rear-end where neither was catching the other, the car that moved
+    across towards the other (by `LATERAL_MOVE` or more, the faster of the two) is at fault: a
+    ``cut_across`` where it is the car ahead and the other had overlap, a ``side_swipe`` otherwise. Where
+    neither moved across either, the striker of the contact is (the one that closed faster along the
+    contact normal; in a graze, the faster car)."""
     if striker is None:
         return None, "contact"
     gap = (b.distance - a.distance + track_length / 2) % track_length - track_length / 2  # + : b ahead
     ahead = 1 if gap >= 0 else 0
     cars = (a, b)
-    if 1.0 - abs(gap) / car_length < OVERLAP_SHARE:
-        rear, front = cars[1 - ahead], cars[ahead]
-        return (1 - ahead if rear.along_speed >= -front.along_speed else ahead), "rear_end"
     side = 1.0 if b.lateral >= a.lateral else -1.0  # where b is, seen from a
     towards = (a.lateral_speed * side, -b.lateral_speed * side)
     mover = 0 if towards[0] >= towards[1] else 1
-    if towards[mover] < LATERAL_MOVE:
+    mover = mover if towards[mover] >= LATERAL_MOVE else None
+    if 1.0 - abs(gap) / car_length < OVERLAP_SHARE:
+        rear, front = cars[1 - ahead], cars[ahead]
+        if -front.along_speed > max(rear.along_speed, 0.0):
+            return ahead, "rear_end"  # the car ahead backed into it
+        if rear.along_speed - front.along_speed >= CLOSING_SPEED:
+            return 1 - ahead, "rear_end"
+        return (striker if mover is None else mover), "rear_end"
+    if mover is None:
         return striker, "side_swipe"
     return mover, ("cut_across" if mover == ahead and abs(gap) > 0.1 * car_length else "side_swipe")
 
