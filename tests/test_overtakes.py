@@ -37,10 +37,11 @@ def test_a_pass_of_a_car_that_just_left_the_track_is_no_overtake():
         _step(tracker, races, k / 15, (0.1, 0.0))
     assert races[0].distance - races[1].distance > LENGTH
     assert tracker.counts[0]["overtakes"] == 0 and tracker.counts[1]["overtaken"] == 0
-    for k in range(16, 76):  # b gets away again, then is passed for real once more than 2 s after its off-track
+    for k in range(16, 110):  # b gets away again, then is passed for real, more than 2 s after its off-track
         _step(tracker, races, k / 15, (0.0 if k < 40 else 0.1, 0.2 if k < 40 else 0.0))
     assert tracker.counts[0]["overtakes"] == 1 and tracker.counts[1]["overtaken"] == 1
-    assert tracker.counts[0]["overtakes_attempted"] == tracker.counts[0]["overtakes_completed"] == 1
+    # two attempts (closing in from the grid, then again): the void pass ended the first, the real one completed
+    assert (tracker.counts[0]["overtakes_attempted"], tracker.counts[0]["overtakes_completed"]) == (2, 1)
 
 
 def test_an_attempt_that_falls_back_fails_and_side_by_side_wobbles_are_no_passes():
