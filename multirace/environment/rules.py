@@ -276,12 +276,12 @@ class RaceRules:
 
 @dataclasses.dataclass(frozen=True)
 class CarMotion:
-    """One car at a contact: where it is on the track and how it moved over the step (`at_fault`'s input)."""
+    """One car at a contact: where it is on the track and how it was moving (`at_fault`'s input)."""
 
     distance: float  # race distance, m along the centre line
     lateral: float  # m from the centre line, + left
-    along_speed: float = 0.0  # m/s along the track over the step
-    lateral_speed: float = 0.0  # m/s across the track over the step, + left
+    along_speed: float = 0.0  # m/s along the track going into the contact
+    lateral_speed: float = 0.0  # m/s across the track going into the contact, + left
 
 
 def at_fault(a: CarMotion, b: CarMotion, striker: int | None, car_length: float,
@@ -330,7 +330,7 @@ class Stewards:
         self.rules, self.races, self.names = rules, races, names
         self.car_length, self.track_length, self.dt = car_length, track_length, dt
         self._open: dict = {}  # pair -> {"last": sim time, "records": (record a, record b or None)}
-        self._seen: dict = {}  # car -> (distance, lateral, resets) at the last step
+        self._seen: dict = {}  # car -> (distance, lateral, resets, (along, lateral speed)) at the last step
 
     def judge(self, contacts, places: dict, sim_time: float) -> None:
         """Record this step's contacts (`world.Contact`s) as incidents; `places`: car -> (distance, lateral)."""
@@ -347,16 +347,19 @@ class Stewards:
                 self.races[incident["victim"]].pushed = (sim_time + PUSH_OFF_WINDOW, incident["records"])
 
     def _motions(self, places: dict) -> dict:
-        """Each car's `CarMotion` over the step (at rest if it was put back on the track since the last)."""
+        """Each car's `CarMotion`: where it is now, moving as it did over the step before this one (going into
+        the contact: this step's motion has the contact's push in it); at rest if it was put back on the
+        track since."""
         motions, seen = {}, {}
         for i, (distance, lateral) in places.items():
             resets = self.races[i].resets
-            seen[i] = (distance, lateral, resets)
             last = self._seen.get(i)
-            if last is None or last[2] != resets:
-                motions[i] = CarMotion(distance, lateral)
-            else:
-                motions[i] = CarMotion(distance, lateral, (distance - last[0]) / self.dt, (lateral - last[1]) / self.dt)
+            speeds = (0.0, 0.0)
+            if last is not None and last[2] == resets:
+                speeds = ((distance - last[0]) / self.dt, (lateral - last[1]) / self.dt)
+            seen[i] = (distance, lateral, resets, speeds)
+            before = last[3] if last is not None and last[2] == resets else speeds
+            motions[i] = CarMotion(distance, lateral, *before)
         self._seen = seen
         return motions
 
