@@ -128,7 +128,7 @@ class RaceRules:
     max_resets: int | None = None  # None: unlimited; reset_rule: 3
     time_limit: float | None = None  # seconds of race time; reset_rule: 240
     obstacles: int = 0  # boxes placed; object_avoidance default 3
-    penalise_striker: bool = False  # head_to_head: the car that ran into the other pays
+    penalise_striker: bool = False  # head_to_head: the car at fault in an incident pays (`at_fault`)
     reset_behind_obstacle: float = 1.0  # object_avoidance: metres behind the box, other lane
     reset_cap: int = 100  # formats with unlimited resets: the run ends after this many (DeepRacer-for-Cloud's)
     reset_loop_count: int = 5  # off-tracks in a row, each within reset_loop_seconds of the reset before it,
@@ -143,14 +143,11 @@ class RaceRules:
         """Has the format's time window (reset_rule: 4 minutes) ended?"""
         return self.time_limit is not None and sim_time >= self.time_limit - 1e-9
 
-    def contact(self, race: CarRace, clock: float, other: str, caused: bool, with_car: bool,
-                kind: str = "contact") -> dict:
-        """A new incident of `race`'s car with `other` (a car or a box): record it, penalise the car at fault.
-        Returns the record (the stewards update its `caused` and `kind` as the incident unfolds)."""
+    def contact(self, race: CarRace, clock: float, other: str, kind: str = "contact") -> dict:
+        """Record a new incident of `race`'s car with `other` (a car or a box), nobody at fault yet; returns
+        the record (the stewards set its `caused` by `blame` and its `kind` as they judge the incident)."""
         record = {"time": round(clock, 3), "with": other, "caused": False, "kind": kind}
         race.collisions.append(record)
-        if caused:
-            self.blame(race, record, with_car)
         return record
 
     def blame(self, race: CarRace, record: dict, with_car: bool) -> None:
@@ -329,7 +326,7 @@ class Stewards:
                  track_length: float, dt: float):
         self.rules, self.races, self.names = rules, races, names
         self.car_length, self.track_length, self.dt = car_length, track_length, dt
-        self._open: dict = {}  # pair -> {"last": sim time, "records": (record a, record b or None)}
+        self._open: dict = {}  # pair -> {"last": sim time, "records": (record a, record b or None), "victim"}
         self._seen: dict = {}  # car -> (distance, lateral, resets, (along, lateral speed)) at the last step
 
     def judge(self, contacts, places: dict, sim_time: float) -> None:
@@ -372,8 +369,7 @@ class Stewards:
                 continue
             race = self.races[me[1]]
             name = self.names[other[1]] if other[0] == "car" else f"obstacle_{other[1]}"
-            records.append(self.rules.contact(race, race.clock(sim_time), name, caused=False,
-                                              with_car=other[0] == "car"))
+            records.append(self.rules.contact(race, race.clock(sim_time), name))
         return tuple(records)
 
     def _blame(self, contact, records: tuple, motions: dict) -> int | None:
