@@ -111,6 +111,8 @@ def test_evaluate_refuses_bad_parts_heats_entrants_and_heat_tracks_up_front(caps
     assert "--field: bot 'bot:zoom@1'" in capsys.readouterr().err
     assert main(["evaluate", str(AGENT), "--heats", "1", "--heat-tracks", "Mexico_track,Nowhere"]) == 2
     assert "--heat-tracks: track 'Nowhere'" in capsys.readouterr().err
+    assert main(["evaluate", str(AGENT), "--scenarios", "1", "--scenario-track", "Nowhere"]) == 2
+    assert "--scenario-track: track 'Nowhere'" in capsys.readouterr().err
 
 
 def test_the_report_figure_draws_zero_counts_from_zero_and_plots_traffic():
