@@ -82,7 +82,8 @@ def test_evaluate_scenarios_report_a_success_rate_per_scenario(tmp_path, capsys)
     assert [r["scenario"] for r in report["scenarios"]] == [s.name for s in SCENARIOS]
     summary = report["summary"]["scenarios"]
     for row in report["scenarios"]:
-        assert summary[row["scenario"]] == {"runs": 1, "passed": int(row["success"]),
+        passed = row["passed_at"] is not None and row["ahead_at_end"]
+        assert summary[row["scenario"]] == {"runs": 1, "passed": int(passed), "passed_cleanly": int(row["success"]),
                                             "success_rate": float(row["success"])}
         assert row["success"] == (row["passed_at"] is not None and row["ahead_at_end"] and not row["fouled"]
                                   and not row["void"])

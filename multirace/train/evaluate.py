@@ -282,11 +282,11 @@ def print_scenarios(agent_name: str, scenarios: dict, console) -> None:
 
     table = Table(title=f"{agent_name}: overtake scenarios (success: passed, still ahead when the time is up, no "
                         "at-fault contact)")
-    for column in ("scenario", "runs", "passed cleanly", "success rate"):
+    for column in ("scenario", "runs", "passed", "passed cleanly", "success rate"):
         table.add_column(column)
     for name, f in scenarios.items():
         rate = "-" if f["success_rate"] is None else f"{100 * f['success_rate']:.0f}%"
-        table.add_row(name, str(f["runs"]), str(f["passed"]), rate)
+        table.add_row(name, str(f["runs"]), str(f["passed"]), str(f["passed_cleanly"]), rate)
     console.print(table)
 
 

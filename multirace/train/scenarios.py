@@ -173,10 +173,12 @@ def run_scenarios(agent, seeds, track: str = "reinvent_base", progress=None) -> 
 
 
 def summarise_scenarios(rows: list[dict]) -> dict:
-    """Per scenario: runs and the share of clean passes (runs on a track without its site left out)."""
+    """Per scenario: runs, runs that got past and stayed ahead (cleanly or not), clean passes and their share,
+    the success rate (runs on a track without the scenario's site left out)."""
     out = {}
     for name in dict.fromkeys(r["scenario"] for r in rows):
         runs = [r for r in rows if r["scenario"] == name and r["success"] is not None]
-        out[name] = {"runs": len(runs), "passed": sum(r["success"] for r in runs),
-                     "success_rate": sum(r["success"] for r in runs) / len(runs) if runs else None}
+        clean = sum(r["success"] for r in runs)
+        out[name] = {"runs": len(runs), "passed": sum(r["passed_at"] is not None and r["ahead_at_end"] for r in runs),
+                     "passed_cleanly": clean, "success_rate": clean / len(runs) if runs else None}
     return out
