@@ -55,7 +55,7 @@ def test_car_driven_into_a_box_stops_and_reports_it():
     ahead = (bx - x) * math.cos(byaw) + (by - y) * math.sin(byaw)
     assert ahead >= 0.5 * (env.car_spec.length + 0.30) - 0.03  # stopped at the box's face
     assert env.races[0].collisions[0] == {"time": env.races[0].collisions[0]["time"], "with": "obstacle_0",
-                                          "caused": True}
+                                          "caused": True, "kind": "obstacle"}
 
 
 def test_a_car_passing_close_by_a_crawling_car_grazes_it_and_is_the_striker():

@@ -1,6 +1,8 @@
 """`multirace evaluate`: held-out tracks are tracks the agent never trained on; outputs land where asked."""
 import json
 
+import pytest
+
 from multirace.cli import main
 from multirace.resources import agents_dir
 from multirace.train.evaluate import HELD_OUT_TRACKS, held_out_tracks, trained_tracks
@@ -64,7 +66,28 @@ def test_heats_report_places_and_collisions_caused_per_lap_of_every_entrant(tmp_
         entrant = figures[car["entrant"]]
         assert entrant["first"] == (car["position"] == 1) and entrant["collisions_caused"] == car["collisions_caused"]
         assert entrant["caused_per_lap"] == car["collisions_caused"] / max(car["laps_driven"], 0.25)
+        assert entrant["penalties"] == car["penalties"] and entrant["overtakes"] == car["overtakes"]
+        assert car["overtakes_completed"] <= min(car["overtakes"], car["overtakes_attempted"])
+    assert sum(c["overtakes"] for c in heat["cars"]) == sum(c["overtaken"] for c in heat["cars"])
     assert (tmp_path / "heats.png").exists()
+
+
+@pytest.mark.slow
+def test_evaluate_scenarios_report_a_success_rate_per_scenario(tmp_path, capsys):
+    from multirace.train.scenarios import SCENARIOS
+
+    out = tmp_path / "scenarios.json"
+    assert main(["evaluate", str(AGENT), "--parts", "scenarios", "--scenarios", "1", "--json", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert [r["scenario"] for r in report["scenarios"]] == [s.name for s in SCENARIOS]
+    summary = report["summary"]["scenarios"]
+    for row in report["scenarios"]:
+        passed = row["passed_at"] is not None and row["ahead_at_end"]
+        assert summary[row["scenario"]] == {"runs": 1, "passed": int(passed), "passed_cleanly": int(row["success"]),
+                                            "success_rate": float(row["success"])}
+        assert row["success"] == (row["passed_at"] is not None and row["ahead_at_end"] and not row["fouled"]
+                                  and not row["void"])
+    assert "overtake scenarios" in capsys.readouterr().out
 
 
 def test_the_default_heat_field_is_the_other_shipped_agents_and_bot_follow(tmp_path):
@@ -89,6 +112,8 @@ def test_evaluate_refuses_bad_parts_heats_entrants_and_heat_tracks_up_front(caps
     assert "--field: bot 'bot:zoom@1'" in capsys.readouterr().err
     assert main(["evaluate", str(AGENT), "--heats", "1", "--heat-tracks", "Mexico_track,Nowhere"]) == 2
     assert "--heat-tracks: track 'Nowhere'" in capsys.readouterr().err
+    assert main(["evaluate", str(AGENT), "--scenarios", "1", "--scenario-track", "Nowhere"]) == 2
+    assert "--scenario-track: track 'Nowhere'" in capsys.readouterr().err
 
 
 def test_the_report_figure_draws_zero_counts_from_zero_and_plots_traffic():

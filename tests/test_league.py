@@ -271,6 +271,13 @@ def test_league_runs_to_completion_and_ranks(reference, tmp_path, capsys):
     tt = [s["entrant"] for s in table["time_trials"]]
     assert tt.index("bot:follow@1.5") < tt.index("bot:follow@0.6")
     assert by_name["dagger"]["heats"] == 3 and by_name["dagger"]["tt_completion"] is not None
+    cars = [car for _, _, result, _ in rows for car in json.loads(result)["cars"]]
+    for name, standing in by_name.items():  # penalties and at-fault collisions from every race's record
+        mine = [car for car in cars if car["name"] == name]
+        assert standing["penalties"] == sum(car["penalties"] for car in mine)
+        laps = sum(car["laps"] for car in mine)
+        assert standing["collisions_caused_per_lap"] == (round(sum(car["collisions_caused"] for car in mine) / laps, 4)
+                                                         if laps else None)
     assert table["rating_history"] and table["pending"] == 0
     # a second run finds nothing to do and changes nothing
     again = run_league(folder, workers=2, progress=False)
@@ -280,6 +287,7 @@ def test_league_runs_to_completion_and_ranks(reference, tmp_path, capsys):
     text = capsys.readouterr().out
     assert "TT best lap (s)" in text.replace("\n", " ") or "best lap (s)" in text
     assert "tt_best_lap" not in text and "┃ entrant" in text
+    assert "penalties" in text and "at-fault" in text
     for fmt in ("md", "csv", "json", "html"):
         out = tmp_path / f"table.{fmt}"
         assert cli_main(["league", "table", str(folder), "--format", fmt, "--out", str(out)]) == 0

@@ -200,6 +200,10 @@ def test_the_video_panel_follows_the_results_order_with_penalties(tmp_path):
     assert watch.final == [int(c["car"][4:]) for c in result["cars"]]  # the last frame lists the results' order
     scene = ReplayScene(replay)  # the replay's video (`multirace replay --video`) lists the same order
     assert all(panel_order(scene.at(k + 1)) == panel for k, (panel, _, _) in enumerate(watch.steps))
+    scene.at(scene.last_step)  # and counts each car's at-fault collisions as the results do
+    slots = sorted(result["cars"], key=lambda c: int(c["car"][4:]))
+    assert [race.at_fault for race in scene.races] == [c["collisions_caused"] for c in slots]
+    assert any(race.at_fault for race in scene.races)
 
 
 class _Penalise(_PanelWatch):
@@ -236,4 +240,7 @@ def test_penalties_and_resets_are_marked_on_the_car_and_in_the_panel():
     near = (slice(max(row - 40, 0), row + 40), slice(max(col - 40, 0), col + 40))
     assert (marked[near] != plain[near]).any(axis=2).sum() > 30  # a ring around car_1 and "+5s"
     assert (marked[:, layout.panel_x:] != plain[:, layout.panel_x:]).any()  # "+5s 1 reset" in its panel line
+    env.races[1].collisions.append({"time": 0.1, "with": "car_0", "caused": True, "kind": "rear_end"})
+    faulted = render_topdown(env)
+    assert (faulted[:, layout.panel_x:] != marked[:, layout.panel_x:]).any()  # "+5s 1 reset 1 at fault"
     env.close()

@@ -31,7 +31,7 @@ from ..sensors.suite import declared_sensors
 from ..sim.objects import objects_seen
 from .randomize import Randomization, apply_command, apply_image
 from .reward_process import load_reward_function
-from .rules import CarRace, StepMeasure, make_rules
+from .rules import CarRace, StepMeasure, Stewards, make_rules
 from .state import CAR_FEATURES, GLOBAL_PER_CAR, STATE_BOUND, car_features, global_state
 from ..sim.texture import DEFAULT_PALETTE, TrackTexture
 from ..sim.tracks import Track, load_track
@@ -220,7 +220,6 @@ class RaceEnv(ParallelEnv):
             self._renderer = make_renderer(self.renderer_name, self.camera, self.texture)
         self.steps = 0
         self.sim_time = 0.0
-        self._touching: set = set()
         track = self.track
         self.races = []
         self._s = [0.0] * self.total_cars
@@ -237,6 +236,7 @@ class RaceEnv(ParallelEnv):
             self.races.append(CarRace(name=self.car_names[i], distance=signed, start_distance=signed,
                                       lap_start_distance=signed, last_on_track_s=s,
                                       segment_hint=geo["proj"].segment))
+        self._stewards = Stewards(self.rules, self.races, self.car_names, self.car_spec.length, track.length, self.dt)
         self.agents = list(self.possible_agents)
         table = self._object_table()
         params = [self._params(i, set(), table) for i in range(self.num_cars)]
@@ -364,23 +364,15 @@ class RaceEnv(ParallelEnv):
                 self._s[i] = s
 
     def _apply_contacts(self, contacts) -> list[set]:
-        """Record contacts; penalise a striker in head-to-head. Returns who each car touched."""
+        """Hand the step's contacts to the stewards (incidents, fault, penalties). Returns who each car touched."""
         touched = [set() for _ in range(self.total_cars)]
-        now = set()
         for contact in contacts:
-            pair = (contact.a, contact.b)
-            now.add(pair)
-            is_new = pair not in self._touching
             for me, other in ((contact.a, contact.b), (contact.b, contact.a)):
-                if me[0] != "car":
-                    continue
-                touched[me[1]].add(other)
-                if is_new:
-                    other_name = self.car_names[other[1]] if other[0] == "car" else f"obstacle_{other[1]}"
-                    race = self.races[me[1]]
-                    self.rules.contact(race, race.clock(self.sim_time), other_name, caused=contact.striker == me,
-                                       with_car=other[0] == "car")
-        self._touching = now
+                if me[0] == "car":
+                    touched[me[1]].add(other)
+        places = {i: (self.races[i].distance, geo["proj"].lateral)
+                  for i, geo in enumerate(self._geometry) if geo is not None}
+        self._stewards.judge(contacts, places, self.sim_time)
         return touched
 
     # ------------------------------------------------------------- rules
@@ -401,17 +393,17 @@ class RaceEnv(ParallelEnv):
             self._end_run(i, *ruling.end)
         return ruling.events
 
-    def _reset_car(self, i: int, s: float, lateral: float) -> None:
+    def _reset_car(self, i: int, s: float, lateral: float, clear: bool = True) -> None:
         """Put car i back on the track at arc length s, facing along the track, at rest.
 
-        If another car or a box occupies the spot, the car is put further back until it is clear.
+        If another car or a box occupies the spot, the car is put further back until it is clear (`clear`).
         """
         track = self.track
         others = [self.world.poses[j][:2] for j in range(self.total_cars)
                   if j != i and not self.world.parked[j]] + [p[:2] for p in self.world.obstacle_poses]
         for _ in range(8):
             x, y, yaw = track.point_at(s, lateral)
-            if all(math.hypot(x - ox, y - oy) > CLEAR_RADIUS for ox, oy in others):
+            if not clear or all(math.hypot(x - ox, y - oy) > CLEAR_RADIUS for ox, oy in others):
                 break
             s -= CLEAR_RADIUS
         self.world.place_car(i, x, y, yaw)
@@ -420,13 +412,14 @@ class RaceEnv(ParallelEnv):
         self._s[i] = geo["proj"].s
         self._geometry[i] = geo
 
-    def move_cars(self, slots: dict) -> dict:
-        """Put cars at rest at {car index: (arc length from the start line, lateral offset)}, as a reset does.
+    def move_cars(self, slots: dict, clear: bool = True) -> dict:
+        """Put cars at rest at {car index: (arc length from the start line, lateral offset)}, as a reset does
+        (`clear=False`: exactly there, side by side if asked, not moved back off a spot next to a car).
 
         For training set-ups (bots started ahead of the learners). Returns the camera cars' new observations.
         """
         for i, (s, lateral) in slots.items():
-            self._reset_car(i, s % self.track.length, lateral)
+            self._reset_car(i, s % self.track.length, lateral, clear)
         return self._observe()
 
     def traffic(self, i: int) -> list[tuple[float, float, float]]:

@@ -14,8 +14,14 @@ Formats (DeepRacer's):
   next off-track ends the run. Ranked by best lap, then laps, then progress.
 - ``object_avoidance``: a time trial with static boxes in alternating lanes; a
   crash into a box costs 5 s and a reset 1.0 m behind the box in the other lane.
-- ``head_to_head``: 2-8 cars on a staggered grid; the car that ran into the
-  other is penalised 5 s. Ranked by laps, then total time, then progress.
+- ``head_to_head``: 2-8 cars on a staggered grid; the car at fault in a
+  collision (`at_fault`, the README's "Race rules") is penalised 5 s once per
+  incident, and a car pushed off track by it pays no off-track penalty.
+  Ranked by laps, then total time, then progress.
+
+Contacts are judged by `Stewards` (one per race): a touch of the same pair
+within `INCIDENT_GAP` of the last is the same incident, counted and
+penalised once.
 
 No reset loops: in every format a car that leaves the track again within
 `reset_loop_seconds` of each of its last `reset_loop_count` resets, or that
@@ -31,6 +37,11 @@ import numbers
 FORMATS = ("time_trial", "reset_rule", "object_avoidance", "head_to_head")
 STATUSES = ("finished", "out_of_resets", "timed_out", "forfeit", "not_finished")
 STANDINGS_MIN_SHARE = 0.05  # share of the race every racing car drives before standings project finishing times
+OVERLAP_SHARE = 0.25  # of a car length: a car this far alongside another has overlap and keeps its line
+LATERAL_MOVE = 0.1  # m/s towards the other car: a car moving across slower than this holds its line
+CLOSING_SPEED = 0.05  # m/s faster along the track than the car ahead: the car behind is catching it
+INCIDENT_GAP = 0.5  # s: the same pair touching again within this of its last touch is the same incident
+PUSH_OFF_WINDOW = 1.0  # s: a car off track this soon after an incident another car was at fault for was pushed off
 
 
 @dataclasses.dataclass
@@ -48,7 +59,7 @@ class CarRace:
     penalties: int = 0
     resets: int = 0
     off_tracks: int = 0
-    collisions: list = dataclasses.field(default_factory=list)  # [{"time", "with", "caused"}]
+    collisions: list = dataclasses.field(default_factory=list)  # [{"time", "with", "caused", "kind"}], one per incident
     status: str = "racing"  # "racing" or one of STATUSES once the run is over
     reason: str = ""
     finish_time: float | None = None  # race clock when the run ended
@@ -56,6 +67,7 @@ class CarRace:
     segment_hint: int | None = None
     last_reset_time: float | None = None  # sim time of the last reset
     quick_off_tracks: int = 0  # off-tracks in a row, each soon after the reset before it
+    pushed: tuple | None = None  # (until sim time, incident records): an off-track by then was a push-off
 
     @property
     def racing(self) -> bool:
@@ -116,7 +128,7 @@ class RaceRules:
     max_resets: int | None = None  # None: unlimited; reset_rule: 3
     time_limit: float | None = None  # seconds of race time; reset_rule: 240
     obstacles: int = 0  # boxes placed; object_avoidance default 3
-    penalise_striker: bool = False  # head_to_head: the car that ran into the other pays
+    penalise_striker: bool = False  # head_to_head: the car at fault in an incident pays (`at_fault`)
     reset_behind_obstacle: float = 1.0  # object_avoidance: metres behind the box, other lane
     reset_cap: int = 100  # formats with unlimited resets: the run ends after this many (DeepRacer-for-Cloud's)
     reset_loop_count: int = 5  # off-tracks in a row, each within reset_loop_seconds of the reset before it,
@@ -131,10 +143,17 @@ class RaceRules:
         """Has the format's time window (reset_rule: 4 minutes) ended?"""
         return self.time_limit is not None and sim_time >= self.time_limit - 1e-9
 
-    def contact(self, race: CarRace, clock: float, other: str, caused: bool, with_car: bool) -> None:
-        """A new contact of `race`'s car with `other` (a car or a box): record it, penalise a striker."""
-        race.collisions.append({"time": round(clock, 3), "with": other, "caused": caused})
-        if caused and with_car and self.penalise_striker:
+    def contact(self, race: CarRace, clock: float, other: str, kind: str = "contact") -> dict:
+        """Record a new incident of `race`'s car with `other` (a car or a box), nobody at fault yet; returns
+        the record (the stewards set its `caused` by `blame` and its `kind` as they judge the incident)."""
+        record = {"time": round(clock, 3), "with": other, "caused": False, "kind": kind}
+        race.collisions.append(record)
+        return record
+
+    def blame(self, race: CarRace, record: dict, with_car: bool) -> None:
+        """Put `race`'s car at fault for the incident of `record`; head-to-head: it pays `crash_penalty`."""
+        record["caused"] = True
+        if with_car and self.penalise_striker:
             race.penalty_time += self.crash_penalty
             race.penalties += 1
 
@@ -159,10 +178,11 @@ class RaceRules:
             ruling.events.append("off_track")
             race.off_tracks += 1
             ruling.end = self._no_more_resets(race, sim_time)
+            pushed_off = self._pushed_off(race, sim_time)
             if ruling.end is None:
                 race.resets += 1
                 race.last_reset_time = sim_time
-                if self.off_track_penalty:
+                if self.off_track_penalty and not pushed_off:
                     race.penalty_time += self.off_track_penalty
                     race.penalties += 1
                 ruling.reset = (race.last_on_track_s, None)
@@ -177,6 +197,19 @@ class RaceRules:
             race.penalties += 1
             ruling.reset = (s_box - self.reset_behind_obstacle, 1 - lane)
         return ruling
+
+    def _pushed_off(self, race: CarRace, sim_time: float) -> bool:
+        """Was this off-track a push-off (head-to-head: within `PUSH_OFF_WINDOW` of an incident another car
+        was at fault for)? Marks the incident ``push_off``."""
+        if race.pushed is None or not self.penalise_striker:
+            return False
+        until, records = race.pushed
+        race.pushed = None
+        if sim_time > until + 1e-9:
+            return False
+        for record in records:
+            record["kind"] = "push_off"
+        return True
 
     def _no_more_resets(self, race: CarRace, sim_time: float) -> tuple[str, str, None] | None:
         """The end of a run that left the track and may not be put back again, or None."""
@@ -236,6 +269,128 @@ class RaceRules:
                                else (0, projected, -self.laps, 0.0))
 
         return sorted(range(len(cars)), key=key)
+
+
+@dataclasses.dataclass(frozen=True)
+class CarMotion:
+    """One car at a contact: where it is on the track and how it was moving (`at_fault`'s input)."""
+
+    distance: float  # race distance, m along the centre line
+    lateral: float  # m from the centre line, + left
+    along_speed: float = 0.0  # m/s along the track going into the contact
+    lateral_speed: float = 0.0  # m/s across the track going into the contact, + left
+
+
+def at_fault(a: CarMotion, b: CarMotion, striker: int | None, car_length: float,
+             track_length: float) -> tuple[int | None, str]:
+    """Who of two touching cars is at fault (0: `a`, 1: `b`, None: nobody) and the kind of incident.
+
+    The README's "Race rules": nobody where neither drove into the other or the one that did was pushed
+    into it (`striker` None: `world.Contact`). With less than `OVERLAP_SHARE` of a car length alongside,
+    the car behind has no overlap (a ``rear_end``): the car ahead owns the line and the car behind is at
+    fault if it was catching it (by `CLOSING_SPEED` or more); the car ahead if it went backwards into it.
+    Alongside (overlap), and in a rear-end where neither was catching the other, the car that moved
+    across towards the other (by `LATERAL_MOVE` or more, the faster of the two) is at fault: a
+    ``cut_across`` where it is the car ahead and the other had overlap, a ``side_swipe`` otherwise. Where
+    neither moved across either, the striker of the contact is (the one that closed faster along the
+    contact normal; in a graze, the faster car)."""
+    if striker is None:
+        return None, "contact"
+    gap = (b.distance - a.distance + track_length / 2) % track_length - track_length / 2  # + : b ahead
+    ahead = 1 if gap >= 0 else 0
+    cars = (a, b)
+    side = 1.0 if b.lateral >= a.lateral else -1.0  # where b is, seen from a
+    towards = (a.lateral_speed * side, -b.lateral_speed * side)
+    mover = 0 if towards[0] >= towards[1] else 1
+    mover = mover if towards[mover] >= LATERAL_MOVE else None
+    if 1.0 - abs(gap) / car_length < OVERLAP_SHARE:
+        rear, front = cars[1 - ahead], cars[ahead]
+        if -front.along_speed > max(rear.along_speed, 0.0):
+            return ahead, "rear_end"  # the car ahead backed into it
+        if rear.along_speed - front.along_speed >= CLOSING_SPEED:
+            return 1 - ahead, "rear_end"
+        return (striker if mover is None else mover), "rear_end"
+    if mover is None:
+        return striker, "side_swipe"
+    return mover, ("cut_across" if mover == ahead and abs(gap) > 0.1 * car_length else "side_swipe")
+
+
+class Stewards:
+    """The incidents of one race: debounced contacts judged by `at_fault`, penalties and push-offs.
+
+    `judge(contacts, places, sim_time)` every step with the world's contacts and every racing car's
+    (race distance, lateral offset); a pair touching again within `INCIDENT_GAP` of its last touch is the
+    same incident (recorded and penalised once; a car at fault found later in it is blamed then)."""
+
+    def __init__(self, rules: RaceRules, races: list[CarRace], names: list[str], car_length: float,
+                 track_length: float, dt: float):
+        self.rules, self.races, self.names = rules, races, names
+        self.car_length, self.track_length, self.dt = car_length, track_length, dt
+        self._open: dict = {}  # pair -> {"last": sim time, "records": (record a, record b or None), "victim"}
+        self._seen: dict = {}  # car -> (distance, lateral, resets, (along, lateral speed)) at the last step
+
+    def judge(self, contacts, places: dict, sim_time: float) -> None:
+        """Record this step's contacts (`world.Contact`s) as incidents; `places`: car -> (distance, lateral)."""
+        motions = self._motions(places)
+        for contact in contacts:
+            pair = (contact.a, contact.b)
+            incident = self._open.get(pair)
+            if incident is None or sim_time - incident["last"] > INCIDENT_GAP + 1e-9:
+                incident = self._open[pair] = {"records": self._record(contact, sim_time), "victim": None}
+            incident["last"] = sim_time
+            if incident["victim"] is None and not any(r is not None and r["caused"] for r in incident["records"]):
+                incident["victim"] = self._blame(contact, incident["records"], motions)
+            if incident["victim"] is not None:  # a push-off can follow until PUSH_OFF_WINDOW after its last touch
+                self.races[incident["victim"]].pushed = (sim_time + PUSH_OFF_WINDOW, incident["records"])
+
+    def _motions(self, places: dict) -> dict:
+        """Each car's `CarMotion`: where it is now, moving as it did over the step before this one (going into
+        the contact: this step's motion has the contact's push in it); at rest if it was put back on the
+        track since."""
+        motions, seen = {}, {}
+        for i, (distance, lateral) in places.items():
+            resets = self.races[i].resets
+            last = self._seen.get(i)
+            speeds = (0.0, 0.0)
+            if last is not None and last[2] == resets:
+                speeds = ((distance - last[0]) / self.dt, (lateral - last[1]) / self.dt)
+            seen[i] = (distance, lateral, resets, speeds)
+            before = last[3] if last is not None and last[2] == resets else speeds
+            motions[i] = CarMotion(distance, lateral, *before)
+        self._seen = seen
+        return motions
+
+    def _record(self, contact, sim_time: float) -> tuple:
+        """A new incident's records, one per car in it (None for a box)."""
+        records = []
+        for me, other in ((contact.a, contact.b), (contact.b, contact.a)):
+            if me[0] != "car":
+                records.append(None)
+                continue
+            race = self.races[me[1]]
+            name = self.names[other[1]] if other[0] == "car" else f"obstacle_{other[1]}"
+            records.append(self.rules.contact(race, race.clock(sim_time), name))
+        return tuple(records)
+
+    def _blame(self, contact, records: tuple, motions: dict) -> int | None:
+        """Judge a contact of an incident nobody is at fault for yet: blame the car at fault, if any, and
+        return the car it hit (None: nobody at fault, or a box)."""
+        a, b = contact.a, contact.b
+        if a[0] != "car" or b[0] != "car":  # a box: the car ran into it
+            car = 0 if a[0] == "car" else 1
+            records[car]["kind"] = "obstacle"
+            self.rules.blame(self.races[(a, b)[car][1]], records[car], with_car=False)
+            return None
+        if a[1] not in motions or b[1] not in motions:
+            return None
+        striker = None if contact.striker is None else (0 if contact.striker == a else 1)
+        fault, kind = at_fault(motions[a[1]], motions[b[1]], striker, self.car_length, self.track_length)
+        for record in records:
+            record["kind"] = kind
+        if fault is None:
+            return None
+        self.rules.blame(self.races[(a, b)[fault][1]], records[fault], with_car=True)
+        return (a, b)[1 - fault][1]
 
 
 def make_rules(race: str = "time_trial", laps: int = 3, obstacles: int | None = None, **overrides) -> RaceRules:

@@ -5,7 +5,8 @@ with the heat's finishing order, heats taken in schedule order (so the
 ratings are deterministic); the rating shown is the ordinal, mu - 3 sigma.
 Time-trial standings (reset rule): best lap, completion rate (the share of
 trials that completed every lap), average lap. Clean driving: collisions the
-entrant caused per lap driven, over all its races.
+entrant was at fault for (the README's "Race rules": once per incident) per
+lap driven, and the penalties it collected, over all its races.
 """
 from __future__ import annotations
 
@@ -25,12 +26,12 @@ from .schedule import current_schedule, entrants
 from .store import connect
 
 COLUMNS = ["rank", "entrant", "rating", "mu", "sigma", "heats", "wins", "avg_position", "tt_best_lap",
-           "tt_completion", "tt_avg_lap", "collisions_caused_per_lap", "forfeits"]
+           "tt_completion", "tt_avg_lap", "collisions_caused_per_lap", "penalties", "forfeits"]
 # what people read (text, Markdown, HTML); CSV and JSON keep the identifiers above
 HEADERS = {"rank": "#", "entrant": "entrant", "rating": "rating", "mu": "mu", "sigma": "sigma", "heats": "heats",
            "wins": "wins", "avg_position": "avg place", "tt_best_lap": "TT best lap (s)",
            "tt_completion": "TT finish rate", "tt_avg_lap": "TT avg lap (s)",
-           "collisions_caused_per_lap": "collisions caused / lap", "forfeits": "forfeits"}
+           "collisions_caused_per_lap": "at-fault collisions / lap", "penalties": "penalties", "forfeits": "forfeits"}
 TEXT_COLUMNS = {"entrant"}  # left-aligned; numbers right-aligned
 
 
@@ -61,7 +62,7 @@ def compute_table(folder) -> dict:
     model = PlackettLuce()
     ratings = {name: model.rating(name=name) for name in names}
     stats = {name: {"heats": 0, "wins": 0, "positions": [], "tt_trials": 0, "tt_finished": 0, "tt_best": [],
-                    "tt_laps": [], "laps": 0, "caused": 0, "forfeits": 0, "forfeit_reasons": []} for name in names}
+                    "tt_laps": [], "laps": 0, "caused": 0, "penalties": 0, "forfeits": 0, "forfeit_reasons": []} for name in names}
     history = []  # (round, {name: ordinal}) after each head-to-head round
     matches, failed = [], []
     current_round = None
@@ -93,6 +94,7 @@ def compute_table(folder) -> dict:
             s = stats[car["name"]]
             s["laps"] += car["laps"]
             s["caused"] += car.get("collisions_caused", 0) or 0
+            s["penalties"] += car.get("penalties", 0) or 0
             if car["status"] == "forfeit":
                 s["forfeits"] += 1
                 if car["reason"] and car["reason"] not in s["forfeit_reasons"]:
@@ -132,6 +134,7 @@ def compute_table(folder) -> dict:
             "tt_completion": round(s["tt_finished"] / s["tt_trials"], 4) if s["tt_trials"] else None,
             "tt_avg_lap": round(_mean(s["tt_laps"]), 4) if s["tt_laps"] else None,
             "collisions_caused_per_lap": round(s["caused"] / s["laps"], 4) if s["laps"] else None,
+            "penalties": s["penalties"],
             "forfeits": s["forfeits"],
             "forfeit_reasons": s["forfeit_reasons"],
         })
@@ -362,8 +365,8 @@ figure {{ display: inline-block; margin: 0 1em 1em 0; }}
 </style></head><body>
 <h1>{e(table['league'])}</h1>
 <p>{e(summary)}. Rating: OpenSkill Plackett-Luce ordinal (mu - 3 sigma) from head-to-head finishing orders;
-TT: time trials under the reset rule (finish rate: the share of trials that completed every lap); collisions
-caused per lap driven.</p>
+TT: time trials under the reset rule (finish rate: the share of trials that completed every lap); at-fault
+collisions (once per incident) per lap driven; penalties collected in all races.</p>
 <h2>Standings</h2>
 <table><tr>{head}</tr>{body}</table>
 <h2>Ratings over rounds</h2>

@@ -42,6 +42,7 @@ class RaceConfig:
     randomize: str | dict | None = None  # domain randomisation (see environment.randomize)
     camera: tuple = (120, 160)  # (height, width) of every entrant's camera
     grayscale: bool = True
+    start: tuple = ()  # ((car, (arc length, lateral offset)), ...): set-up starts instead of the grid (scenarios)
 
 
 def run_race(controllers: list[Controller], config: RaceConfig, recorders=()) -> dict:
@@ -64,6 +65,8 @@ def run_race(controllers: list[Controller], config: RaceConfig, recorders=()) ->
                   car_names=[c.name for c in controllers])
     try:
         observations, infos = env.reset(seed=config.seed)
+        if config.start:
+            observations = env.move_cars(dict(config.start), clear=False)
         for i, controller in enumerate(controllers):
             controller.reset(env, i)
         for recorder in recorders:

@@ -302,8 +302,9 @@ class ReplayRecorder:
         if "crashed" in step_events:
             entries.append(("crashed", "WARN", f"{name}: crashed into a box"))
         for c in race.collisions[prev["collisions"]:]:
-            who = "ran into" if c["caused"] else "was hit by"
-            entries.append(("collision", "WARN", f"{name}: collision, {who} {c['with']}"))
+            who = "ran into" if c["caused"] else "was hit by"  # "ran into": at fault under the race rules
+            kind = c.get("kind", "contact").replace("_", " ")
+            entries.append(("collision", "WARN", f"{name}: collision ({kind}), {who} {c['with']}"))
         if now["resets"] > prev["resets"]:
             entries.append(("reset", "INFO", f"{name}: reset ({now['resets']} so far)"))
         if now["penalties"] > prev["penalties"]:

@@ -14,8 +14,8 @@ holds per step:
 - laps and status per car from the event log (lap events, end events);
 - ranks from the recorded ``plots/rank`` scalars and standings (the panel's
   order, penalties counted) from ``plots/standing`` (a replay without them:
-  the ranks; falling back to laps, then car order); penalty seconds and
-  resets from the penalty and reset events;
+  the ranks; falling back to laps, then car order); penalty seconds,
+  resets and at-fault collisions from the penalty, reset and collision events;
 - boxes from ``world/obstacles``; the track and its texture from the track
   name and direction in ``race/info``.
 
@@ -40,6 +40,7 @@ from ..sensors.topdown import DEFAULT_SIZE, render_topdown
 from ..sim.tracks import load_track
 from .video import write_video
 
+AT_FAULT_TEXT = ", ran into "  # the replay's collision event text of the car at fault (`replay.ReplayRecorder`)
 PENALTY_TEXT = re.compile(r"penalty \+([0-9.]+) s")  # the replay's penalty event text (`replay.ReplayRecorder`)
 
 
@@ -87,7 +88,7 @@ class ReplayScene:
         self._ranks = [_scalar_series(chunks, f"plots/rank/{cid}") for cid in self.ids]
         self._standings = [_scalar_series(chunks, f"plots/standing/{cid}") for cid in self.ids]
         self._marks = [[(e["step"], e["kind"], e["text"]) for e in summary["events"]
-                        if e["car"] == cid and e["kind"] in ("penalty", "reset")] for cid in self.ids]
+                        if e["car"] == cid and e["kind"] in ("penalty", "reset", "collision")] for cid in self.ids]
         # per car: sorted lap-event steps and the (step, status) of its end
         self._lap_steps = [sorted(e["step"] for e in summary["events"] if e["car"] == cid and e["kind"] == "lap")
                            for cid in self.ids]
@@ -96,8 +97,8 @@ class ReplayScene:
             ends = [(e["step"], e["kind"]) for e in summary["events"] if e["car"] == cid and e["kind"] in END_TEXT]
             self._end.append(ends[-1] if ends else None)
         self.last_step = int(max([summary["steps"]] + [int(p[-1, 0]) for p in self._poses if len(p)]))
-        self.races = [types.SimpleNamespace(racing=True, laps=0, status="racing", penalty_time=0.0, resets=0)
-                      for _ in range(n)]
+        self.races = [types.SimpleNamespace(racing=True, laps=0, status="racing", penalty_time=0.0, resets=0,
+                                            at_fault=0) for _ in range(n)]
         self.steps = 0
         self.sim_time = 0.0
         self.at(0)
@@ -123,6 +124,7 @@ class ReplayScene:
             race.status = end[1] if ended else "racing"
             marks = [(kind, text) for at, kind, text in self._marks[i] if at <= step]
             race.resets = sum(kind == "reset" for kind, _ in marks)
+            race.at_fault = sum(kind == "collision" and AT_FAULT_TEXT in text for kind, text in marks)
             race.penalty_time = sum(float(m.group(1)) for kind, text in marks if kind == "penalty"
                                     for m in [PENALTY_TEXT.search(text)] if m)
             # a car is drawn on the step its run ends (its last pose), parked after

@@ -6,7 +6,7 @@ left, cars as oriented rectangles in their `CAR_COLOURS` with a white heading
 mark and a short trail (the last `TRAIL_SECONDS` of positions), the boxes, and
 a panel on the right: race time and, per car in the order the race stands
 (`panel_order`: penalties counted, the result's order once the race is over),
-position, name, lap k/N, status, penalty seconds and resets. A car that is
+position, name, lap k/N, status, penalty seconds, resets and at-fault collisions. A car that is
 penalised or put back is ringed in white for `MARK_SECONDS` with what it got
 ("+5s", "reset"). Parked cars (finished or forfeited runs) are not drawn.
 
@@ -220,12 +220,15 @@ def render_topdown(env, size=DEFAULT_SIZE) -> np.ndarray:
 
 
 def _status_text(race, laps_total: int) -> str:
-    """A car's second panel line: lap k/N, status, and its penalty seconds and resets if any."""
+    """A car's second panel line: lap k/N, status, and its penalty seconds, resets and at-fault collisions if any
+    (a replay's stand-in race holds the at-fault count as `at_fault`)."""
     lap = min(race.laps + (1 if race.racing else 0), laps_total) if laps_total else race.laps
     lap_text = f"lap {lap}/{laps_total}" if laps_total else f"lap {lap}"
     status = (race.status if race.status != "not_finished" else "unfinished").replace("_", " ")
     penalty, resets = float(getattr(race, "penalty_time", 0.0)), int(getattr(race, "resets", 0))
+    faults = race.collisions_caused() if hasattr(race, "collisions_caused") else int(getattr(race, "at_fault", 0))
     marks = (f" +{penalty:g}s" if penalty else "") + (f" {resets} reset{'s' if resets > 1 else ''}" if resets else "")
+    marks += f" {faults} at fault" if faults else ""
     return f"{lap_text} {status}{marks}"
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 from ..options import COUNT, POSITIVE, POSITIVE_INT, SEED, input_file, number, output_file
 from ..resources import agent_argument
 
-PARTS = ("held-out", "perturbations", "traffic", "heats")  # the parts of `multirace evaluate`'s report
+PARTS = ("held-out", "perturbations", "traffic", "heats", "scenarios")  # the parts of `multirace evaluate`'s report
 
 
 def add_train_parser(sub) -> None:
@@ -242,9 +242,15 @@ def add_evaluate_parser(sub) -> None:
     p.add_argument("--field", default=None, metavar="ENTRANTS",
                    help="comma-separated heat opponents: agent files, shipped agents' names or bot specs (default: "
                         "the other shipped agents and bot:follow@1.0)")
+    p.add_argument("--scenarios", type=COUNT, default=0, metavar="N",
+                   help="also run the overtake scenarios (a slower car ahead on a straight, in a chicane, a car "
+                        "alongside into a corner, two cars side by side ahead), seeds 0..N-1 each, and report the "
+                        "share passed cleanly (default 0: none)")
+    p.add_argument("--scenario-track", default="reinvent_base", metavar="TRACK",
+                   help="the track of the overtake scenarios (default reinvent_base)")
     p.add_argument("--parts", default=",".join(PARTS), metavar="PARTS",
                    help=f"comma-separated parts of the report to run (default: all of {','.join(PARTS)}; heats "
-                        "need --heats)")
+                        "need --heats, scenarios --scenarios)")
     p.set_defaults(func=cmd_evaluate)
 
 
@@ -255,6 +261,7 @@ def cmd_evaluate(args) -> int:
         raise ValueError(f"--parts: {', '.join(unknown) or 'nothing'} is not a part; choose from {', '.join(PARTS)}")
     if args.tracks:
         check_tracks([t.strip() for t in args.tracks.split(",") if t.strip()], "--tracks")
+    check_tracks([args.scenario_track], "--scenario-track")
     from .evaluate import run_evaluation
 
     return run_evaluation(args)

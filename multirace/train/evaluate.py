@@ -18,8 +18,11 @@ Four parts, each a list of rows (one race per row and seed); `parts` picks some:
 3. traffic: a head-to-head race on the reference track against two scripted
    bots (``follow@0.8``, ``lanes@1.0``);
 4. heats (with ``heats`` > 0): head-to-head heats against the other shipped
-   agents and `bot:follow@1.0` (`heats.py`): first places and collisions
-   caused per lap of every entrant.
+   agents and `bot:follow@1.0` (`heats.py`): first places, at-fault
+   collisions per lap, penalties and overtakes (attempted, completed) of every
+   entrant;
+5. overtake scenarios (with ``scenarios`` > 0 seeds): set-up starts behind or
+   beside slower cars (`scenarios.py`), the share passed cleanly per scenario.
 
 Per row: lap completion (laps finished / laps asked), whether the run was
 clean (every lap finished, no off-track), best lap, off-tracks per lap driven,
@@ -42,6 +45,7 @@ from ..atomic import AtomicOutput, write_text
 from ..sim.tracks import list_tracks
 from .heats import check_heats, run_heats, summarise_heats
 from .nature import UNCERTAINTY_SET
+from .scenarios import run_scenarios, summarise_scenarios
 from .splits import HELD_OUT_TRACKS
 
 GRID = [("none", None), ("mild", "mild"), ("strong", "strong")] + [
@@ -113,8 +117,10 @@ def held_out_tracks(seen: set, quick: bool = False) -> list[str]:
 
 def evaluate_agent(agent_path, tracks=None, grid=None, laps=2, seeds=1, reference=None, progress=None,
                    quick=False, directions="forward", randomize=None, heats=0, heat_tracks=None, field=None,
-                   parts=("held-out", "perturbations", "traffic", "heats")) -> dict:
-    """The report for one agent file (see the module docstring): the `parts` asked for, heats if `heats` > 0."""
+                   parts=("held-out", "perturbations", "traffic", "heats", "scenarios"), scenarios=0,
+                   scenario_track="reinvent_base") -> dict:
+    """The report for one agent file (see the module docstring): the `parts` asked for, heats if `heats` > 0,
+    overtake scenarios if `scenarios` (seeds per scenario) > 0."""
     seen = trained_tracks(agent_path)
     if tracks is None:
         tracks = held_out_tracks(seen, quick)
@@ -125,7 +131,7 @@ def evaluate_agent(agent_path, tracks=None, grid=None, laps=2, seeds=1, referenc
     reverses = (False, True) if directions == "both" else (True,) if directions == "reverse" else (False,)
     report = {"agent": str(agent_path), "trained_on": sorted(seen), "reference_track": reference, "laps": laps,
               "directions": directions, "randomize": randomize, "held_out": [], "perturbations": [], "traffic": [],
-              "heats": []}
+              "heats": [], "scenarios": []}
     say = progress or (lambda line: None)
     for track in tracks:
         for reverse in reverses:
@@ -153,6 +159,8 @@ def evaluate_agent(agent_path, tracks=None, grid=None, laps=2, seeds=1, referenc
     if heats > 0 and "heats" in parts:
         heat_tracks = heat_tracks or ["reinvent_base", *held_out_tracks(seen)[:1]]
         report["heats"] = run_heats(agent_path, heat_tracks, range(1, heats + 1), field=field, progress=say)
+    if scenarios > 0 and "scenarios" in parts:
+        report["scenarios"] = run_scenarios(agent_path, range(scenarios), scenario_track, progress=say)
     report["summary"] = summarise(report)
     return report
 
@@ -188,6 +196,8 @@ def summarise(report: dict) -> dict:
     }
     if report.get("heats"):
         summary["heats"] = summarise_heats(report["heats"])
+    if report.get("scenarios"):
+        summary["scenarios"] = summarise_scenarios(report["scenarios"])
     if summary["nominal_completion"] is not None and summary["perturbed_completion"] is not None:
         summary["completion_drop_points"] = 100.0 * (summary["nominal_completion"] - summary["perturbed_completion"])
     return summary
@@ -237,7 +247,7 @@ def print_report(reports: list, console) -> None:
     summary.add_column("figure")
     for report in reports:
         summary.add_column(Path(report["agent"]).stem, justify="right")
-    keys = [key for key in reports[0]["summary"] if key != "heats"]
+    keys = [key for key in reports[0]["summary"] if key not in ("heats", "scenarios")]
     for key in keys:
         summary.add_row(SUMMARY_LABELS.get(key, key), *[_fmt(r["summary"].get(key)) if not isinstance(r["summary"].get(key), list)
                                else str(len(r["summary"][key])) for r in reports])
@@ -245,18 +255,38 @@ def print_report(reports: list, console) -> None:
     for report in reports:
         if report["summary"].get("heats"):
             print_heats(Path(report["agent"]).name, report["summary"]["heats"], console)
+        if report["summary"].get("scenarios"):
+            print_scenarios(Path(report["agent"]).name, report["summary"]["scenarios"], console)
 
 
 def print_heats(agent_name: str, heats: dict, console) -> None:
     from rich.table import Table
 
-    table = Table(title=f"{agent_name}: head-to-head heats (collisions caused per lap driven)")
-    for column in ("track", "entrant", "heats", "first", "mean position", "laps driven", "caused", "caused/lap"):
-        table.add_column(column)
+    table = Table(title=f"{agent_name}: head-to-head heats (at-fault collisions per lap driven; overtakes: passes "
+                        "for position on track, attempts from within a car length closing in)")
+    for column in ("track", "entrant", "heats", "first", "mean pos", "laps", "at fault", "/lap", "penalties",
+                   "overtakes", "overtaken", "attempted", "completed"):
+        table.add_column(column, justify="left" if column in ("track", "entrant") else "right",
+                         no_wrap=column in ("track", "entrant"))
     for track, entrants in heats.items():
         for name, f in entrants.items():
             table.add_row(track, name, str(f["heats"]), str(f["first"]), f"{f['mean_position']:.2f}",
-                          f"{f['laps_driven']:.1f}", str(f["collisions_caused"]), f"{f['caused_per_lap']:.3f}")
+                          f"{f['laps_driven']:.1f}", str(f["collisions_caused"]), f"{f['caused_per_lap']:.3f}",
+                          *[str(f.get(key, "-")) for key in ("penalties", "overtakes", "overtaken",
+                                                             "overtakes_attempted", "overtakes_completed")])
+    console.print(table)
+
+
+def print_scenarios(agent_name: str, scenarios: dict, console) -> None:
+    from rich.table import Table
+
+    table = Table(title=f"{agent_name}: overtake scenarios (success: passed, still ahead when the time is up, no "
+                        "at-fault contact)")
+    for column in ("scenario", "runs", "passed", "passed cleanly", "success rate"):
+        table.add_column(column)
+    for name, f in scenarios.items():
+        rate = "-" if f["success_rate"] is None else f"{100 * f['success_rate']:.0f}%"
+        table.add_row(name, str(f["runs"]), str(f["passed"]), str(f["passed_cleanly"]), rate)
     console.print(table)
 
 
@@ -337,7 +367,7 @@ def run_evaluation(args) -> int:
     """The `multirace evaluate` command."""
     from rich.console import Console
 
-    console = Console(width=140)
+    console = Console(width=160)
     tracks = _names(args.tracks)
     grid = QUICK_GRID if args.quick else None
     parts = _names(args.parts)
@@ -350,7 +380,8 @@ def run_evaluation(args) -> int:
         reports.append(evaluate_agent(agent, tracks=tracks, grid=grid, laps=args.laps, seeds=args.seeds,
                                       quick=args.quick, directions=args.directions, randomize=args.randomize,
                                       heats=args.heats, heat_tracks=_names(args.heat_tracks),
-                                      field=_names(args.field), parts=parts,
+                                      field=_names(args.field), parts=parts, scenarios=args.scenarios,
+                                      scenario_track=args.scenario_track,
                                       progress=lambda line: console.print(f"[dim]{line}[/dim]")))
     print_report(reports, console)
     png = Path(args.png) if args.png else (Path(args.json).with_suffix(".png") if args.json

@@ -4,19 +4,20 @@ The field defaults to the other shipped agents and `bot:follow@1.0`, the scripte
 car that keeps to the centre line and slows behind a car in its lane. Every
 heat is a `head_to_head` race (3 laps by default) with the agent on the pole
 and the field behind it in a fixed order, run once per seed on each track. A
-collision is *caused* by its striker (`world.Contact`: the car that drove into
-the other; in a graze the faster car; nobody where a third car pushed the
-striker into it).
+collision is *caused* by the car at fault under the race rules
+(`rules.at_fault`: the README's "Race rules"), once per incident.
 
-Per entrant: first places, mean position, laps driven and collisions caused
-per lap driven: a racer should take most of the first places and cause no
-more collisions per lap than `bot:follow`.
+Per entrant: first places, mean position, laps driven, at-fault collisions
+per lap driven, penalties, and overtakes (`racing.overtakes`: passes for
+position on track, attempted and completed): a racer should take most of the
+first places and cause no more collisions per lap than `bot:follow`.
 """
 from __future__ import annotations
 
 import hashlib
 from pathlib import Path
 
+from ..racing.overtakes import FIELDS, OvertakeRecorder
 from ..resources import agents_dir, list_agents
 
 FIELD_BOT = "bot:follow@1.0"
@@ -65,33 +66,37 @@ def run_heats(agent_path, tracks, seeds, field=None, laps=HEAT_LAPS, progress=No
         for seed in seeds:
             entrants = [make_controller(spec, **({} if spec.startswith("bot:") else {"step_budget": STEP_BUDGET}))
                         for spec in [str(agent_path), *field]]
-            result = run_race(entrants, RaceConfig(track=track, race="head_to_head", laps=laps, seed=seed))
+            result = run_race(entrants, RaceConfig(track=track, race="head_to_head", laps=laps, seed=seed),
+                              recorders=[OvertakeRecorder()])
             cars = sorted(result["cars"], key=lambda c: int(c["car"].split("_")[1]))
             row = {"track": result["track"], "seed": seed, "laps": laps, "cars": [
                 {"entrant": spec, "position": car["position"], "laps": car["laps"],
                  "laps_driven": round(car["progress"] * laps / 100.0, 3), "resets": car["resets"],
-                 "collisions": car["collisions"], "collisions_caused": car["collisions_caused"],
-                 "status": car["status"]}
+                 "penalties": car["penalties"], "collisions": car["collisions"],
+                 "collisions_caused": car["collisions_caused"], "status": car["status"],
+                 **{name: car[name] for name in FIELDS}}
                 for spec, car in zip([Path(str(agent_path)).stem] + field, cars)]}
             rows.append(row)
             agent = row["cars"][0]
             say(f"heat {track} seed {seed}: P{agent['position']}, {agent['laps']}/{laps} laps, "
-                f"{agent['collisions_caused']} collisions caused")
+                f"{agent['collisions_caused']} collisions caused, {agent['overtakes']} overtakes")
     return rows
 
 
 def summarise_heats(rows: list[dict]) -> dict:
-    """Per track and over all heats, per entrant: heats, first places, mean position, caused per lap driven."""
+    """Per track and over all heats, per entrant: heats, first places, mean position, at-fault collisions per
+    lap driven, penalties, overtakes (and per lap), overtakes attempted and completed."""
     def figures(selected):
         out = {}
         for k, name in enumerate(c["entrant"] for c in selected[0]["cars"]):
             cars = [r["cars"][k] for r in selected]
             driven = sum(c["laps_driven"] for c in cars)
+            total = {key: sum(c.get(key, 0) for c in cars) for key in ("collisions_caused", "penalties", *FIELDS)}
             out[name] = {"heats": len(cars), "first": sum(c["position"] == 1 for c in cars),
                          "mean_position": sum(c["position"] for c in cars) / len(cars),
-                         "laps_driven": round(driven, 2),
-                         "collisions_caused": sum(c["collisions_caused"] for c in cars),
-                         "caused_per_lap": sum(c["collisions_caused"] for c in cars) / max(driven, 0.25)}
+                         "laps_driven": round(driven, 2), **total,
+                         "caused_per_lap": total["collisions_caused"] / max(driven, 0.25),
+                         "overtakes_per_lap": total["overtakes"] / max(driven, 0.25)}
         return out
 
     if not rows:
