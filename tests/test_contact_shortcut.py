@@ -39,14 +39,15 @@ def test_a_time_trial_never_steps_pybullet_and_laps_as_with_it():
 
 
 def test_a_traffic_race_has_the_same_contacts_and_results_as_with_pybullet_every_step():
-    """Six cars, 14 contacts in 200 steps (with a broad phase as tight as PyBullet's own contact range, this race
+    """Six cars, 6 incidents in 200 steps (14 contacts before the race rules counted a touch once per incident;
+    with a broad phase as tight as PyBullet's own contact range, this race
     parted from the full physics' after its first contact: a body put back while PyBullet holds a pair for it)."""
     config = dict(num_cars=4, bots=("racingline", "follow@1.5"), race="head_to_head", laps=1, max_steps=200, seed=2)
     on, off = _race(True, **config), _race(False, **config)
     results_on, ranks_on, poses_on, bullet_on, steps = on
     results_off, ranks_off, poses_off, _, _ = off
     assert results_on == results_off and ranks_on == ranks_off
-    assert sum(len(r[5]) for r in results_on) >= 10  # the race had contacts to compare
+    assert sum(len(r[5]) for r in results_on) >= 5  # the race had incidents to compare
     np.testing.assert_allclose(poses_on, poses_off, atol=1e-6)
     assert 0 < bullet_on < steps  # PyBullet ran near the contacts only
 
