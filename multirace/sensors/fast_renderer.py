@@ -198,7 +198,8 @@ def _divide_row(index, bz, az, ez, east, south, bx, by, ax, ay, ppm, rows, colum
         index[x] = (int(math.floor(v)) + 1) * (columns + 2) + int(math.floor(u)) + 1
 
 
-@numba.njit(cache=True)
+@numba.njit  # not cached: races never call it (bench, explain), so its cache index would stay missing and the
+# first-compile notice (environment/kernels.py) would show on every run
 def _ground_maps(eyes, rotations, first_rows, metres_per_texel, x0, y0, focal, cx, cy, height):
     """K [r1 r2 t] A per camera, with r1, r2 the rotation's first two columns, t = -R eye and A
     the texture-to-world map (x = x0 + u * metres_per_texel, y = y0 - v * metres_per_texel)."""
