@@ -100,6 +100,8 @@ class TrainConfig:
     max_iterations: int = 0  # > 0: stop after this many PPO iterations too (a budget machine load cannot change)
     seed: int = 0  # seeds torch, the envs and sampling
     threads: int = 1  # torch threads of the learner while sampling (the workers need the cores then)
+    overlap_update: bool = True  # the PPO update of a rollout runs on a thread while the workers sample the next one, with the policy from before that update (one iteration stale); False: the workers wait for each update
+    pool_inputs: bool = True  # workers send camera images pooled as the net's first layer pools them (block sums): the same outputs, less to copy and compute (not with the opponent pool, whose agents read full images)
     update_threads: int = 2  # torch threads of the PPO update (the workers wait then; 2 is ~1.25x faster here)
     checkpoint_every: float = 60.0  # seconds between checkpoints (and evaluations, see eval_every)
     eval_every: float = 30.0  # seconds between greedy time-trial evaluations (0 = never; one costs about 1 s)

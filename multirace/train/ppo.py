@@ -15,7 +15,9 @@ DeepRacer-for-Cloud training folder: sim-traces, model metadata, hyperparameters
 """
 from __future__ import annotations
 
+import copy
 import functools
+import threading
 import time
 
 import numpy as np
@@ -24,7 +26,7 @@ from torch import nn
 from torch.distributions import Categorical, Normal
 
 from ..environment.actions import load_action_space
-from ..racing.nets import build_net
+from ..racing.nets import build_net, input_pool
 from ..sensors.camera import image_shape_of
 from .config import TrainConfig
 from .envs import INFO_KEYS, TrainEnv, env_settings
@@ -127,24 +129,40 @@ def check_reward_file(config: TrainConfig, runs) -> None:
         probe.close()
 
 
-def make_vector_env(config: TrainConfig, shared=None, cars=None, bots=None):
+def make_vector_env(config: TrainConfig, shared=None, cars=None, bots=None, pool: int = 1):
+    """The training envs in worker processes (`pool` > 1: they send camera images pooled, `TrainEnv`)."""
     from ..environment.vector import SubprocVectorEnv
 
     runs = training_runs(config)
     check_reward_file(config, runs)
     settings = env_settings(config)
-    settings.update(num_cars=cars or config.cars_per_env, bots=tuple(config.bots if bots is None else bots))
+    settings.update(num_cars=cars or config.cars_per_env, bots=tuple(config.bots if bots is None else bots),
+                    pool=pool)
     factories = [functools.partial(TrainEnv, runs, shared=shared, worker=w, **settings) for w in range(config.num_envs)]
     return SubprocVectorEnv(factories, info_keys=INFO_KEYS)
 
 
+def input_pooling(config: TrainConfig) -> int:
+    """How far the workers may pool camera images for the net (`nets.input_pool`; 1: not at all)."""
+    k = input_pool(config.network)
+    height, width = config.camera
+    if not config.pool_inputs or config.opponent_pool or height % k or width % k:
+        return 1
+    return k
+
+
+def forward(net, x, pooled: bool):
+    """The net's (outputs, value) for input `x`, images pooled by the workers if `pooled`."""
+    return net.forward_all(x, pooled=True) if pooled else net.forward_all(x)
+
+
 # ------------------------------------------------------------------ the rollout
 def collect_rollout(vec, net, policy: Policy, rollout: Rollout, robust: RobustKnobs, learner_mask,
-                    reward_scale, config: TrainConfig, deepracer=None):
+                    reward_scale, config: TrainConfig, deepracer=None, pooled: bool = False):
     """T steps of every env into `rollout`, inference batched over all cars (the pool's opponents drive
     theirs), each learning car's steps logged to the `deepracer` folder if given. Returns the value of the
     last observations, the env's own reward summed over the rollout (`rollout.rew` may be scaled and
-    bootstrapped) and the training episodes that ended."""
+    bootstrapped) and the training episodes that ended. `pooled`: the workers pool the images."""
     E, A = config.num_envs, config.cars_per_env
     N = E * A
     net.eval()
@@ -154,7 +172,7 @@ def collect_rollout(vec, net, policy: Policy, rollout: Rollout, robust: RobustKn
         rollout.store_input(t, x)
         rollout.done[t] = rollout.next_done
         with torch.no_grad():
-            out, value = net.forward_all(x)
+            out, value = forward(net, x, pooled)
             dist = policy.dist(out)
             action = dist.sample()
             rollout.logp[t] = policy.log_prob(dist, action)
@@ -180,7 +198,7 @@ def collect_rollout(vec, net, policy: Policy, rollout: Rollout, robust: RobustKn
         episodes += finished_episodes(infos, learner_mask)
         robust.after_step(infos, reward, env_done)
     with torch.no_grad():
-        next_value = net.forward_all(rollout.net_input(rollout.next_obs))[1]
+        next_value = forward(net, rollout.net_input(rollout.next_obs), pooled)[1]
     return next_value, env_reward, episodes
 
 
@@ -193,19 +211,21 @@ def anneal_learning_rate(optimiser, config: TrainConfig, fraction: float) -> Non
 
 # ------------------------------------------------------------------ the PPO update
 def ppo_update(net, policy: Policy, optimiser, batch: dict, config: TrainConfig, space, lidar: bool,
-               value_only: bool) -> dict:
+               value_only: bool, pooled: bool = False, generator=None) -> dict:
     """Clipped PPO epochs over minibatches of the learner's samples (plus the expert loss where asked);
-    `value_only` fits the value head alone (a fresh head under an --init policy). Returns the statistics."""
+    `value_only` fits the value head alone (a fresh head under an --init policy); `pooled`: the images
+    are pooled (`nets.pool_image`); `generator`: the minibatches' random source (torch's own if None).
+    Returns the statistics."""
     net.train()
     size = len(batch["obs"])
     mb = min(config.minibatch_size, size)
     clip_fracs, approx_kl, pg_loss, v_loss, entropy, expert_loss = [], 0.0, 0.0, 0.0, 0.0, 0.0
     for epoch in range(config.epochs):
-        order = torch.randperm(size)
+        order = torch.randperm(size, generator=generator)
         for start in range(0, size - mb + 1, mb):
             idx = order[start:start + mb]
-            out, value = net.forward_all({"camera": batch["obs"][idx], "lidar": batch["lidar"][idx]} if lidar
-                                         else batch["obs"][idx])
+            out, value = forward(net, {"camera": batch["obs"][idx], "lidar": batch["lidar"][idx]} if lidar
+                                 else batch["obs"][idx], pooled)
             dist = policy.dist(out)
             logp = policy.log_prob(dist, batch["act"][idx])
             log_ratio = logp - batch["logp"][idx]
@@ -250,6 +270,66 @@ def ppo_update(net, policy: Policy, optimiser, batch: dict, config: TrainConfig,
             "clip_frac": round(float(np.mean(clip_fracs)) if clip_fracs else 0.0, 4)}
 
 
+# ------------------------------------------------------------------ the update, now or beside sampling
+class Updater:
+    """Runs `ppo_update` on the learner's batches: at once, or with `overlap_update` on a thread while the
+    next rollout is sampled. `behaviour` is the net rollouts are sampled with: `net` itself, or under
+    overlap a copy that takes the new weights when an update finishes (so a rollout is sampled with the
+    policy from before the previous rollout's update: one iteration stale, which PPO's clipped ratio
+    bounds). The overlapped update runs on one torch thread and draws its minibatches from its own
+    generator, so a seed still gives the same run."""
+
+    def __init__(self, net, policy: Policy, optimiser, config: TrainConfig, space, lidar: bool, pooled: bool):
+        self.net, self.policy, self.optimiser, self.config, self.space = net, policy, optimiser, config, space
+        self.lidar, self.pooled = lidar, pooled
+        self.overlap = bool(config.overlap_update)
+        self.behaviour = copy.deepcopy(net) if self.overlap else net
+        self.generator = torch.Generator().manual_seed(config.seed + 1) if self.overlap else None
+        self.thread, self.stats, self.error, self.seconds = None, {}, None, 0.0
+
+    def _run(self, batch: dict, fraction: float, value_only: bool) -> None:
+        t = time.perf_counter()
+        try:
+            anneal_learning_rate(self.optimiser, self.config, fraction)
+            self.stats = ppo_update(self.net, self.policy, self.optimiser, batch, self.config, self.space,
+                                    lidar=self.lidar, value_only=value_only, pooled=self.pooled,
+                                    generator=self.generator)
+        except BaseException as exc:  # raised again in the main thread by `finish`
+            self.error = exc
+        self.seconds = time.perf_counter() - t
+
+    def start(self, batch: dict, fraction: float, value_only: bool, background: bool | None = None) -> None:
+        """Train on `batch` (the learning rate annealed to `fraction` of the budget), on the thread if overlapping."""
+        self.stats, self.seconds = {}, 0.0
+        if self.overlap if background is None else background:
+            self.thread = threading.Thread(target=self._run, args=(batch, fraction, value_only), daemon=True)
+            self.thread.start()
+            return
+        if not self.overlap:
+            torch.set_num_threads(update_threads(self.config.update_threads))  # one thread on a busy machine
+        self._run(batch, fraction, value_only)
+        torch.set_num_threads(int(self.config.threads))
+
+    def finish(self) -> dict:
+        """Wait for the running update; the new weights go to `behaviour`; its statistics ({} if none ran)."""
+        if self.thread is not None:
+            self.thread.join()
+            self.thread = None
+        if self.error is not None:
+            error, self.error = self.error, None
+            raise error
+        if self.overlap and self.stats:
+            self.behaviour.load_state_dict(self.net.state_dict())
+        stats, self.stats = self.stats, {}
+        return stats
+
+    def stop(self) -> None:
+        """Wait for a running update and drop it (the run is ending on an error)."""
+        if self.thread is not None:
+            self.thread.join()
+            self.thread = None
+
+
 # ------------------------------------------------------------------ train
 def train(config: TrainConfig, out, init=None, resume=None, command=None, log=print) -> dict:
     """Train with PPO until the time budget is spent; write the agent file `out`; return a summary."""
@@ -268,12 +348,14 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
 
     # --- 2. envs in worker processes, with the robust options' knobs
     robust = RobustKnobs(config, seed=config.seed)
-    vec = make_vector_env(config, robust.shared)
+    pool = input_pooling(config)
+    vec = make_vector_env(config, robust.shared, pool=pool)
     E, A, T = config.num_envs, config.cars_per_env, config.rollout_steps
     N = E * A
     obs, reset_infos = vec.reset(seeds=[config.seed * 100_000 + e for e in range(E)])
-    obs_shape = (obs["camera"] if isinstance(obs, dict) else obs).shape[2:]  # one car's camera image
-    image_shape = image_shape_of(obs_shape)  # (H, W, C), as the net and its metadata record it
+    obs_shape = (obs["camera"] if isinstance(obs, dict) else obs).shape[2:]  # one car's camera image (pooled)
+    height, width, channels = image_shape_of(obs_shape)
+    image_shape = (height * pool, width * pool, channels)  # (H, W, C), as the net and its metadata record it
     R = obs["lidar"].shape[-1] if isinstance(obs, dict) else 0  # LIDAR ranges (or sectors) per car
 
     # --- 3. the net (policy + value head), optimiser, reward scale, opponent pool, rollout storage
@@ -286,37 +368,41 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
     reward_scale = RewardScale(N, config.gamma) if config.norm_reward else None
     run.restore(checkpoint, net, optimiser, reward_scale)
     robust.start_pool(space, image_shape, rng, R)
-    rollout = Rollout(T, N, obs_shape, R, space)
+    rollout = Rollout(T, N, obs_shape, R, space, obs_dtype=np.int16 if pool > 1 else np.uint8)
     rollout.start(obs, expert_actions(reset_infos, space.discrete))
     deepracer = run.deepracer_folder(net, space, image_shape)  # out.deepracer/ (deepracer_log), else None
 
+    updater = Updater(net, policy, optimiser, config, space, lidar=bool(R), pooled=pool > 1)
+    pending = None  # with overlap_update: the last rollout's update job, run while the next one is sampled
     try:
         start_iteration = run.iteration
         while run.keep_going(start_iteration):
             fraction = run.fraction()
             learner_mask = robust.before_iteration(fraction, E, A)
+            if pending is not None:
+                updater.start(*pending)  # on its thread, beside this rollout
 
             # --- 4. rollout: T steps of every env, batched inference over all cars
             t0 = time.perf_counter()
             if deepracer is not None:
                 deepracer.start_iteration(run.iteration)
-            next_value, env_reward, episodes = collect_rollout(vec, net, policy, rollout, robust, learner_mask,
-                                                               reward_scale, config, deepracer)
+            next_value, env_reward, episodes = collect_rollout(vec, updater.behaviour, policy, rollout, robust,
+                                                               learner_mask, reward_scale, config, deepracer, pool > 1)
             samples = int(rollout.learn.sum())
             run.agent_steps += samples
             run.sample_time += time.perf_counter() - t0
 
-            # --- 5. advantages (GAE) and the PPO update on the learner's samples
-            # (the workers are idle meanwhile: the learner may use their cores)
-            t1 = time.perf_counter()
-            advantages, returns = rollout.advantages(next_value, config.gamma, config.gae_lambda)
-            anneal_learning_rate(optimiser, config, fraction)
+            # --- 5. advantages (GAE) and the PPO update on the learner's samples: now (the workers wait,
+            # the learner may use their cores), or with overlap_update while the next rollout is sampled
             value_only = bool(init) and run.iteration - start_iteration < config.value_warmup and checkpoint is None
-            torch.set_num_threads(update_threads(config.update_threads))  # one thread on a busy machine
-            stats = ppo_update(net, policy, optimiser, rollout.learner_batch(advantages, returns), config, space,
-                               lidar=bool(R), value_only=value_only)
-            torch.set_num_threads(int(config.threads))
-            run.update_time += time.perf_counter() - t1
+            job = (rollout.learner_batch(*rollout.advantages(next_value, config.gamma, config.gae_lambda)),
+                   fraction, value_only)
+            if config.overlap_update:
+                pending = job
+            else:
+                updater.start(*job)
+            stats = updater.finish()  # the statistics of the update that ran ({} in an overlapped first iteration)
+            run.update_time += updater.seconds
             run.iteration += 1
 
             # --- 6. log, snapshots, checkpoints, evaluations
@@ -325,10 +411,15 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
             robust.snapshot(net, run.elapsed(), run.iteration)
             if run.checkpoint_and_evaluate(net, optimiser, reward_scale, space, image_shape):
                 break
+        if pending is not None:  # every rollout is trained on: the last one's update now
+            updater.start(*pending, background=False)
+            updater.finish()
+            run.update_time += updater.seconds
     except (EOFError, ConnectionError) as exc:
         raise ValueError(f"an env worker process stopped ({type(exc).__name__}); its error is printed above "
                          "(for example a reward function that raised or returned a bad value)") from None
     finally:
+        updater.stop()
         run.stop_progress()
         if deepracer is not None:
             deepracer.close()
