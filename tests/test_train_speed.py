@@ -88,3 +88,13 @@ def test_an_update_that_fails_on_its_thread_raises_in_the_learner():
     updater.start({"obs": torch.zeros(4, 120, 160, dtype=torch.uint8)}, 0.0, False)  # no actions: a KeyError
     with pytest.raises(KeyError):
         updater.finish()
+
+
+@pytest.mark.slow
+def test_training_throughput_reports_rate_shares_and_cpu_cost():
+    from multirace.train.throughput import training_throughput
+
+    figures = training_throughput(seconds=600, max_iterations=3)  # the iteration budget ends it
+    assert figures["iterations"] == 3 and figures["num_envs"] == 2 and figures["network"] == TINY
+    assert figures["agent_steps_per_s"] > 0 and figures["cpu_us_per_agent_step"] > 0
+    assert 0 < figures["sampling_share"] < 1 and 0 < figures["update_share"] < 1

@@ -12,7 +12,8 @@ import json
 SETTINGS = {
     "old": {"pool_inputs": False, "overlap_update": False},
     "+ pooled inputs": {"overlap_update": False},
-    "+ overlapped update": {},
+    "+ overlapped update": {"worker_spin_wait": 0.0005},
+    "+ workers sleep at once": {},
 }
 
 
@@ -25,19 +26,23 @@ def compare(settings: dict, seconds: float, rounds: int, log=print) -> dict:
         for name, overrides in settings.items():
             figures = training_throughput(seconds=seconds, **overrides)
             results[name].append(figures)
-            log(f"round {r + 1} {name}: {figures['agent_steps_per_s']:.0f} agent-steps/s, sampling "
+            log(f"round {r + 1} {name}: {figures['agent_steps_per_s']:.0f} agent-steps/s, "
+                f"{figures['cpu_us_per_agent_step']} CPU us per agent-step, sampling "
                 f"{figures['sampling_share']:.2f}, update {figures['update_share']:.2f}")
     return results
 
 
 def table(results: dict) -> str:
     """A Markdown table: setting, agent-steps/s (mean of the rounds, and each), sampling and update shares."""
-    lines = ["| settings | agent-steps/s (mean; rounds) | sampling share | update share |", "|---|---|---|---|"]
+    lines = ["| settings | agent-steps/s (mean; rounds) | CPU us per agent-step (mean) | sampling share | "
+             "update share |", "|---|---|---|---|---|"]
     for name, rows in results.items():
         rates = [row["agent_steps_per_s"] for row in rows]
         mean = sum(rates) / len(rates)
         share = {key: sum(row[key] for row in rows) / len(rows) for key in ("sampling_share", "update_share")}
+        cpu = [row["cpu_us_per_agent_step"] for row in rows if row["cpu_us_per_agent_step"] is not None]
         lines.append(f"| {name} | {mean:,.0f} ({', '.join(f'{v:,.0f}' for v in rates)}) | "
+                     f"{sum(cpu) / len(cpu) if cpu else float('nan'):.0f} | "
                      f"{share['sampling_share']:.2f} | {share['update_share']:.2f} |")
     return "\n".join(lines)
 

@@ -2,9 +2,13 @@
 
 Every learning car in every env is driven by the same policy and all their
 samples train it (parameter sharing / self-play). Envs run in worker processes
-(`vector.SubprocVectorEnv`, one per core); the learner runs inference on the
-whole batch of cars at once on one torch thread, then does the PPO updates on
-`update_threads` (the workers wait meanwhile, so their cores are free).
+(`vector.SubprocVectorEnv`, one per core) and send their camera images pooled
+as the net's first layer pools them (`pool_inputs`: the same outputs, a
+sixteenth of the pixels for the tiny net); the learner runs inference on the
+whole batch of cars at once on one torch thread. The PPO update of a rollout
+runs on a thread while the workers sample the next one (`overlap_update`,
+`Updater`; decoupled PPO corrects for the one-iteration-old policy that
+sampled it), or, with that off, on `update_threads` while the workers wait.
 
     multirace train --track reinvent_base --minutes 10 --out agent.pt
 
@@ -131,7 +135,7 @@ def check_reward_file(config: TrainConfig, runs) -> None:
 
 def make_vector_env(config: TrainConfig, shared=None, cars=None, bots=None, pool: int = 1):
     """The training envs in worker processes (`pool` > 1: they send camera images pooled, `TrainEnv`)."""
-    from ..environment.vector import SubprocVectorEnv
+    from ..environment.vector import SPIN_WAIT, SubprocVectorEnv
 
     runs = training_runs(config)
     check_reward_file(config, runs)
@@ -139,7 +143,10 @@ def make_vector_env(config: TrainConfig, shared=None, cars=None, bots=None, pool
     settings.update(num_cars=cars or config.cars_per_env, bots=tuple(config.bots if bots is None else bots),
                     pool=pool)
     factories = [functools.partial(TrainEnv, runs, shared=shared, worker=w, **settings) for w in range(config.num_envs)]
-    return SubprocVectorEnv(factories, info_keys=INFO_KEYS)
+    spin = config.worker_spin_wait
+    if spin is None:
+        spin = 0.0 if config.overlap_update else SPIN_WAIT
+    return SubprocVectorEnv(factories, info_keys=INFO_KEYS, spin_wait=spin)
 
 
 def input_pooling(config: TrainConfig) -> int:
@@ -154,6 +161,12 @@ def input_pooling(config: TrainConfig) -> int:
 def forward(net, x, pooled: bool):
     """The net's (outputs, value) for input `x`, images pooled by the workers if `pooled`."""
     return net.forward_all(x, pooled=True) if pooled else net.forward_all(x)
+
+
+def cpu_seconds(vec) -> float | None:
+    """CPU seconds the learner (every thread) and the env workers have used so far (None: not known here)."""
+    workers = vec.worker_cpu_seconds()
+    return None if workers is None else round(time.process_time() + workers, 3)
 
 
 # ------------------------------------------------------------------ the rollout
@@ -236,7 +249,8 @@ def ppo_update(net, policy: Policy, optimiser, batch: dict, config: TrainConfig,
             adv = batch["adv"][idx]
             if config.norm_adv:
                 adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-            pg = torch.max(-adv * ratio, -adv * torch.clamp(ratio, 1 - config.clip, 1 + config.clip)).mean()
+            pg = torch.max(-adv * ratio, -adv * torch.clamp(ratio, 1 - config.clip, 1 + config.clip))
+            pg = (pg * batch["weight"][idx]).mean() if "weight" in batch else pg.mean()
             old_value, ret = batch["val"][idx], batch["ret"][idx]
             if config.clip_value:
                 v_clipped = old_value + torch.clamp(value - old_value, -config.clip, config.clip)
@@ -271,12 +285,29 @@ def ppo_update(net, policy: Policy, optimiser, batch: dict, config: TrainConfig,
 
 
 # ------------------------------------------------------------------ the update, now or beside sampling
+BEHAVIOUR_WEIGHT_CAP = 1.0  # truncation of the current / behaviour probability ratio (IMPALA's rho-bar)
+
+
+def recentre(net, policy: Policy, batch: dict, lidar: bool, pooled: bool, chunk: int) -> None:
+    """Decoupled PPO (Hilton et al., 2022) for a batch an older policy sampled: the clip is centred on the
+    current policy (`batch["logp"]` becomes its log-probabilities) and each sample's policy loss is weighted
+    by the current / behaviour probability ratio, truncated at `BEHAVIOUR_WEIGHT_CAP` (`batch["weight"]`)."""
+    parts = []
+    with torch.no_grad():
+        for start in range(0, len(batch["obs"]), chunk):
+            obs = batch["obs"][start:start + chunk]
+            x = {"camera": obs, "lidar": batch["lidar"][start:start + chunk]} if lidar else obs
+            parts.append(policy.log_prob(policy.dist(forward(net, x, pooled)[0]), batch["act"][start:start + chunk]))
+    logp = torch.cat(parts) if parts else batch["logp"]
+    batch["weight"] = (logp - batch["logp"]).exp().clamp(max=BEHAVIOUR_WEIGHT_CAP)
+    batch["logp"] = logp
+
 class Updater:
     """Runs `ppo_update` on the learner's batches: at once, or with `overlap_update` on a thread while the
     next rollout is sampled. `behaviour` is the net rollouts are sampled with: `net` itself, or under
     overlap a copy that takes the new weights when an update finishes (so a rollout is sampled with the
-    policy from before the previous rollout's update: one iteration stale, which PPO's clipped ratio
-    bounds). The overlapped update runs on one torch thread and draws its minibatches from its own
+    policy from before the previous rollout's update: one iteration stale, which `recentre` corrects
+    for). The overlapped update runs on one torch thread and draws its minibatches from its own
     generator, so a seed still gives the same run."""
 
     def __init__(self, net, policy: Policy, optimiser, config: TrainConfig, space, lidar: bool, pooled: bool):
@@ -291,6 +322,8 @@ class Updater:
         t = time.perf_counter()
         try:
             anneal_learning_rate(self.optimiser, self.config, fraction)
+            if self.overlap:  # sampled by the policy from before the last update
+                recentre(self.net, self.policy, batch, self.lidar, self.pooled, self.config.minibatch_size)
             self.stats = ppo_update(self.net, self.policy, self.optimiser, batch, self.config, self.space,
                                     lidar=self.lidar, value_only=value_only, pooled=self.pooled,
                                     generator=self.generator)
@@ -406,7 +439,7 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
             run.iteration += 1
 
             # --- 6. log, snapshots, checkpoints, evaluations
-            extra = robust.after_iteration(episodes)
+            extra = {**robust.after_iteration(episodes), "cpu_seconds": cpu_seconds(vec)}
             run.record(episodes, stats, env_reward / (T * N), samples, time.perf_counter() - t0, extra)
             robust.snapshot(net, run.elapsed(), run.iteration)
             if run.checkpoint_and_evaluate(net, optimiser, reward_scale, space, image_shape):
