@@ -98,3 +98,22 @@ def test_training_throughput_reports_rate_shares_and_cpu_cost():
     assert figures["iterations"] == 3 and figures["num_envs"] == 2 and figures["network"] == TINY
     assert figures["agent_steps_per_s"] > 0 and figures["cpu_us_per_agent_step"] > 0
     assert 0 < figures["sampling_share"] < 1 and 0 < figures["update_share"] < 1
+
+
+def test_recentre_moves_the_clip_to_the_current_policy_and_weights_samples_by_the_behaviours_odds():
+    from multirace.environment.actions import load_action_space
+    from multirace.train.ppo import BEHAVIOUR_WEIGHT_CAP, recentre
+
+    torch.manual_seed(1)
+    space = load_action_space(None)
+    policy, net = Policy(space), build_net(TINY, (120, 160, 1), None, value_head=True)
+    obs = torch.randint(0, 4081, (10, 30, 40), dtype=torch.int16)
+    act = torch.randint(0, 10, (10,))
+    with torch.no_grad():
+        current = policy.log_prob(policy.dist(net.forward_all(obs, pooled=True)[0]), act)
+    behaviour = current + torch.linspace(-1.0, 1.0, 10)  # an older policy: likelier and less likely choices
+    batch = {"obs": obs, "act": act, "logp": behaviour.clone(), "lidar": torch.zeros(10, 0)}
+    recentre(net, policy, batch, lidar=False, pooled=True, chunk=4)  # chunks: 4, 4, 2
+    assert torch.allclose(batch["logp"], current, atol=1e-6)
+    assert torch.allclose(batch["weight"], (current - behaviour).exp().clamp(max=BEHAVIOUR_WEIGHT_CAP), atol=1e-6)
+    assert batch["weight"].max() <= BEHAVIOUR_WEIGHT_CAP and batch["weight"].min() < 1.0

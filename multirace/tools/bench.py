@@ -222,7 +222,7 @@ def run_bench(seconds: float = 3.0, replay_seconds: float = 240.0, progress=prin
         training = figures["training"]
         progress(f"training (PPO, sampling + updates, 2 workers): {training['agent_steps_per_s']:.0f} agent-steps/s "
                  f"({100 * training['sampling_share']:.0f} % of the time sampling, "
-                 f"{100 * training['update_share']:.0f} % updating, overlapped; "
+                 f"{100 * training['update_share']:.0f} % updating; "
                  f"{training['cpu_us_per_agent_step']} CPU us per agent-step)")
     figures["cli_help_s"] = cli_start_seconds()
     progress(f"`multirace --help`, whole process: {figures['cli_help_s']['median']} s (median)")

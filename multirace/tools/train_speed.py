@@ -2,7 +2,8 @@
 every setting alike): ``python -m multirace.tools.train_speed --seconds 40 --rounds 2``.
 
 Each setting is a dict of `TrainConfig` overrides; `SETTINGS` holds the steps of issue 26's faster learner,
-each on top of the previous one (`old`: the settings before them).
+each on top of the previous one (`old`: the settings before them). The figures of one run on a busy
+machine are in multirace/train/README.md ("Throughput").
 """
 from __future__ import annotations
 
@@ -10,10 +11,10 @@ import argparse
 import json
 
 SETTINGS = {
-    "old": {"pool_inputs": False, "overlap_update": False},
-    "+ pooled inputs": {"overlap_update": False},
-    "+ overlapped update": {"worker_spin_wait": 0.0005},
-    "+ workers sleep at once": {},
+    "old": {"pool_inputs": False},
+    "+ pooled inputs (the default)": {},
+    "+ overlapped update": {"overlap_update": True, "worker_spin_wait": 0.0005},
+    "+ workers sleep at once": {"overlap_update": True},
 }
 
 

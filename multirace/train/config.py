@@ -100,7 +100,7 @@ class TrainConfig:
     max_iterations: int = 0  # > 0: stop after this many PPO iterations too (a budget machine load cannot change)
     seed: int = 0  # seeds torch, the envs and sampling
     threads: int = 1  # torch threads of the learner while sampling (the workers need the cores then)
-    overlap_update: bool = True  # the PPO update of a rollout runs on a thread while the workers sample the next one, with the policy from before that update (one iteration stale); False: the workers wait for each update
+    overlap_update: bool = False  # True: the PPO update of a rollout runs on a thread while the workers sample the next one, with the policy from before that update (one iteration stale, decoupled PPO); False: the workers wait for each update (learnt faster per agent-step and per minute on the busy machine, see the train README's Throughput)
     worker_spin_wait: float | None = None  # seconds an env worker polls for its next step before it sleeps; None: 0 with overlap_update (the update thread wants the core), else `vector.SPIN_WAIT`
     pool_inputs: bool = True  # workers send camera images pooled as the net's first layer pools them (block sums): the same outputs, less to copy and compute (not with the opponent pool, whose agents read full images)
     update_threads: int = 2  # torch threads of the PPO update (the workers wait then; 2 is ~1.25x faster here)

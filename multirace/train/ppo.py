@@ -5,10 +5,11 @@ samples train it (parameter sharing / self-play). Envs run in worker processes
 (`vector.SubprocVectorEnv`, one per core) and send their camera images pooled
 as the net's first layer pools them (`pool_inputs`: the same outputs, a
 sixteenth of the pixels for the tiny net); the learner runs inference on the
-whole batch of cars at once on one torch thread. The PPO update of a rollout
-runs on a thread while the workers sample the next one (`overlap_update`,
-`Updater`; decoupled PPO corrects for the one-iteration-old policy that
-sampled it), or, with that off, on `update_threads` while the workers wait.
+whole batch of cars at once on one torch thread, then does the PPO updates on
+`update_threads` (the workers wait meanwhile, so their cores are free); or,
+with `overlap_update`, the update of a rollout runs on a thread while the
+workers sample the next one (`Updater`; decoupled PPO corrects for the
+one-iteration-old policy that sampled it).
 
     multirace train --track reinvent_base --minutes 10 --out agent.pt
 
