@@ -191,7 +191,8 @@ class CameraNet(nn.Module):
         if pooled:
             k = input_pool(self.network)
             height, width, channels = self.image_shape
-            x = self.conv[1:](channels_first(obs, (height // k, width // k, channels)).float().mul_(1.0 / (255 * k * k)))
+            sums = channels_first(obs, (height // k, width // k, channels)).float()
+            x = self.conv[1:](sums.mul_(1.0 / (255 * k * k)))
         else:
             x = self.conv(channels_first(obs, self.image_shape).float().div_(255.0))
         if self.lidar is not None:

@@ -150,6 +150,14 @@ def make_vector_env(config: TrainConfig, shared=None, cars=None, bots=None, pool
     return SubprocVectorEnv(factories, info_keys=INFO_KEYS, spin_wait=spin)
 
 
+def observation_shapes(obs, pool: int) -> tuple:
+    """(one car's observation shape as sent, the camera's (H, W, C) as the net records it, LIDAR ranges per
+    car) of the vector env's first observations, their images pooled by `pool`."""
+    obs_shape = (obs["camera"] if isinstance(obs, dict) else obs).shape[2:]
+    height, width, channels = image_shape_of(obs_shape)
+    return obs_shape, (height * pool, width * pool, channels), obs["lidar"].shape[-1] if isinstance(obs, dict) else 0
+
+
 def input_pooling(config: TrainConfig) -> int:
     """How far the workers may pool camera images for the net (`nets.input_pool`; 1: not at all)."""
     k = input_pool(config.network)
@@ -318,6 +326,7 @@ class Updater:
         self.behaviour = copy.deepcopy(net) if self.overlap else net
         self.generator = torch.Generator().manual_seed(config.seed + 1) if self.overlap else None
         self.thread, self.stats, self.error, self.seconds = None, {}, None, 0.0
+        self.pending = None  # with overlap: the last batch submitted, trained on while the next rollout is sampled
 
     def _run(self, batch: dict, fraction: float, value_only: bool) -> None:
         t = time.perf_counter()
@@ -357,6 +366,30 @@ class Updater:
         stats, self.stats = self.stats, {}
         return stats
 
+    def begin(self) -> None:
+        """With overlap: start the update of the last rollout submitted, on the thread."""
+        if self.pending is not None:
+            self.start(*self.pending)
+            self.pending = None
+
+    def submit(self, batch: dict, fraction: float, value_only: bool) -> dict:
+        """A rollout's batch: trained on now, or with overlap kept for `begin`, once the running update is
+        done. Returns the statistics of the update that ran ({} in an overlapped first iteration)."""
+        if self.overlap:
+            self.pending = (batch, fraction, value_only)
+        else:
+            self.start(batch, fraction, value_only)
+        return self.finish()
+
+    def train_now(self) -> float:
+        """Run the pending update (if any) here and wait for it; its seconds."""
+        if self.pending is None:
+            return 0.0
+        self.start(*self.pending, background=False)
+        self.pending = None
+        self.finish()
+        return self.seconds
+
     def stop(self) -> None:
         """Wait for a running update and drop it (the run is ending on an error)."""
         if self.thread is not None:
@@ -376,9 +409,7 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
             setattr(config, key, value)
     torch.set_num_threads(int(config.threads))
     torch.manual_seed(config.seed)
-    rng = np.random.default_rng(config.seed)
     space = load_action_space(config.action_space)
-    policy = Policy(space)
 
     # --- 2. envs in worker processes, with the robust options' knobs
     robust = RobustKnobs(config, seed=config.seed)
@@ -387,10 +418,7 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
     E, A, T = config.num_envs, config.cars_per_env, config.rollout_steps
     N = E * A
     obs, reset_infos = vec.reset(seeds=[config.seed * 100_000 + e for e in range(E)])
-    obs_shape = (obs["camera"] if isinstance(obs, dict) else obs).shape[2:]  # one car's camera image (pooled)
-    height, width, channels = image_shape_of(obs_shape)
-    image_shape = (height * pool, width * pool, channels)  # (H, W, C), as the net and its metadata record it
-    R = obs["lidar"].shape[-1] if isinstance(obs, dict) else 0  # LIDAR ranges (or sectors) per car
+    obs_shape, image_shape, R = observation_shapes(obs, pool)
 
     # --- 3. the net (policy + value head), optimiser, reward scale, opponent pool, rollout storage
     net = build_net(config.network, image_shape, space, value_head=True, lidar_samples=R)
@@ -401,26 +429,23 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
     optimiser = torch.optim.Adam(net.parameters(), lr=config.lr, eps=1e-5)
     reward_scale = RewardScale(N, config.gamma) if config.norm_reward else None
     run.restore(checkpoint, net, optimiser, reward_scale)
-    robust.start_pool(space, image_shape, rng, R)
+    robust.start_pool(space, image_shape, np.random.default_rng(config.seed), R)
     rollout = Rollout(T, N, obs_shape, R, space, obs_dtype=np.int16 if pool > 1 else np.uint8)
     rollout.start(obs, expert_actions(reset_infos, space.discrete))
     deepracer = run.deepracer_folder(net, space, image_shape)  # out.deepracer/ (deepracer_log), else None
-
-    updater = Updater(net, policy, optimiser, config, space, lidar=bool(R), pooled=pool > 1)
-    pending = None  # with overlap_update: the last rollout's update job, run while the next one is sampled
+    updater = Updater(net, Policy(space), optimiser, config, space, lidar=bool(R), pooled=pool > 1)
     try:
         start_iteration = run.iteration
         while run.keep_going(start_iteration):
             fraction = run.fraction()
             learner_mask = robust.before_iteration(fraction, E, A)
-            if pending is not None:
-                updater.start(*pending)  # on its thread, beside this rollout
+            updater.begin()  # with overlap_update: the last rollout's update, on its thread beside this rollout
 
             # --- 4. rollout: T steps of every env, batched inference over all cars
             t0 = time.perf_counter()
             if deepracer is not None:
                 deepracer.start_iteration(run.iteration)
-            next_value, env_reward, episodes = collect_rollout(vec, updater.behaviour, policy, rollout, robust,
+            next_value, env_reward, episodes = collect_rollout(vec, updater.behaviour, updater.policy, rollout, robust,
                                                                learner_mask, reward_scale, config, deepracer, pool > 1)
             samples = int(rollout.learn.sum())
             run.agent_steps += samples
@@ -429,13 +454,8 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
             # --- 5. advantages (GAE) and the PPO update on the learner's samples: now (the workers wait,
             # the learner may use their cores), or with overlap_update while the next rollout is sampled
             value_only = bool(init) and run.iteration - start_iteration < config.value_warmup and checkpoint is None
-            job = (rollout.learner_batch(*rollout.advantages(next_value, config.gamma, config.gae_lambda)),
-                   fraction, value_only)
-            if config.overlap_update:
-                pending = job
-            else:
-                updater.start(*job)
-            stats = updater.finish()  # the statistics of the update that ran ({} in an overlapped first iteration)
+            stats = updater.submit(rollout.learner_batch(*rollout.advantages(next_value, config.gamma,
+                                                                             config.gae_lambda)), fraction, value_only)
             run.update_time += updater.seconds
             run.iteration += 1
 
@@ -445,10 +465,7 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
             robust.snapshot(net, run.elapsed(), run.iteration)
             if run.checkpoint_and_evaluate(net, optimiser, reward_scale, space, image_shape):
                 break
-        if pending is not None:  # every rollout is trained on: the last one's update now
-            updater.start(*pending, background=False)
-            updater.finish()
-            run.update_time += updater.seconds
+        run.update_time += updater.train_now()  # every rollout is trained on: the last one's update now
     except (EOFError, ConnectionError) as exc:
         raise ValueError(f"an env worker process stopped ({type(exc).__name__}); its error is printed above "
                          "(for example a reward function that raised or returned a bad value)") from None
