@@ -415,8 +415,7 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
     robust = RobustKnobs(config, seed=config.seed)
     pool = input_pooling(config)
     vec = make_vector_env(config, robust.shared, pool=pool)
-    E, A, T = config.num_envs, config.cars_per_env, config.rollout_steps
-    N = E * A
+    E, A, T, N = config.num_envs, config.cars_per_env, config.rollout_steps, config.num_envs * config.cars_per_env
     obs, reset_infos = vec.reset(seeds=[config.seed * 100_000 + e for e in range(E)])
     obs_shape, image_shape, R = observation_shapes(obs, pool)
 
@@ -449,13 +448,14 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
                                                                learner_mask, reward_scale, config, deepracer, pool > 1)
             samples = int(rollout.learn.sum())
             run.agent_steps += samples
-            run.sample_time += time.perf_counter() - t0
+            t1 = time.perf_counter()
+            run.sample_time += t1 - t0
 
-            # --- 5. advantages (GAE) and the PPO update on the learner's samples: now (the workers wait,
-            # the learner may use their cores), or with overlap_update while the next rollout is sampled
+            # --- 5. advantages (GAE), the PPO update: now (the workers wait), or beside the next rollout
+            batch = rollout.learner_batch(*rollout.advantages(next_value, config.gamma, config.gae_lambda))
+            run.update_time += time.perf_counter() - t1
             value_only = bool(init) and run.iteration - start_iteration < config.value_warmup and checkpoint is None
-            stats = updater.submit(rollout.learner_batch(*rollout.advantages(next_value, config.gamma,
-                                                                             config.gae_lambda)), fraction, value_only)
+            stats = updater.submit(batch, fraction, value_only)
             run.update_time += updater.seconds
             run.iteration += 1
 
