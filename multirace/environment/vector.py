@@ -252,6 +252,17 @@ class SubprocVectorEnv:
         return (self._observations(), self.shared["rewards"].array.copy(), flags[:, 0].copy(),
                 flags[:, 1].copy(), infos)
 
+    def worker_cpu_seconds(self) -> float | None:
+        """CPU seconds (user + system) the worker processes have used so far; None where /proc is missing."""
+        tick, total = os.sysconf("SC_CLK_TCK"), 0.0
+        for process in self.processes:
+            try:  # fields 14 and 15 of /proc/PID/stat, counted after the ")" that ends the command name
+                fields = open(f"/proc/{process.pid}/stat").read().rsplit(")", 1)[1].split()
+                total += (int(fields[11]) + int(fields[12])) / tick
+            except (OSError, ValueError, IndexError):
+                return None
+        return total
+
     def close(self) -> None:
         for remote in self.remotes:
             try:

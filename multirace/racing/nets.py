@@ -37,6 +37,9 @@ are loaded into it as plain tensors.
 """
 from __future__ import annotations
 
+import functools
+
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -100,6 +103,29 @@ def _tiny_trunk(channels: int) -> tuple[nn.Module, int]:
 NETWORKS = {SHALLOW: _shallow_trunk, SMALL: _small_trunk, TINY: _tiny_trunk}
 
 
+@functools.lru_cache(maxsize=None)
+def input_pool(network: str) -> int:
+    """The kernel of the average pool `network`'s trunk starts with (1: none). Training workers may send
+    images pooled that far (`pool_image`), as the net's first layer would see them."""
+    first = NETWORKS[network](1)[0][0]
+    return int(first.kernel_size) if isinstance(first, AveragePool) else 1
+
+
+def pool_image(image: np.ndarray, k: int) -> np.ndarray:
+    """One uint8 image (H, W) or (H, W, C) as int16 sums of its k x k pixel blocks, (H/k, W/k[, C]): what
+    `CameraNet.features(..., pooled=True)` reads for a net whose `input_pool` is k."""
+    h, w = image.shape[:2]
+    rows = image.astype(np.int16).reshape(h // k, k, w, *image.shape[2:])
+    summed = rows[:, 0].copy()
+    for i in range(1, k):  # k slice additions: several times faster than numpy's sum over the block axes
+        summed += rows[:, i]
+    cols = summed.reshape(h // k, w // k, k, *image.shape[2:])
+    out = cols[:, :, 0].copy()
+    for i in range(1, k):
+        out += cols[:, :, i]
+    return out
+
+
 def channels_first(images, image_shape) -> torch.Tensor:
     """uint8 camera images (H, W), (H, W, C), (N, H, W) or (N, H, W, C) as the (N, C, H, W) batch a net
     of `image_shape` (H, W, C) convolves; (H, W) and (N, H, W) are one grey channel."""
@@ -151,16 +177,24 @@ class CameraNet(nn.Module):
     def has_value(self) -> bool:
         return self.value_head is not None
 
-    def features(self, obs) -> torch.Tensor:
+    def features(self, obs, pooled: bool = False) -> torch.Tensor:
         """The hidden features of uint8 images, one or a batch (see `channels_first`).
 
-        A LIDAR net takes ``{"camera": images, "lidar": ranges (B, samples) or (samples,)}``.
+        A LIDAR net takes ``{"camera": images, "lidar": ranges (B, samples) or (samples,)}``. With `pooled`,
+        the images are the block sums of `pool_image` (the net's own first pool done already): the same
+        features, without the pool's cost.
         """
         if self.lidar is not None:
             if not isinstance(obs, dict):
                 raise ValueError("this net needs {'camera': images, 'lidar': ranges} observations")
             obs, ranges = obs["camera"], torch.as_tensor(obs["lidar"], dtype=torch.float32)
-        x = self.conv(channels_first(obs, self.image_shape).float().div_(255.0))
+        if pooled:
+            k = input_pool(self.network)
+            height, width, channels = self.image_shape
+            sums = channels_first(obs, (height // k, width // k, channels)).float()
+            x = self.conv[1:](sums.mul_(1.0 / (255 * k * k)))
+        else:
+            x = self.conv(channels_first(obs, self.image_shape).float().div_(255.0))
         if self.lidar is not None:
             x = torch.cat([x, self.lidar(ranges.reshape(x.shape[0], self.lidar_samples))], dim=1)
         return self.fc(x)
@@ -175,9 +209,9 @@ class CameraNet(nn.Module):
             raise RuntimeError("this network was built without a value head")
         return self.value_head(self.features(obs)).squeeze(-1)
 
-    def forward_all(self, obs) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """(outputs, value or None) from one pass through the trunk."""
-        h = self.features(obs)
+    def forward_all(self, obs, pooled: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(outputs, value or None) from one pass through the trunk (`pooled`: see `features`)."""
+        h = self.features(obs, pooled)
         value = self.value_head(h).squeeze(-1) if self.value_head is not None else None
         return self.head(h), value
 

@@ -100,6 +100,9 @@ class TrainConfig:
     max_iterations: int = 0  # > 0: stop after this many PPO iterations too (a budget machine load cannot change)
     seed: int = 0  # seeds torch, the envs and sampling
     threads: int = 1  # torch threads of the learner while sampling (the workers need the cores then)
+    overlap_update: bool = False  # True: the PPO update of a rollout runs on a thread while the workers sample the next one, with the policy from before that update (one iteration stale, decoupled PPO); False: the workers wait for each update (learnt faster per agent-step and per minute on the busy machine, see the train README's Throughput)
+    worker_spin_wait: float | None = None  # seconds an env worker polls for its next step before it sleeps; None: 0 with overlap_update (the update thread wants the core), else `vector.SPIN_WAIT`
+    pool_inputs: bool = True  # workers send camera images pooled as the net's first layer pools them (block sums): the same outputs, less to copy and compute (not with the opponent pool, whose agents read full images)
     update_threads: int = 2  # torch threads of the PPO update (the workers wait then; 2 is ~1.25x faster here)
     checkpoint_every: float = 60.0  # seconds between checkpoints (and evaluations, see eval_every)
     eval_every: float = 30.0  # seconds between greedy time-trial evaluations (0 = never; one costs about 1 s)
@@ -174,7 +177,7 @@ RANGES = {  # setting: (lowest, highest), inclusive; None: no bound
     "update_threads": (1, None), "procedural_tracks": (0, None), "max_iterations": (0, None), "seed": (0, 2**32 - 1),
     "value_warmup": (0, None), "minutes": (1e-6, None), "lr": (1e-12, None), "gamma": (0, 1), "gae_lambda": (0, 1),
     "clip": (1e-6, None), "pool_fraction": (0, 1), "checkpoint_every": (0, None), "eval_every": (0, None),
-    "snapshot_every": (1e-6, None), "nature_temperature": (1e-6, None), "max_grad_norm": (1e-12, None),
+    "snapshot_every": (1e-6, None), "worker_spin_wait": (0, 1), "nature_temperature": (1e-6, None), "max_grad_norm": (1e-12, None),
 }
 
 

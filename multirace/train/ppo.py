@@ -2,9 +2,14 @@
 
 Every learning car in every env is driven by the same policy and all their
 samples train it (parameter sharing / self-play). Envs run in worker processes
-(`vector.SubprocVectorEnv`, one per core); the learner runs inference on the
+(`vector.SubprocVectorEnv`, one per core) and send their camera images pooled
+as the net's first layer pools them (`pool_inputs`: the same outputs, a
+sixteenth of the pixels for the tiny net); the learner runs inference on the
 whole batch of cars at once on one torch thread, then does the PPO updates on
-`update_threads` (the workers wait meanwhile, so their cores are free).
+`update_threads` (the workers wait meanwhile, so their cores are free); or,
+with `overlap_update`, the update of a rollout runs on a thread while the
+workers sample the next one (`Updater`; decoupled PPO corrects for the
+one-iteration-old policy that sampled it).
 
     multirace train --track reinvent_base --minutes 10 --out agent.pt
 
@@ -15,7 +20,9 @@ DeepRacer-for-Cloud training folder: sim-traces, model metadata, hyperparameters
 """
 from __future__ import annotations
 
+import copy
 import functools
+import threading
 import time
 
 import numpy as np
@@ -24,7 +31,7 @@ from torch import nn
 from torch.distributions import Categorical, Normal
 
 from ..environment.actions import load_action_space
-from ..racing.nets import build_net
+from ..racing.nets import build_net, input_pool
 from ..sensors.camera import image_shape_of
 from .config import TrainConfig
 from .envs import INFO_KEYS, TrainEnv, env_settings
@@ -127,24 +134,57 @@ def check_reward_file(config: TrainConfig, runs) -> None:
         probe.close()
 
 
-def make_vector_env(config: TrainConfig, shared=None, cars=None, bots=None):
-    from ..environment.vector import SubprocVectorEnv
+def make_vector_env(config: TrainConfig, shared=None, cars=None, bots=None, pool: int = 1):
+    """The training envs in worker processes (`pool` > 1: they send camera images pooled, `TrainEnv`)."""
+    from ..environment.vector import SPIN_WAIT, SubprocVectorEnv
 
     runs = training_runs(config)
     check_reward_file(config, runs)
     settings = env_settings(config)
-    settings.update(num_cars=cars or config.cars_per_env, bots=tuple(config.bots if bots is None else bots))
+    settings.update(num_cars=cars or config.cars_per_env, bots=tuple(config.bots if bots is None else bots),
+                    pool=pool)
     factories = [functools.partial(TrainEnv, runs, shared=shared, worker=w, **settings) for w in range(config.num_envs)]
-    return SubprocVectorEnv(factories, info_keys=INFO_KEYS)
+    spin = config.worker_spin_wait
+    if spin is None:
+        spin = 0.0 if config.overlap_update else SPIN_WAIT
+    return SubprocVectorEnv(factories, info_keys=INFO_KEYS, spin_wait=spin)
+
+
+def observation_shapes(obs, pool: int) -> tuple:
+    """(one car's observation shape as sent, the camera's (H, W, C) as the net records it, LIDAR ranges per
+    car) of the vector env's first observations, their images pooled by `pool`."""
+    obs_shape = (obs["camera"] if isinstance(obs, dict) else obs).shape[2:]
+    height, width, channels = image_shape_of(obs_shape)
+    return obs_shape, (height * pool, width * pool, channels), obs["lidar"].shape[-1] if isinstance(obs, dict) else 0
+
+
+def input_pooling(config: TrainConfig) -> int:
+    """How far the workers may pool camera images for the net (`nets.input_pool`; 1: not at all)."""
+    k = input_pool(config.network)
+    height, width = config.camera
+    if not config.pool_inputs or config.opponent_pool or height % k or width % k:
+        return 1
+    return k
+
+
+def forward(net, x, pooled: bool):
+    """The net's (outputs, value) for input `x`, images pooled by the workers if `pooled`."""
+    return net.forward_all(x, pooled=True) if pooled else net.forward_all(x)
+
+
+def cpu_seconds(vec) -> float | None:
+    """CPU seconds the learner (every thread) and the env workers have used so far (None: not known here)."""
+    workers = vec.worker_cpu_seconds()
+    return None if workers is None else round(time.process_time() + workers, 3)
 
 
 # ------------------------------------------------------------------ the rollout
 def collect_rollout(vec, net, policy: Policy, rollout: Rollout, robust: RobustKnobs, learner_mask,
-                    reward_scale, config: TrainConfig, deepracer=None):
+                    reward_scale, config: TrainConfig, deepracer=None, pooled: bool = False):
     """T steps of every env into `rollout`, inference batched over all cars (the pool's opponents drive
     theirs), each learning car's steps logged to the `deepracer` folder if given. Returns the value of the
     last observations, the env's own reward summed over the rollout (`rollout.rew` may be scaled and
-    bootstrapped) and the training episodes that ended."""
+    bootstrapped) and the training episodes that ended. `pooled`: the workers pool the images."""
     E, A = config.num_envs, config.cars_per_env
     N = E * A
     net.eval()
@@ -154,7 +194,7 @@ def collect_rollout(vec, net, policy: Policy, rollout: Rollout, robust: RobustKn
         rollout.store_input(t, x)
         rollout.done[t] = rollout.next_done
         with torch.no_grad():
-            out, value = net.forward_all(x)
+            out, value = forward(net, x, pooled)
             dist = policy.dist(out)
             action = dist.sample()
             rollout.logp[t] = policy.log_prob(dist, action)
@@ -180,7 +220,7 @@ def collect_rollout(vec, net, policy: Policy, rollout: Rollout, robust: RobustKn
         episodes += finished_episodes(infos, learner_mask)
         robust.after_step(infos, reward, env_done)
     with torch.no_grad():
-        next_value = net.forward_all(rollout.net_input(rollout.next_obs))[1]
+        next_value = forward(net, rollout.net_input(rollout.next_obs), pooled)[1]
     return next_value, env_reward, episodes
 
 
@@ -193,19 +233,21 @@ def anneal_learning_rate(optimiser, config: TrainConfig, fraction: float) -> Non
 
 # ------------------------------------------------------------------ the PPO update
 def ppo_update(net, policy: Policy, optimiser, batch: dict, config: TrainConfig, space, lidar: bool,
-               value_only: bool) -> dict:
+               value_only: bool, pooled: bool = False, generator=None) -> dict:
     """Clipped PPO epochs over minibatches of the learner's samples (plus the expert loss where asked);
-    `value_only` fits the value head alone (a fresh head under an --init policy). Returns the statistics."""
+    `value_only` fits the value head alone (a fresh head under an --init policy); `pooled`: the images
+    are pooled (`nets.pool_image`); `generator`: the minibatches' random source (torch's own if None).
+    Returns the statistics."""
     net.train()
     size = len(batch["obs"])
     mb = min(config.minibatch_size, size)
     clip_fracs, approx_kl, pg_loss, v_loss, entropy, expert_loss = [], 0.0, 0.0, 0.0, 0.0, 0.0
     for epoch in range(config.epochs):
-        order = torch.randperm(size)
+        order = torch.randperm(size, generator=generator)
         for start in range(0, size - mb + 1, mb):
             idx = order[start:start + mb]
-            out, value = net.forward_all({"camera": batch["obs"][idx], "lidar": batch["lidar"][idx]} if lidar
-                                         else batch["obs"][idx])
+            out, value = forward(net, {"camera": batch["obs"][idx], "lidar": batch["lidar"][idx]} if lidar
+                                 else batch["obs"][idx], pooled)
             dist = policy.dist(out)
             logp = policy.log_prob(dist, batch["act"][idx])
             log_ratio = logp - batch["logp"][idx]
@@ -216,7 +258,8 @@ def ppo_update(net, policy: Policy, optimiser, batch: dict, config: TrainConfig,
             adv = batch["adv"][idx]
             if config.norm_adv:
                 adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-            pg = torch.max(-adv * ratio, -adv * torch.clamp(ratio, 1 - config.clip, 1 + config.clip)).mean()
+            pg = torch.max(-adv * ratio, -adv * torch.clamp(ratio, 1 - config.clip, 1 + config.clip))
+            pg = (pg * batch["weight"][idx]).mean() if "weight" in batch else pg.mean()
             old_value, ret = batch["val"][idx], batch["ret"][idx]
             if config.clip_value:
                 v_clipped = old_value + torch.clamp(value - old_value, -config.clip, config.clip)
@@ -250,6 +293,110 @@ def ppo_update(net, policy: Policy, optimiser, batch: dict, config: TrainConfig,
             "clip_frac": round(float(np.mean(clip_fracs)) if clip_fracs else 0.0, 4)}
 
 
+# ------------------------------------------------------------------ the update, now or beside sampling
+BEHAVIOUR_WEIGHT_CAP = 1.0  # truncation of the current / behaviour probability ratio (IMPALA's rho-bar)
+
+
+def recentre(net, policy: Policy, batch: dict, lidar: bool, pooled: bool, chunk: int) -> None:
+    """Decoupled PPO (Hilton et al., 2022) for a batch an older policy sampled: the clip is centred on the
+    current policy (`batch["logp"]` becomes its log-probabilities) and each sample's policy loss is weighted
+    by the current / behaviour probability ratio, truncated at `BEHAVIOUR_WEIGHT_CAP` (`batch["weight"]`)."""
+    parts = []
+    with torch.no_grad():
+        for start in range(0, len(batch["obs"]), chunk):
+            obs = batch["obs"][start:start + chunk]
+            x = {"camera": obs, "lidar": batch["lidar"][start:start + chunk]} if lidar else obs
+            parts.append(policy.log_prob(policy.dist(forward(net, x, pooled)[0]), batch["act"][start:start + chunk]))
+    logp = torch.cat(parts) if parts else batch["logp"]
+    batch["weight"] = (logp - batch["logp"]).exp().clamp(max=BEHAVIOUR_WEIGHT_CAP)
+    batch["logp"] = logp
+
+class Updater:
+    """Runs `ppo_update` on the learner's batches: at once, or with `overlap_update` on a thread while the
+    next rollout is sampled. `behaviour` is the net rollouts are sampled with: `net` itself, or under
+    overlap a copy that takes the new weights when an update finishes (so a rollout is sampled with the
+    policy from before the previous rollout's update: one iteration stale, which `recentre` corrects
+    for). The overlapped update runs on one torch thread and draws its minibatches from its own
+    generator, so a seed still gives the same run."""
+
+    def __init__(self, net, policy: Policy, optimiser, config: TrainConfig, space, lidar: bool, pooled: bool):
+        self.net, self.policy, self.optimiser, self.config, self.space = net, policy, optimiser, config, space
+        self.lidar, self.pooled = lidar, pooled
+        self.overlap = bool(config.overlap_update)
+        self.behaviour = copy.deepcopy(net) if self.overlap else net
+        self.generator = torch.Generator().manual_seed(config.seed + 1) if self.overlap else None
+        self.thread, self.stats, self.error, self.seconds = None, {}, None, 0.0
+        self.pending = None  # with overlap: the last batch submitted, trained on while the next rollout is sampled
+
+    def _run(self, batch: dict, fraction: float, value_only: bool) -> None:
+        t = time.perf_counter()
+        try:
+            anneal_learning_rate(self.optimiser, self.config, fraction)
+            if self.overlap:  # sampled by the policy from before the last update
+                recentre(self.net, self.policy, batch, self.lidar, self.pooled, self.config.minibatch_size)
+            self.stats = ppo_update(self.net, self.policy, self.optimiser, batch, self.config, self.space,
+                                    lidar=self.lidar, value_only=value_only, pooled=self.pooled,
+                                    generator=self.generator)
+        except BaseException as exc:  # raised again in the main thread by `finish`
+            self.error = exc
+        self.seconds = time.perf_counter() - t
+
+    def start(self, batch: dict, fraction: float, value_only: bool, background: bool | None = None) -> None:
+        """Train on `batch` (the learning rate annealed to `fraction` of the budget), on the thread if overlapping."""
+        self.stats, self.seconds = {}, 0.0
+        if self.overlap if background is None else background:
+            self.thread = threading.Thread(target=self._run, args=(batch, fraction, value_only), daemon=True)
+            self.thread.start()
+            return
+        if not self.overlap:
+            torch.set_num_threads(update_threads(self.config.update_threads))  # one thread on a busy machine
+        self._run(batch, fraction, value_only)
+        torch.set_num_threads(int(self.config.threads))
+
+    def finish(self) -> dict:
+        """Wait for the running update; the new weights go to `behaviour`; its statistics ({} if none ran)."""
+        if self.thread is not None:
+            self.thread.join()
+            self.thread = None
+        if self.error is not None:
+            error, self.error = self.error, None
+            raise error
+        if self.overlap and self.stats:
+            self.behaviour.load_state_dict(self.net.state_dict())
+        stats, self.stats = self.stats, {}
+        return stats
+
+    def begin(self) -> None:
+        """With overlap: start the update of the last rollout submitted, on the thread."""
+        if self.pending is not None:
+            self.start(*self.pending)
+            self.pending = None
+
+    def submit(self, batch: dict, fraction: float, value_only: bool) -> dict:
+        """A rollout's batch: trained on now, or with overlap kept for `begin`, once the running update is
+        done. Returns the statistics of the update that ran ({} in an overlapped first iteration)."""
+        if self.overlap:
+            self.pending = (batch, fraction, value_only)
+        else:
+            self.start(batch, fraction, value_only)
+        return self.finish()
+
+    def train_now(self) -> float:
+        """Run the pending update (if any) here and wait for it; its seconds."""
+        if self.pending is None:
+            return 0.0
+        self.start(*self.pending, background=False)
+        self.pending = None
+        self.finish()
+        return self.seconds
+
+    def stop(self) -> None:
+        """Wait for a running update and drop it (the run is ending on an error)."""
+        if self.thread is not None:
+            self.thread.join()
+            self.thread = None
+
+
 # ------------------------------------------------------------------ train
 def train(config: TrainConfig, out, init=None, resume=None, command=None, log=print) -> dict:
     """Train with PPO until the time budget is spent; write the agent file `out`; return a summary."""
@@ -262,19 +409,15 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
             setattr(config, key, value)
     torch.set_num_threads(int(config.threads))
     torch.manual_seed(config.seed)
-    rng = np.random.default_rng(config.seed)
     space = load_action_space(config.action_space)
-    policy = Policy(space)
 
     # --- 2. envs in worker processes, with the robust options' knobs
     robust = RobustKnobs(config, seed=config.seed)
-    vec = make_vector_env(config, robust.shared)
-    E, A, T = config.num_envs, config.cars_per_env, config.rollout_steps
-    N = E * A
+    pool = input_pooling(config)
+    vec = make_vector_env(config, robust.shared, pool=pool)
+    E, A, T, N = config.num_envs, config.cars_per_env, config.rollout_steps, config.num_envs * config.cars_per_env
     obs, reset_infos = vec.reset(seeds=[config.seed * 100_000 + e for e in range(E)])
-    obs_shape = (obs["camera"] if isinstance(obs, dict) else obs).shape[2:]  # one car's camera image
-    image_shape = image_shape_of(obs_shape)  # (H, W, C), as the net and its metadata record it
-    R = obs["lidar"].shape[-1] if isinstance(obs, dict) else 0  # LIDAR ranges (or sectors) per car
+    obs_shape, image_shape, R = observation_shapes(obs, pool)
 
     # --- 3. the net (policy + value head), optimiser, reward scale, opponent pool, rollout storage
     net = build_net(config.network, image_shape, space, value_head=True, lidar_samples=R)
@@ -285,50 +428,49 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
     optimiser = torch.optim.Adam(net.parameters(), lr=config.lr, eps=1e-5)
     reward_scale = RewardScale(N, config.gamma) if config.norm_reward else None
     run.restore(checkpoint, net, optimiser, reward_scale)
-    robust.start_pool(space, image_shape, rng, R)
-    rollout = Rollout(T, N, obs_shape, R, space)
+    robust.start_pool(space, image_shape, np.random.default_rng(config.seed), R)
+    rollout = Rollout(T, N, obs_shape, R, space, obs_dtype=np.int16 if pool > 1 else np.uint8)
     rollout.start(obs, expert_actions(reset_infos, space.discrete))
     deepracer = run.deepracer_folder(net, space, image_shape)  # out.deepracer/ (deepracer_log), else None
-
+    updater = Updater(net, Policy(space), optimiser, config, space, lidar=bool(R), pooled=pool > 1)
     try:
         start_iteration = run.iteration
         while run.keep_going(start_iteration):
             fraction = run.fraction()
             learner_mask = robust.before_iteration(fraction, E, A)
+            updater.begin()  # with overlap_update: the last rollout's update, on its thread beside this rollout
 
             # --- 4. rollout: T steps of every env, batched inference over all cars
             t0 = time.perf_counter()
             if deepracer is not None:
                 deepracer.start_iteration(run.iteration)
-            next_value, env_reward, episodes = collect_rollout(vec, net, policy, rollout, robust, learner_mask,
-                                                               reward_scale, config, deepracer)
+            next_value, env_reward, episodes = collect_rollout(vec, updater.behaviour, updater.policy, rollout, robust,
+                                                               learner_mask, reward_scale, config, deepracer, pool > 1)
             samples = int(rollout.learn.sum())
             run.agent_steps += samples
-            run.sample_time += time.perf_counter() - t0
-
-            # --- 5. advantages (GAE) and the PPO update on the learner's samples
-            # (the workers are idle meanwhile: the learner may use their cores)
             t1 = time.perf_counter()
-            advantages, returns = rollout.advantages(next_value, config.gamma, config.gae_lambda)
-            anneal_learning_rate(optimiser, config, fraction)
-            value_only = bool(init) and run.iteration - start_iteration < config.value_warmup and checkpoint is None
-            torch.set_num_threads(update_threads(config.update_threads))  # one thread on a busy machine
-            stats = ppo_update(net, policy, optimiser, rollout.learner_batch(advantages, returns), config, space,
-                               lidar=bool(R), value_only=value_only)
-            torch.set_num_threads(int(config.threads))
+            run.sample_time += t1 - t0
+
+            # --- 5. advantages (GAE), the PPO update: now (the workers wait), or beside the next rollout
+            batch = rollout.learner_batch(*rollout.advantages(next_value, config.gamma, config.gae_lambda))
             run.update_time += time.perf_counter() - t1
+            value_only = bool(init) and run.iteration - start_iteration < config.value_warmup and checkpoint is None
+            stats = updater.submit(batch, fraction, value_only)
+            run.update_time += updater.seconds
             run.iteration += 1
 
             # --- 6. log, snapshots, checkpoints, evaluations
-            extra = robust.after_iteration(episodes)
+            extra = {**robust.after_iteration(episodes), "cpu_seconds": cpu_seconds(vec)}
             run.record(episodes, stats, env_reward / (T * N), samples, time.perf_counter() - t0, extra)
             robust.snapshot(net, run.elapsed(), run.iteration)
             if run.checkpoint_and_evaluate(net, optimiser, reward_scale, space, image_shape):
                 break
+        run.update_time += updater.train_now()  # every rollout is trained on: the last one's update now
     except (EOFError, ConnectionError) as exc:
         raise ValueError(f"an env worker process stopped ({type(exc).__name__}); its error is printed above "
                          "(for example a reward function that raised or returned a bad value)") from None
     finally:
+        updater.stop()
         run.stop_progress()
         if deepracer is not None:
             deepracer.close()
