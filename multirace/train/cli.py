@@ -193,7 +193,10 @@ def report_privileged(config, args, command) -> int:
     for name, stage in (("teacher", teacher), ("student", student)):
         reached = ", ".join(f"{key.replace('_', ' ')} at {m['seconds']:.0f} s ({m['agent_steps']} agent-steps)"
                             for key, m in stage["milestones"].items())
-        print(f"{name} first evaluations: {reached or 'none clean'}")
+        if stage.get("reused"):
+            print(f"{name}: reused from {stage['reused']} (trained in {stage.get('trained_seconds')} s)")
+        else:
+            print(f"{name} first evaluations: {reached or 'none clean'}")
     print(f"wrote {summary['out']} (camera agent) and {summary['teacher_file']} (teacher) in "
           f"{summary['wall_seconds']} s: teacher {teacher['wall_seconds']} s, {teacher['agent_steps']} agent-steps; "
           f"student {student['wall_seconds']} s, {student['agent_steps']} agent-steps")
