@@ -275,10 +275,8 @@ def cmd_bench(args) -> int:
     return 0
 
 
-def build_parser() -> Parser:
-    parser = Parser(prog="multirace", description=__doc__)
-    sub = parser.add_subparsers(dest="command", required=True)
-
+def _add_race_parser(sub) -> None:
+    """The `race` subcommand."""
     race = sub.add_parser("race", help="race agent files and bots against each other",
                           description="Race agent files (.pt) and scripted bots (bot:follow@1.5, "
                                       "bot:lanes@1.0, bot:racingline) and print the result.")
@@ -305,6 +303,9 @@ def build_parser() -> Parser:
                       help="write the top-down race view as an MP4 (15 fps)")
     race.set_defaults(func=cmd_race)
 
+
+def _add_agent_parser(sub) -> None:
+    """The `agent` subcommand."""
     agent = sub.add_parser("agent", help="list, inspect, export and import agent files",
                            description="Tools for agent files (.pt: weights + model_metadata).")
     agent_sub = agent.add_subparsers(dest="agent_command", required=True)
@@ -334,6 +335,9 @@ def build_parser() -> Parser:
     imported.add_argument("--name", default=None, help="agent name in the metadata (default: file stem)")
     imported.set_defaults(func=cmd_agent_import)
 
+
+def _add_imitate_parser(sub) -> None:
+    """The `imitate` subcommand."""
     imitate = sub.add_parser("imitate", help="train a camera agent by DAgger imitation of the scripted driver",
                              description="Train a camera CNN by DAgger: the learner drives, the scripted "
                                          "pure-pursuit driver labels every image with the nearest action, "
@@ -384,6 +388,9 @@ def build_parser() -> Parser:
                          help="torch threads (default: all cores on an idle machine, 1 on a busy one)")
     imitate.set_defaults(func=cmd_imitate)
 
+
+def _add_replay_parser(sub) -> None:
+    """The `replay` subcommand."""
     replay = sub.add_parser("replay", help="open a race replay (.rrd) in the rerun viewer, or summarise it",
                             description="Open a race replay in the rerun viewer where one is available; "
                                         "--summary prints what the recording holds.")
@@ -396,6 +403,9 @@ def build_parser() -> Parser:
                         help="render the top-down race view from the recorded poses to an MP4 (no viewer needed)")
     replay.set_defaults(func=cmd_replay)
 
+
+def _add_explain_parser(sub) -> None:
+    """The `explain` subcommand."""
     explain = sub.add_parser("explain", help="Grad-CAM heat maps of what an agent looks at while it drives",
                              description="Drive an agent file alone on a track (1-car time trial) and write "
                                          "Grad-CAM heat maps of its chosen actions over its camera frames.")
@@ -416,6 +426,9 @@ def build_parser() -> Parser:
     explain.add_argument("--json", metavar="FILE", type=output_file, help="write the figures as JSON")
     explain.set_defaults(func=cmd_explain)
 
+
+def _add_plot_parser(sub) -> None:
+    """The `plot` subcommand."""
     plot = sub.add_parser("plot", help="plot a sim-trace CSV: the path coloured by speed and reward",
                           description="Draw the track with the driven path coloured by speed and by reward: a "
                                       "row of panels per episode (in a race's sim-trace, per car), up to 8.")
@@ -424,6 +437,9 @@ def build_parser() -> Parser:
     plot.add_argument("--track", default=None, help="track name or .npy (default: guessed from track_len)")
     plot.set_defaults(func=cmd_plot)
 
+
+def _add_bench_parser(sub) -> None:
+    """The `bench` subcommand."""
     bench = sub.add_parser("bench", help="measure env throughput, renderer ratios, worker scaling and memory",
                            description="Benchmark (not a test): agent-steps/s for 1-8 cars with the fast and "
                                        "PyBullet renderers, the physics+warp floor, two workers over one, peak "
@@ -436,6 +452,19 @@ def build_parser() -> Parser:
                        help="instead: the per-stage split of a 4-car env step (dynamics, contacts, rules, params, "
                             "reward, render) and the renderer's frames/s alone")
     bench.set_defaults(func=cmd_bench)
+
+
+def build_parser() -> Parser:
+    """The `multirace` parser: each subcommand registers its own parser."""
+    parser = Parser(prog="multirace", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+    _add_race_parser(sub)
+    _add_agent_parser(sub)
+    _add_imitate_parser(sub)
+    _add_replay_parser(sub)
+    _add_explain_parser(sub)
+    _add_plot_parser(sub)
+    _add_bench_parser(sub)
 
     from .train.cli import add_evaluate_parser, add_train_parser
 
