@@ -90,54 +90,17 @@ def compute_table(folder) -> dict:
         entry["cars"] = [{k: c[k] for k in ("name", "position", "laps", "best_lap", "total_time", "status", "reason")}
                          for c in cars]
         matches.append(entry)
-        for car in cars:
-            s = stats[car["name"]]
-            s["laps"] += car["laps"]
-            s["caused"] += car.get("collisions_caused", 0) or 0
-            s["penalties"] += car.get("penalties", 0) or 0
-            if car["status"] == "forfeit":
-                s["forfeits"] += 1
-                if car["reason"] and car["reason"] not in s["forfeit_reasons"]:
-                    s["forfeit_reasons"].append(car["reason"])
+        _add_car_totals(stats, cars)
         if kind == "time_trial":
-            for car in cars:
-                s = stats[car["name"]]
-                s["tt_trials"] += 1
-                s["tt_finished"] += car["status"] == "finished"
-                if car["best_lap"] is not None:
-                    s["tt_best"].append(car["best_lap"])
-                s["tt_laps"].extend(car["lap_times"] if "lap_times" in car else [])
+            _add_time_trial(stats, cars)
         elif kind == "head_to_head" and len(cars) >= 2:
             if current_round is not None and round_no != current_round:
                 snapshot(current_round)
             current_round = round_no
-            ordered = sorted(cars, key=lambda c: c["position"])
-            teams = [[ratings[c["name"]]] for c in ordered]
-            new = model.rate(teams, ranks=[c["position"] for c in ordered])
-            for c, team in zip(ordered, new):
-                ratings[c["name"]] = team[0]
-                s = stats[c["name"]]
-                s["heats"] += 1
-                s["positions"].append(c["position"])
-                s["wins"] += c["position"] == 1
+            _rate_heat(model, ratings, stats, cars)
     if current_round is not None:
         snapshot(current_round)
-    standings = []
-    for name in names:
-        s, r = stats[name], ratings[name]
-        standings.append({
-            "entrant": name,
-            "rating": round(r.ordinal(), 3), "mu": round(r.mu, 3), "sigma": round(r.sigma, 3),
-            "heats": s["heats"], "wins": s["wins"],
-            "avg_position": round(_mean(s["positions"]), 3) if s["positions"] else None,
-            "tt_best_lap": round(min(s["tt_best"]), 4) if s["tt_best"] else None,
-            "tt_completion": round(s["tt_finished"] / s["tt_trials"], 4) if s["tt_trials"] else None,
-            "tt_avg_lap": round(_mean(s["tt_laps"]), 4) if s["tt_laps"] else None,
-            "collisions_caused_per_lap": round(s["caused"] / s["laps"], 4) if s["laps"] else None,
-            "penalties": s["penalties"],
-            "forfeits": s["forfeits"],
-            "forfeit_reasons": s["forfeit_reasons"],
-        })
+    standings = [_standing(name, stats[name], ratings[name]) for name in names]
     has_h2h = any(s["heats"] for s in standings)
     standings.sort(key=lambda s: ((-s["rating"]) if has_h2h else 0,
                                   s["tt_best_lap"] if s["tt_best_lap"] is not None else math.inf,
@@ -154,6 +117,60 @@ def compute_table(folder) -> dict:
                             for i, s in enumerate(time_trials, 1)],
             "rating_history": history, "matches": matches,
             "tracks": [{"name": t.name, "directions": list(t.directions)} for t in config.tracks]}
+
+
+def _add_car_totals(stats: dict, cars: list) -> None:
+    """Laps, at-fault collisions, penalties and forfeits of every car of a recorded match."""
+    for car in cars:
+        s = stats[car["name"]]
+        s["laps"] += car["laps"]
+        s["caused"] += car.get("collisions_caused", 0) or 0
+        s["penalties"] += car.get("penalties", 0) or 0
+        if car["status"] == "forfeit":
+            s["forfeits"] += 1
+            if car["reason"] and car["reason"] not in s["forfeit_reasons"]:
+                s["forfeit_reasons"].append(car["reason"])
+
+
+def _rate_heat(model, ratings: dict, stats: dict, cars: list) -> None:
+    """A head-to-head heat: every car's rating updated from the finishing order, its heats, places and wins."""
+    ordered = sorted(cars, key=lambda c: c["position"])
+    teams = [[ratings[c["name"]]] for c in ordered]
+    new = model.rate(teams, ranks=[c["position"] for c in ordered])
+    for c, team in zip(ordered, new):
+        ratings[c["name"]] = team[0]
+        s = stats[c["name"]]
+        s["heats"] += 1
+        s["positions"].append(c["position"])
+        s["wins"] += c["position"] == 1
+
+
+def _add_time_trial(stats: dict, cars: list) -> None:
+    """A time trial's finishes, best lap and lap times."""
+    for car in cars:
+        s = stats[car["name"]]
+        s["tt_trials"] += 1
+        s["tt_finished"] += car["status"] == "finished"
+        if car["best_lap"] is not None:
+            s["tt_best"].append(car["best_lap"])
+        s["tt_laps"].extend(car["lap_times"] if "lap_times" in car else [])
+
+
+def _standing(name: str, s: dict, r) -> dict:
+    """One entrant's row of the standings from its totals `s` and its OpenSkill rating `r`."""
+    return {
+        "entrant": name,
+        "rating": round(r.ordinal(), 3), "mu": round(r.mu, 3), "sigma": round(r.sigma, 3),
+        "heats": s["heats"], "wins": s["wins"],
+        "avg_position": round(_mean(s["positions"]), 3) if s["positions"] else None,
+        "tt_best_lap": round(min(s["tt_best"]), 4) if s["tt_best"] else None,
+        "tt_completion": round(s["tt_finished"] / s["tt_trials"], 4) if s["tt_trials"] else None,
+        "tt_avg_lap": round(_mean(s["tt_laps"]), 4) if s["tt_laps"] else None,
+        "collisions_caused_per_lap": round(s["caused"] / s["laps"], 4) if s["laps"] else None,
+        "penalties": s["penalties"],
+        "forfeits": s["forfeits"],
+        "forfeit_reasons": s["forfeit_reasons"],
+    }
 
 
 # ------------------------------------------------------------------ text formats
