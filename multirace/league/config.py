@@ -135,7 +135,6 @@ def parse_config(text: str, source: str = TOML) -> LeagueConfig:
     Beyond types and ranges: seeds are distinct integers 0 to 2^32-1, bots are known bot specs, every track
     loads, and at least one race format is enabled."""
     from ..environment.bots import parse_bot
-    from ..sim.tracks import TrackError, load_track
 
     try:
         data = tomllib.loads(text)
@@ -168,23 +167,7 @@ def parse_config(text: str, source: str = TOML) -> LeagueConfig:
     if len(set(bots)) != len(bots):
         raise LeagueError(f"{source}: 'league.bots' has duplicates")
 
-    raw_tracks = data.get("tracks")
-    if not isinstance(raw_tracks, list) or not raw_tracks:
-        raise LeagueError(f"{source}: 'tracks' must list at least one [[tracks]] table")
-    tracks = []
-    for i, entry in enumerate(raw_tracks):
-        where = f"tracks[{i}]."
-        entry = _section(entry, SCHEMA["tracks"], source, where)
-        try:
-            load_track(entry["name"])  # loads and validates it: a track every match can race
-        except (TrackError, FileNotFoundError, ValueError) as exc:
-            raise LeagueError(f"{source}: '{where}name': unusable track {entry['name']!r} ({exc})") from None
-        directions = entry["directions"]
-        if not directions or any(d not in ("forward", "reverse") for d in directions) \
-                or len(set(directions)) != len(directions):
-            raise LeagueError(f"{source}: '{where}directions' must list \"forward\" and/or \"reverse\", "
-                              f"got {directions!r}")
-        tracks.append(TrackSpec(entry["name"], tuple(directions)))
+    tracks = _parse_tracks(data.get("tracks"), source)
 
     formats = {}
     for key in ("time_trial", "head_to_head"):
@@ -212,6 +195,29 @@ def parse_config(text: str, source: str = TOML) -> LeagueConfig:
                         match_timeout=float(league["match_timeout"]), replays=league["replays"],
                         replay_image_every=league["replay_image_every"], time_trial=tt, head_to_head=h2h,
                         source=source)
+
+
+def _parse_tracks(raw_tracks, source: str) -> list:
+    """The [[tracks]] tables: each track loads, its directions are "forward" and/or "reverse"."""
+    from ..sim.tracks import TrackError, load_track
+
+    if not isinstance(raw_tracks, list) or not raw_tracks:
+        raise LeagueError(f"{source}: 'tracks' must list at least one [[tracks]] table")
+    tracks = []
+    for i, entry in enumerate(raw_tracks):
+        where = f"tracks[{i}]."
+        entry = _section(entry, SCHEMA["tracks"], source, where)
+        try:
+            load_track(entry["name"])  # loads and validates it: a track every match can race
+        except (TrackError, FileNotFoundError, ValueError) as exc:
+            raise LeagueError(f"{source}: '{where}name': unusable track {entry['name']!r} ({exc})") from None
+        directions = entry["directions"]
+        if not directions or any(d not in ("forward", "reverse") for d in directions) \
+                or len(set(directions)) != len(directions):
+            raise LeagueError(f"{source}: '{where}directions' must list \"forward\" and/or \"reverse\", "
+                              f"got {directions!r}")
+        tracks.append(TrackSpec(entry["name"], tuple(directions)))
+    return tracks
 
 
 def load_config(folder) -> LeagueConfig:
