@@ -31,6 +31,7 @@ from ..sensors.suite import declared_sensors
 from ..sim.objects import objects_seen
 from .randomize import Randomization, apply_command, apply_image
 from .reward_process import load_reward_function
+from .race_state import CarState, RaceState
 from .rules import CarRace, StepMeasure, Stewards, make_rules
 from .state import CAR_FEATURES, GLOBAL_PER_CAR, STATE_BOUND, car_features, global_state
 from ..sim.texture import DEFAULT_PALETTE, TrackTexture
@@ -166,6 +167,7 @@ class RaceEnv(ParallelEnv):
         self.races: list[CarRace] = []
         self.steps = 0
         self.sim_time = 0.0
+        self.race_state: RaceState | None = None  # published at the end of every reset and step
 
     def _check_args(self) -> None:
         """Refuse up front what would fail at reset: a loop too short for every car's start slot."""
@@ -242,6 +244,7 @@ class RaceEnv(ParallelEnv):
         params = [self._params(i, set(), table) for i in range(self.num_cars)]
         observations = self._observe()
         ranks = self.ranks()
+        self.race_state = self._publish(ranks, [set()] * self.total_cars, [()] * self.total_cars)
         infos = {a: self._info(i, params[i], set(), ranks) for i, a in enumerate(self.agents)}
         return observations, infos
 
@@ -320,6 +323,7 @@ class RaceEnv(ParallelEnv):
                     self._end_run(i, "not_finished", f"step limit {self.max_steps} reached")
         observations = self._observe()
         ranks = self.ranks()
+        self.race_state = self._publish(ranks, touched, events)
         infos = {a: self._info(i, params[i], touched[i], ranks, events[i])
                  for i, a in enumerate(self.possible_agents)}
         terminations = {a: done for a in self.possible_agents}
@@ -327,6 +331,23 @@ class RaceEnv(ParallelEnv):
         if done or truncated:
             self.agents = []
         return observations, rewards, terminations, truncations, infos
+
+    def _publish(self, ranks: list[int], touched: list[set], events: list) -> RaceState:
+        """The step's `RaceState`: every car as the rules left it."""
+        poses, speeds = self.world.poses.tolist(), self.world.drive_speed.tolist()
+        cars = []
+        for i, race in enumerate(self.races):
+            geo = self._geometry[i]
+            located = geo is not None
+            if not located:
+                geo = self._last_params_geometry(i)
+            proj = geo["proj"]
+            x, y, yaw = poses[i]
+            cars.append(CarState(i, self.car_names[i], x, y, yaw, speeds[i], self._commands[i], located,
+                                 geo["x"], geo["y"], proj.s, proj.lateral, proj.width, proj.segment,
+                                 geo["wheels_on"], ranks[i], tuple(sorted(touched[i])), tuple(events[i]), race))
+        return RaceState(self.steps, self.sim_time, self.dt, self.track, self.rules, tuple(cars),
+                         np.asarray(self.world.obstacle_poses, float).reshape(-1, 3), self.num_cars)
 
     # ------------------------------------------------------- measurement
     def _measure_all(self) -> None:
