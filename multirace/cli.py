@@ -10,7 +10,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from .atomic import OutputError, write_text
-from .environment.rules import FORMATS
+from .environment.formats import FORMATS
 from .options import (COUNT, NON_NEGATIVE, POSITIVE, POSITIVE_INT, SEED, SHARE, Parser, input_file, number,
                       output_file)
 from .text import display_name, laps_text
@@ -286,7 +286,7 @@ def _add_race_parser(sub) -> None:
     race.add_argument("--track", default="reinvent_base",
                       help=f"bundled track name or .npy path (bundled: {', '.join(list_tracks())})")
     race.add_argument("--reverse", action="store_true", help="race the track in the other direction")
-    race.add_argument("--format", default=None, choices=FORMATS,
+    race.add_argument("--format", "--race", dest="format", default=None, choices=FORMATS,
                       help="race format (default: time_trial for one car, head_to_head for more)")
     race.add_argument("--laps", type=POSITIVE_INT, default=3, help="laps to race (default 3)")
     race.add_argument("--obstacles", type=number(int, minimum=0, maximum=6), default=None,

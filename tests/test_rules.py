@@ -5,7 +5,8 @@ import pytest
 
 import multirace
 from multirace.environment.bots import PurePursuit
-from multirace.environment.rules import CarRace, StepMeasure, make_rules
+from multirace.environment.formats import make_rules
+from multirace.environment.rules import CarRace, StepMeasure
 from helpers import CONTINUOUS, drive_expert
 
 

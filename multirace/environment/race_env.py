@@ -32,7 +32,8 @@ from ..sim.objects import objects_seen
 from .randomize import Randomization, apply_command, apply_image
 from .reward_process import load_reward_function
 from .race_state import CarState, RaceState
-from .rules import CarRace, StepMeasure, Stewards, make_rules
+from .formats import make_rules
+from .rules import CarRace, StepMeasure, Stewards
 from .state import CAR_FEATURES, GLOBAL_PER_CAR, STATE_BOUND, car_features, global_state
 from ..sim.texture import DEFAULT_PALETTE, TrackTexture
 from ..sim.tracks import Track, load_track
@@ -311,9 +312,10 @@ class RaceEnv(ParallelEnv):
             rewards.update(zip((self.possible_agents[i] for i in racing), values))
         events = [self._apply_rules(i, prev_distance[i], touched[i]) for i in range(self.total_cars)]
         if self.rules.time_up(self.sim_time):
+            status, reason = self.rules.window_end()
             for i, race in enumerate(self.races):
                 if race.racing:
-                    self._end_run(i, "timed_out", f"{self.rules.time_limit:g} s window ended")
+                    self._end_run(i, status, reason)
 
         done = not any(race.racing for race in self.races)
         truncated = not done and self.steps >= self.max_steps

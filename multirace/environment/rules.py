@@ -1,23 +1,19 @@
-"""Race formats and scoring: what happens on a lap, an off-track, a crash, and who wins.
+"""Race rules and scoring: what happens on a lap, an off-track, a crash, and who wins.
 
-Each format is a `RaceRules` object that the env consults every step. The env
-measures (distance driven, wheels on track, contacts: a `StepMeasure`); the
-rules decide (laps, penalties, resets, the end of a car's run: a `Ruling`,
-with the car's `CarRace` state updated) and rank the cars; the env then only
-carries out what they decided (moves a car back, parks it). All times are
-simulated race time in seconds, not wall time.
+Each race format is a `RaceRules` (sub)class in `environment/formats/`, one
+file per format, named in its registry (`formats.REGISTRY`); the env consults
+it every step. The env measures (distance driven, wheels on track, contacts:
+a `StepMeasure`); the rules decide (laps, penalties, resets, the end of a
+car's run: a `Ruling`, with the car's `CarRace` state updated) and rank the
+cars; the env then only carries out what they decided (moves a car back,
+parks it). All times are simulated race time in seconds, not wall time.
 
-Formats (DeepRacer's):
-- ``time_trial``: N laps; off track costs a 2 s penalty and a reset onto the
-  centre line where the car left. Ranked by total time (time + penalties).
-- ``reset_rule``: AWS Summit rules, a 4-minute window and up to 3 resets; the
-  next off-track ends the run. Ranked by best lap, then laps, then progress.
-- ``object_avoidance``: a time trial with static boxes in alternating lanes; a
-  crash into a box costs 5 s and a reset 1.0 m behind the box in the other lane.
-- ``head_to_head``: 2-8 cars on a staggered grid; the car at fault in a
-  collision (`at_fault`, the README's "Race rules") is penalised 5 s once per
-  incident, and a car pushed off track by it pays no off-track penalty.
-  Ranked by laps, then total time, then progress.
+`RaceRules` itself is the time trial: N laps; an off-track costs
+`off_track_penalty` and a reset onto the centre line where the car left;
+ranked by total time (time + penalties). A format changes its defaults (its
+fields) and overrides what differs: `finished` (the end of a run),
+`rank_key` (the result's order), `standings_key` (the order while racing),
+`window_end` (what the end of `time_limit` makes of a run), `crash_resets`.
 
 Contacts are judged by `Stewards` (one per race): a touch of the same pair
 within `INCIDENT_GAP` of the last is the same incident, counted and
@@ -32,9 +28,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import numbers
+from typing import ClassVar
 
-FORMATS = ("time_trial", "reset_rule", "object_avoidance", "head_to_head")
 STATUSES = ("finished", "out_of_resets", "timed_out", "forfeit", "not_finished")
 STANDINGS_MIN_SHARE = 0.05  # share of the race every racing car drives before standings project finishing times
 OVERLAP_SHARE = 0.25  # of a car length: a car this far alongside another has overlap and keeps its line
@@ -119,7 +114,7 @@ class Ruling:
 
 @dataclasses.dataclass
 class RaceRules:
-    """A race format with its parameters; see the module docstring."""
+    """A race format with its parameters: the time trial; each format of `formats` subclasses it."""
 
     name: str = "time_trial"
     laps: int = 3
@@ -134,14 +129,26 @@ class RaceRules:
     reset_loop_count: int = 5  # off-tracks in a row, each within reset_loop_seconds of the reset before it,
     reset_loop_seconds: float = 1.0  # end the run: the car cannot drive on from where it is put back
 
-    @property
-    def crash_resets(self) -> bool:
-        """Does a crash into a box reset the car (object avoidance)?"""
-        return self.name == "object_avoidance"
+    crash_resets: ClassVar[bool] = False  # does a crash into a box reset the car (object avoidance)?
+    projects_standings: ClassVar[bool] = True  # standings project finishing times (False: they are the ranking)
+    solo: ClassVar[bool] = True  # each car's run is scored on its own (a time trial), not against the others
+    league_stage: ClassVar[str | None] = None  # the league.toml section (stage) that races this format, if any
+
+    def __post_init__(self):
+        if not 0 <= self.obstacles <= 6:
+            raise ValueError(f"obstacles: must be 0 to 6, got {self.obstacles}")
 
     def time_up(self, sim_time: float) -> bool:
         """Has the format's time window (reset_rule: 4 minutes) ended?"""
         return self.time_limit is not None and sim_time >= self.time_limit - 1e-9
+
+    def window_end(self) -> tuple[str, str]:
+        """(status, reason) of a run still going when the time window ends."""
+        return "timed_out", f"{self.time_limit:g} s window ended"
+
+    def finished(self, race: CarRace) -> bool:
+        """Has the car finished its race (after a lap it completed)?"""
+        return race.laps >= self.laps
 
     def contact(self, race: CarRace, clock: float, other: str, kind: str = "contact") -> dict:
         """Record a new incident of `race`'s car with `other` (a car or a box), nobody at fault yet; returns
@@ -171,7 +178,7 @@ class RaceRules:
             race.lap_start_time = clock
             race.lap_start_distance = boundary
             ruling.events.append("lap_complete")
-            if race.laps >= self.laps:
+            if self.finished(race):
                 ruling.end = ("finished", "", clock)
                 return ruling
         if step.wheels_on == 0:
@@ -227,16 +234,15 @@ class RaceRules:
         return None
 
     def rank_key(self, car: CarRace, track_length: float):
-        """Sort key: smaller ranks first."""
-        progress = car.distance - car.start_distance
-        if self.name == "reset_rule":
-            best = car.best_lap if car.best_lap is not None else math.inf
-            return (best, -car.laps, -progress)
+        """Sort key: smaller ranks first. The time trial: finished cars by total time, then the others by
+        laps and distance."""
         finished = car.status == "finished"
         total = car.finish_time if finished else math.inf
-        if self.name == "head_to_head":
-            return (-car.laps, total, -progress)
-        return (0 if finished else 1, total, -car.laps, -progress)
+        return (0 if finished else 1, total, -car.laps, -(car.distance - car.start_distance))
+
+    def standings_key(self, projected: float) -> tuple:
+        """`rank_key` of a car still racing whose finishing time (race clock) is projected as `projected`."""
+        return (0, projected, -self.laps, 0.0)
 
     def ranking(self, cars: list[CarRace], track_length: float) -> list[int]:
         """Indices of `cars` in finishing order (forfeits last)."""
@@ -254,19 +260,17 @@ class RaceRules:
         its average pace so far (sim time over the share of the race driven, plus its penalties). So a car
         that leads on the road with 10 s of penalties stands where it will finish, and once no car is
         racing the order is `ranking`'s, the result's. Before every racing car has driven
-        `STANDINGS_MIN_SHARE` of the race (the grid, the first metres) and under the reset rule (scored on
-        the best lap, no time penalties) it is `ranking`'s throughout."""
+        `STANDINGS_MIN_SHARE` of the race (the grid, the first metres) and in formats that do not project
+        (`projects_standings`: the reset rule, scored on the best lap) it is `ranking`'s throughout."""
         shares = {i: car.race_progress(track_length, self.laps) / 100.0 for i, car in enumerate(cars) if car.racing}
-        if self.name == "reset_rule" or not shares or min(shares.values()) < STANDINGS_MIN_SHARE:
+        if not self.projects_standings or not shares or min(shares.values()) < STANDINGS_MIN_SHARE:
             return self.ranking(cars, track_length)
 
         def key(i):
             car = cars[i]
             if i not in shares:
                 return (car.status == "forfeit",) + self.rank_key(car, track_length)
-            projected = sim_time / shares[i] + car.penalty_time
-            return (False,) + ((-self.laps, projected, 0.0) if self.name == "head_to_head"
-                               else (0, projected, -self.laps, 0.0))
+            return (False,) + self.standings_key(sim_time / shares[i] + car.penalty_time)
 
         return sorted(range(len(cars)), key=key)
 
@@ -391,25 +395,3 @@ class Stewards:
             return None
         self.rules.blame(self.races[(a, b)[fault][1]], records[fault], with_car=True)
         return (a, b)[1 - fault][1]
-
-
-def make_rules(race: str = "time_trial", laps: int = 3, obstacles: int | None = None, **overrides) -> RaceRules:
-    """The rules of a named format with DeepRacer's defaults, overridable per field."""
-    if race not in FORMATS:
-        raise ValueError(f"race: unknown format {race!r}; choose one of {', '.join(FORMATS)}")
-    whole = isinstance(laps, numbers.Integral) or (isinstance(laps, float) and laps.is_integer())
-    if isinstance(laps, bool) or not whole or laps < 1:
-        raise ValueError(f"laps: expected a whole number of at least 1, got {laps!r}")
-    defaults: dict = {"name": race, "laps": int(laps), "obstacles": 0}
-    if race == "reset_rule":
-        defaults.update(max_resets=3, time_limit=240.0, off_track_penalty=0.0)
-    elif race == "object_avoidance":
-        defaults.update(obstacles=3)
-    elif race == "head_to_head":
-        defaults.update(penalise_striker=True)
-    if obstacles is not None:
-        defaults["obstacles"] = int(obstacles)
-    defaults.update(overrides)
-    if not 0 <= defaults["obstacles"] <= 6:
-        raise ValueError(f"obstacles: must be 0 to 6, got {defaults['obstacles']}")
-    return RaceRules(**defaults)

@@ -8,7 +8,7 @@ except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 from pathlib import Path
 
-from ..environment.rules import FORMATS
+from ..environment.formats import FORMATS
 from ..resources import league_dir
 
 
