@@ -1,4 +1,8 @@
-"""League definitions: `league.toml` parsed against its declared fields, with errors naming the file and field."""
+"""League definitions: `league.toml` parsed against its declared fields, with errors naming the file and field.
+
+The league's stages (its `[time_trial]` and `[head_to_head]` sections) come from the race formats that name a
+league stage (`RaceRules.league_stage`, `environment.formats`): a solo format's stage races each entrant alone
+(time trials, scored in the time-trial table), a multi-car format's stage races heats (rated)."""
 from __future__ import annotations
 
 import dataclasses
@@ -8,7 +12,7 @@ except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 from pathlib import Path
 
-from ..environment.formats import FORMATS
+from ..environment.formats import FORMATS, league_stages
 from ..resources import league_dir
 
 
@@ -17,7 +21,6 @@ DB = "results.sqlite"
 SUBMISSIONS = "submissions"
 REPLAYS = "replays"
 DEFAULT_TOML = league_dir() / "default.toml"
-TIME_TRIAL_FORMAT = "reset_rule"  # time trials run under the AWS Summit reset rule
 SUBMIT_TIMEOUT = 120.0
 WORKER_STARTUP_TIMEOUT = 120.0
 LEAGUE_NAME_LENGTH = 100
@@ -34,6 +37,18 @@ class TrackSpec:
     directions: tuple[str, ...] = ("forward",)
 
 
+@dataclasses.dataclass(frozen=True)
+class Stage:
+    """A league stage: a league.toml section (and the `kind` of its scheduled matches) racing one format."""
+
+    name: str  # the section, e.g. "time_trial"
+    race: str  # the format its matches race, e.g. "reset_rule"
+    solo: bool  # each entrant races alone (scored in the time-trial table); else heats of several (rated)
+
+
+STAGES = {name: Stage(name, rules.name, rules.solo) for name, rules in league_stages().items()}
+
+
 @dataclasses.dataclass
 class LeagueConfig:
     """A parsed, validated league.toml."""
@@ -47,9 +62,17 @@ class LeagueConfig:
     match_timeout: float
     replays: bool
     replay_image_every: int
-    time_trial: dict | None  # {"laps", "trials", "max_steps"}
-    head_to_head: dict | None  # {"cars", "laps", "trials", "max_steps", "schedule", "opponents", ...}
+    stages: dict  # the enabled stages' settings, by stage name (`STAGES`): solo {"laps", "trials", "max_steps"},
+    # heats also {"cars", "schedule", "opponents", "stop_sigma", "batch"}
     source: str = TOML
+
+    @property
+    def time_trial(self) -> dict | None:
+        return self.stages.get("time_trial")
+
+    @property
+    def head_to_head(self) -> dict | None:
+        return self.stages.get("head_to_head")
 
 
 REQUIRED = object()  # a Field without a default
@@ -67,19 +90,27 @@ class Field:
 
 
 _LAPS, _TRIALS, _MAX_STEPS = Field(int, 3, minimum=1), Field(int, 1, minimum=1), Field(int, None, minimum=1)
+
+
+def _stage_fields(stage: Stage) -> dict:
+    """The keys of a stage's section: every stage's, and the heats' own for a multi-car one."""
+    fields = {"enabled": Field(bool, True), "format": Field(str, stage.race)}
+    if not stage.solo:
+        fields["cars"] = Field(int, 2, minimum=2, maximum=8)
+    fields.update(laps=_LAPS, trials=_TRIALS, max_steps=_MAX_STEPS)
+    if not stage.solo:
+        fields.update(schedule=Field(str, "round_robin"), opponents=Field(int, None, minimum=1),
+                      stop_sigma=Field((float, int), None, above=0), batch=Field(int, None, minimum=1))
+    return fields
+
+
 SCHEMA = {  # every section, key, type and range league.toml may hold
     "league": {"name": Field(str), "seeds": Field(list), "bots": Field(list, []),
                "step_budget": Field((float, int), 1.0 / 15, above=0, maximum=10),
                "max_retries": Field(int, 2, minimum=0), "match_timeout": Field((float, int), 600.0, above=0),
                "replays": Field(bool, True), "replay_image_every": Field(int, 0, minimum=0)},
     "tracks": {"name": Field(str), "directions": Field(list, ["forward"])},  # each [[tracks]] table
-    "time_trial": {"enabled": Field(bool, True), "format": Field(str, TIME_TRIAL_FORMAT), "laps": _LAPS,
-                   "trials": _TRIALS, "max_steps": _MAX_STEPS},
-    "head_to_head": {"enabled": Field(bool, True), "format": Field(str, "head_to_head"),
-                     "cars": Field(int, 2, minimum=2, maximum=8), "laps": _LAPS, "trials": _TRIALS,
-                     "max_steps": _MAX_STEPS, "schedule": Field(str, "round_robin"),
-                     "opponents": Field(int, None, minimum=1), "stop_sigma": Field((float, int), None, above=0),
-                     "batch": Field(int, None, minimum=1)},
+    **{name: _stage_fields(stage) for name, stage in STAGES.items()},
 }
 
 
@@ -114,19 +145,43 @@ SCHEDULES = ("round_robin", "uncertainty")
 UNCERTAINTY_ONLY = ("opponents", "stop_sigma", "batch")
 
 
-def _check_schedule(h2h: dict, raw: dict, source: str) -> None:
-    """head_to_head.schedule is a known schedule; the uncertainty schedule's settings only come with it, and
+def _check_schedule(name: str, heats: dict, raw: dict, source: str) -> None:
+    """A heat stage's schedule is a known schedule; the uncertainty schedule's settings only come with it, and
     it races pairs."""
-    if h2h["schedule"] not in SCHEDULES:
-        raise LeagueError(f"{source}: 'head_to_head.schedule' must be \"round_robin\" (every pair meets) or "
-                          f"\"uncertainty\" (pairs planned where the table is unsure), got {h2h['schedule']!r}")
-    if h2h["schedule"] == "round_robin":
+    if heats["schedule"] not in SCHEDULES:
+        raise LeagueError(f"{source}: '{name}.schedule' must be \"round_robin\" (every pair meets) or "
+                          f"\"uncertainty\" (pairs planned where the table is unsure), got {heats['schedule']!r}")
+    if heats["schedule"] == "round_robin":
         for key in UNCERTAINTY_ONLY:
             if key in raw:
-                raise LeagueError(f"{source}: 'head_to_head.{key}' applies only with schedule = \"uncertainty\"")
-    elif h2h["cars"] != 2:
-        raise LeagueError(f"{source}: 'head_to_head.cars' must be 2 with schedule = \"uncertainty\" (it plans "
-                          f"pairs), got {h2h['cars']}")
+                raise LeagueError(f"{source}: '{name}.{key}' applies only with schedule = \"uncertainty\"")
+    elif heats["cars"] != 2:
+        raise LeagueError(f"{source}: '{name}.cars' must be 2 with schedule = \"uncertainty\" (it plans "
+                          f"pairs), got {heats['cars']}")
+
+
+def _parse_stages(data: dict, source: str) -> dict:
+    """The enabled stages' sections (`STAGES`), each racing its stage's format; at least one."""
+    stages = {}
+    for name, stage in STAGES.items():
+        if name not in data:
+            continue
+        section = _section(data[name], SCHEMA[name], source, f"{name}.")
+        if not section.pop("enabled"):
+            continue
+        race = section.pop("format")
+        if race != stage.race:
+            if race not in FORMATS:
+                raise LeagueError(f"{source}: '{name}.format' is {race!r}, an unknown format "
+                                  f"(known: {', '.join(FORMATS)})")
+            raise LeagueError(f"{source}: '{name}.format' must be {stage.race!r} (the league's "
+                              f"{name.replace('_', ' ')} stage races it), got {race!r}")
+        if not stage.solo:
+            _check_schedule(name, section, data[name], source)
+        stages[name] = section
+    if not stages:
+        raise LeagueError(f"{source}: needs a {' or a '.join(f'[{name}]' for name in STAGES)} section")
+    return stages
 
 
 def parse_config(text: str, source: str = TOML) -> LeagueConfig:
@@ -169,31 +224,11 @@ def parse_config(text: str, source: str = TOML) -> LeagueConfig:
 
     tracks = _parse_tracks(data.get("tracks"), source)
 
-    formats = {}
-    for key in ("time_trial", "head_to_head"):
-        if key in data:
-            section = _section(data[key], SCHEMA[key], source, f"{key}.")
-            if section.pop("enabled"):
-                formats[key] = section
-    tt, h2h = formats.get("time_trial"), formats.get("head_to_head")
-    if tt is not None and tt.pop("format") != TIME_TRIAL_FORMAT:
-        fmt = data["time_trial"]["format"]
-        if fmt not in FORMATS:
-            raise LeagueError(f"{source}: 'time_trial.format' is {fmt!r}, an unknown format "
-                              f"(known: {', '.join(FORMATS)})")
-        raise LeagueError(f"{source}: 'time_trial.format' must be {TIME_TRIAL_FORMAT!r} (time trials run "
-                          f"under the reset rule), got {fmt!r}")
-    if h2h is not None and h2h.pop("format") != "head_to_head":
-        raise LeagueError(f"{source}: 'head_to_head.format' must be 'head_to_head', got "
-                          f"{data['head_to_head']['format']!r}")
-    if h2h is not None:
-        _check_schedule(h2h, data["head_to_head"], source)
-    if tt is None and h2h is None:
-        raise LeagueError(f"{source}: needs a [time_trial] or a [head_to_head] section")
+    stages = _parse_stages(data, source)
     return LeagueConfig(name=name, tracks=tracks, seeds=list(seeds), bots=list(bots),
                         step_budget=float(league["step_budget"]), max_retries=league["max_retries"],
                         match_timeout=float(league["match_timeout"]), replays=league["replays"],
-                        replay_image_every=league["replay_image_every"], time_trial=tt, head_to_head=h2h,
+                        replay_image_every=league["replay_image_every"], stages=stages,
                         source=source)
 
 

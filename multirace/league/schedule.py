@@ -1,12 +1,13 @@
-"""The schedule, kept in the store: time trials and head-to-head heats, a round robin built at once or the
-uncertainty schedule's pairings planned batch by batch from the results so far."""
+"""The schedule, kept in the store: each league stage's matches (`config.STAGES`): a solo stage's time trials,
+a heat stage's heats, a round robin built at once or the uncertainty schedule's pairings planned batch by
+batch from the results so far."""
 from __future__ import annotations
 
 import hashlib
 import itertools
 import json
 
-from .config import TIME_TRIAL_FORMAT, LeagueConfig
+from .config import STAGES, LeagueConfig, Stage
 from .store import _Tx
 from .uncertainty import next_pairs
 
@@ -39,16 +40,16 @@ def _entrant_spec(config: LeagueConfig, e: dict) -> dict:
     return {"name": e["name"], "spec": e["spec"], "sha256": e["sha256"], "step_budget": budget}
 
 
-def _heat_matches(config: LeagueConfig, heat: list[dict]) -> list[tuple[int, dict]]:
+def _heat_matches(config: LeagueConfig, stage: Stage, heat: list[dict]) -> list[tuple[int, dict]]:
     """Every match of one heat's entrants, (block * trials + trial, spec) per (track, direction, seed) block
     and trial; the grid is the heat rotated by (block + trial + an offset drawn from its entrants' names)."""
-    h, out = config.head_to_head, []
+    h, out = config.stages[stage.name], []
     for b, (track, reverse, seed) in enumerate(_blocks(config)):
         for trial in range(h["trials"]):
             shift = (b * h["trials"] + trial + _heat_offset([e["name"] for e in heat])) % len(heat)
             grid = heat[shift:] + heat[:shift]
             out.append((b * h["trials"] + trial,
-                        {"kind": "head_to_head", "race": "head_to_head", "track": track, "reverse": reverse,
+                        {"kind": stage.name, "race": stage.race, "track": track, "reverse": reverse,
                          "seed": seed, "trial": trial, "laps": h["laps"], "max_steps": h["max_steps"],
                          "entrants": [_entrant_spec(config, e) for e in grid]}))
     return out
@@ -59,75 +60,95 @@ def _row(kind: str, round_no: int, spec: dict) -> dict:
     return {"kind": kind, "round": round_no, "spec": {**spec, "match_id": match_id}, "match_id": match_id}
 
 
-def build_schedule(config: LeagueConfig, entries: list[dict]) -> list[dict]:
-    """The deterministic schedule: a list of {"match_id", "kind", "round", "spec"} in schedule order.
+def _solo_matches(config: LeagueConfig, stage: Stage, entries: list[dict]) -> list[dict]:
+    """A solo stage's time trials: every entrant alone, per track, direction, seed and trial."""
+    tt, rows = config.stages[stage.name], []
+    for b, (track, reverse, seed) in enumerate(_blocks(config)):
+        for trial in range(tt["trials"]):
+            for e in entries:
+                spec = {"kind": stage.name, "race": stage.race, "track": track, "reverse": reverse, "seed": seed,
+                        "trial": trial, "laps": tt["laps"], "max_steps": tt["max_steps"],
+                        "entrants": [_entrant_spec(config, e)]}
+                rows.append(_row(stage.name, b * tt["trials"] + trial, spec))
+    return rows
 
-    Time trials: every entrant, per track, direction, seed and trial. Head-to-head with the round robin:
-    every K-subset of entrants (so every pair meets equally often) per track, direction, seed and trial
-    (`_heat_matches`), so over blocks each entrant starts from each slot, and a heat's id does not change
-    when another entrant joins (a new entrant or version adds only its own matches). A round is one
+
+def _round_robin(config: LeagueConfig, stage: Stage, entries: list[dict]) -> list[dict]:
+    """A heat stage's round robin: every K-subset of the entrants, block by block."""
+    k = min(config.stages[stage.name]["cars"], len(entries))
+    heats = [(i, match) for i, heat in enumerate(itertools.combinations(entries, k))
+             for match in _heat_matches(config, stage, list(heat))]
+    heats.sort(key=lambda item: item[1][0])  # block by block, heats in the same order within each
+    return [_row(stage.name, round_no, spec) for _, (round_no, spec) in heats]
+
+
+def _stages(config: LeagueConfig, schedule: str | None = None) -> list[Stage]:
+    """The league's enabled stages, in `STAGES` order; with `schedule`, only the heat stages scheduled so."""
+    return [stage for name, stage in STAGES.items() if name in config.stages
+            and (schedule is None or not stage.solo and config.stages[name]["schedule"] == schedule)]
+
+
+def build_schedule(config: LeagueConfig, entries: list[dict]) -> list[dict]:
+    """The deterministic schedule: a list of {"match_id", "kind", "round", "spec"} in schedule order, stage
+    by stage.
+
+    A solo stage (time trials): every entrant, per track, direction, seed and trial. A heat stage with the
+    round robin: every K-subset of entrants (so every pair meets equally often) per track, direction, seed
+    and trial (`_heat_matches`), so over blocks each entrant starts from each slot, and a heat's id does not
+    change when another entrant joins (a new entrant or version adds only its own matches). A round is one
     (track, direction, seed, trial) block of heats. The uncertainty schedule's heats are planned as
     results arrive (`sync_schedule`), not here.
     """
     schedule = []
-    if config.time_trial:
-        tt = config.time_trial
-        for b, (track, reverse, seed) in enumerate(_blocks(config)):
-            for trial in range(tt["trials"]):
-                for e in entries:
-                    spec = {"kind": "time_trial", "race": TIME_TRIAL_FORMAT, "track": track, "reverse": reverse,
-                            "seed": seed, "trial": trial, "laps": tt["laps"], "max_steps": tt["max_steps"],
-                            "entrants": [_entrant_spec(config, e)]}
-                    schedule.append(_row("time_trial", b * tt["trials"] + trial, spec))
-    if config.head_to_head and len(entries) >= 2 and config.head_to_head["schedule"] == "round_robin":
-        k = min(config.head_to_head["cars"], len(entries))
-        heats = [(i, match) for i, heat in enumerate(itertools.combinations(entries, k))
-                 for match in _heat_matches(config, list(heat))]
-        heats.sort(key=lambda item: item[1][0])  # block by block, heats in the same order within each
-        schedule += [_row("head_to_head", round_no, spec) for _, (round_no, spec) in heats]
+    for stage in _stages(config):
+        if stage.solo:
+            schedule += _solo_matches(config, stage, entries)
+        elif len(entries) >= 2 and config.stages[stage.name]["schedule"] == "round_robin":
+            schedule += _round_robin(config, stage, entries)
     return schedule
 
 
-def _planned_heats(config: LeagueConfig, entries: list[dict], conn) -> list[dict]:
-    """The uncertainty schedule's heats among the current entrants: those planned so far (stored), and the
-    next batch (`uncertainty.next_pairs`) once every planned heat has a result. Heats of earlier versions
-    or another league definition are not current: their ids differ."""
+def _planned_heats(config: LeagueConfig, stage: Stage, entries: list[dict], conn) -> list[dict]:
+    """The uncertainty schedule's heats of a heat stage among the current entrants: those planned so far
+    (stored), and the next batch (`uncertainty.next_pairs`) once every planned heat has a result. Heats of
+    earlier versions or another league definition are not current: their ids differ."""
     from openskill.models import PlackettLuce
 
     by_name = {e["name"]: e for e in entries}
     stored = conn.execute("SELECT s.match_id, s.round, s.spec, r.status, r.result FROM schedule s LEFT JOIN "
-                          "results r USING (match_id) WHERE s.kind = 'head_to_head' ORDER BY s.seq").fetchall()
+                          "results r USING (match_id) WHERE s.kind = ? ORDER BY s.seq", (stage.name,)).fetchall()
     pairs, ids, orders, waiting = {}, {}, [], False
     for match_id, round_no, spec, status, result in stored:
         names = tuple(sorted(e["name"] for e in json.loads(spec)["entrants"]))
         if len(names) != 2 or not all(n in by_name for n in names):
             continue
         if names not in ids:
-            ids[names] = {_match_id(spec) for _, spec in _heat_matches(config, [by_name[n] for n in names])}
+            ids[names] = {_match_id(spec) for _, spec in _heat_matches(config, stage, [by_name[n] for n in names])}
         if match_id in ids[names]:
             pairs.setdefault(names, round_no)
             waiting |= status is None
             if status == "ok":
                 cars = sorted(json.loads(result)["cars"], key=lambda c: c["position"])
                 orders.append([(c["name"], c["position"]) for c in cars if c["name"] in by_name])
-    rows = [_row("head_to_head", round_no, spec) for names, round_no in pairs.items()
-            for _, spec in _heat_matches(config, [by_name[n] for n in names])]
+    rows = [_row(stage.name, round_no, spec) for names, round_no in pairs.items()
+            for _, spec in _heat_matches(config, stage, [by_name[n] for n in names])]
     stored_ids = {row[0] for row in stored}
     if waiting or any(row["match_id"] not in stored_ids for row in rows):
         return rows  # a batch is still running: the next one is planned from its results
     next_round = 1 + max((row[1] for row in stored), default=-1)
     for a, b in next_pairs(PlackettLuce(), sorted(by_name), orders, {frozenset(p) for p in pairs},
-                           config.head_to_head):
-        rows += [_row("head_to_head", next_round, spec) for _, spec in _heat_matches(config, [by_name[a], by_name[b]])]
+                           config.stages[stage.name]):
+        rows += [_row(stage.name, next_round, spec)
+                 for _, spec in _heat_matches(config, stage, [by_name[a], by_name[b]])]
     return rows
 
 
 def current_schedule(config: LeagueConfig, entries: list[dict], conn) -> list[dict]:
-    """The schedule of the current entrants: `build_schedule`, and with the uncertainty schedule the heats
-    planned so far plus the next batch when it is due (reads the store only)."""
+    """The schedule of the current entrants: `build_schedule`, and for each heat stage with the uncertainty
+    schedule the heats planned so far plus the next batch when it is due (reads the store only)."""
     schedule = build_schedule(config, entries)
-    if config.head_to_head and config.head_to_head["schedule"] == "uncertainty":
-        schedule += _planned_heats(config, entries, conn)
+    for stage in _stages(config, schedule="uncertainty"):
+        schedule += _planned_heats(config, stage, entries, conn)
     return schedule
 
 

@@ -1,5 +1,8 @@
 """League tables: OpenSkill ratings, time-trial standings, clean driving; Markdown, CSV, JSON, HTML, PNG.
 
+Each league stage (`config.STAGES`) feeds its tables: a solo stage's time
+trials the time-trial standings, a heat stage's heats the ratings.
+
 Ratings: OpenSkill's Plackett-Luce model, one update per head-to-head heat
 with the heat's finishing order, heats taken in schedule order (so the
 ratings are deterministic); the rating shown is the ordinal, mu - 3 sigma.
@@ -21,7 +24,7 @@ from pathlib import Path
 
 from ..atomic import write_bytes, write_text
 from ..text import TEXT_LENGTH, display_name
-from .config import load_config
+from .config import STAGES, load_config
 from .schedule import current_schedule, entrants
 from .store import connect
 
@@ -91,9 +94,10 @@ def compute_table(folder) -> dict:
                          for c in cars]
         matches.append(entry)
         _add_car_totals(stats, cars)
-        if kind == "time_trial":
+        stage = STAGES.get(kind)
+        if stage is not None and stage.solo:  # a time trial: the time-trial table
             _add_time_trial(stats, cars)
-        elif kind == "head_to_head" and len(cars) >= 2:
+        elif stage is not None and len(cars) >= 2:  # a heat: the ratings
             if current_round is not None and round_no != current_round:
                 snapshot(current_round)
             current_round = round_no
