@@ -79,3 +79,42 @@ def test_a_reward_must_be_a_finite_number(tmp_path, value, ok):
     else:
         with pytest.raises(RewardFunctionError, match="returns.py"):
             env.step({"car_0": 7})
+
+
+def test_named_training_rewards_and_their_weights_in_one_place():
+    import dataclasses
+
+    from multirace.environment.rewards import (NAMED_REWARDS, NO_REWARD, RewardWeights, follow_centre_line,
+                                               progress_reward)
+    from multirace.train.config import TrainConfig, make_config
+
+    assert NAMED_REWARDS["progress"].trainer is progress_reward and NAMED_REWARDS["progress"].env_reward() is NO_REWARD
+    assert NAMED_REWARDS["centre"].env_reward() is follow_centre_line
+    weights = RewardWeights()
+    assert (weights.progress_weight, weights.centre_weight, weights.off_track_penalty) == (1.0, 0.1, 1.0)
+    assert {f.name for f in dataclasses.fields(RewardWeights)} <= {f.name for f in dataclasses.fields(TrainConfig)}
+    assert RewardWeights.of(make_config("fast", progress_weight=2.0)) == RewardWeights(progress_weight=2.0)
+    params = {"track_width": 1.0, "distance_from_center": 0.25, "is_offtrack": False}
+    assert progress_reward(params, 0.1, 0.05, weights) == pytest.approx(2.0 + 0.1 * 0.5)
+    assert progress_reward({**params, "is_offtrack": True}, 0.0, 0.05, weights) == pytest.approx(0.05 - 1.0)
+
+
+def test_the_train_env_runs_no_reward_in_the_race_env_when_it_computes_its_own():
+    from multirace.environment.rewards import NO_REWARD
+    from multirace.train.envs import TrainEnv
+
+    for reward, runs_none in (("progress", True), ("centre", False)):
+        env = TrainEnv([("reinvent_base", False)], num_cars=1, camera=(30, 40), reward=reward, progress_weight=2.0)
+        env.reset(seed=0)
+        assert (env.env.reward_function is NO_REWARD) == runs_none
+        train_rewards = []
+        for _ in range(15):
+            _, rewards, _, _, _ = env.step({"car_0": 7})
+            train_rewards.append(rewards["car_0"])
+        env.close()
+        assert all(r > 0 for r in train_rewards)
+        if reward == "centre":  # the env's DeepRacer reward, unchanged
+            assert set(train_rewards) <= {1.0, 0.5, 0.1, 1e-3}
+    race = multirace.parallel_env(num_cars=1)  # a PettingZoo user's default: the console's centre-line reward
+    assert race.reward_function.function.__name__ == "follow_centre_line"
+    race.close()

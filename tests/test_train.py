@@ -192,7 +192,7 @@ def test_proximity_penalty_counts_a_car_alongside_with_too_little_room():
 
     env = TrainEnv([("reinvent_base", False)], num_cars=2, camera=(30, 40), proximity_penalty=1.0)
     env.reset(seed=0)
-    width, room = env.env.car_spec.width, env.proximity_side_room
+    width, room = env.env.car_spec.width, env.weights.proximity_side_room
 
     def cost(lateral_gap, behind_by, ahead_by=5.0):
         """The car on the centre line, the other `behind_by` m behind its point, `lateral_gap` m to its left."""

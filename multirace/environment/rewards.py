@@ -15,9 +15,16 @@ runs in a process's main thread) on its own copy of the params. Either way,
 every way it can fail (an exception, `sys.exit`, a hang, a value that is not
 a finite number in range: DeepRacer requires a float) is a
 `RewardFunctionError` naming the file, the step and the car.
+
+The training rewards chosen by name (`multirace train --reward NAME`) are in
+`NAMED_REWARDS`, one line each: the built-in ``progress`` (`progress_reward`,
+computed by the trainer, its weights in `RewardWeights`) beside the DeepRacer
+console's ``centre`` (`follow_centre_line`, run by the env). An env whose
+trainer computes its own reward runs `NO_REWARD`: nothing per car per step.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import numbers
 import os
@@ -112,6 +119,36 @@ def follow_centre_line(params: dict) -> float:
     return float(reward)
 
 
+@dataclasses.dataclass
+class RewardWeights:
+    """The training rewards' weights, in one place (`TrainConfig` has them as settings of the same names)."""
+
+    progress_weight: float = 1.0  # "progress" reward: metres along the centre line per step / (1 m/s * dt)
+    centre_weight: float = 0.1  # "progress" reward: bonus of up to this for staying near the centre line
+    off_track_penalty: float = 1.0  # "progress" reward: subtracted on an off-track step
+    collision_penalty: float = 0.0  # any reward: subtracted per collision the car causes (it struck a car or box)
+    proximity_penalty: float = 0.0  # any reward: subtracted per step, up to this, for closing in on a car or box ahead in its lane or running alongside one too close
+    proximity_gap: float = 1.0  # metres ahead within which proximity_penalty starts (0 at this gap, full when touching)
+    proximity_side_room: float = 0.1  # metres of side room below which a car ahead counts as in the lane, or one alongside as too close
+
+    @classmethod
+    def of(cls, settings) -> RewardWeights:
+        """The weights of an object that has them as attributes (a `TrainConfig`)."""
+        return cls(**{f.name: getattr(settings, f.name) for f in dataclasses.fields(cls)})
+
+
+def progress_reward(params: dict, gained: float, dt: float, weights: RewardWeights) -> float:
+    """The built-in training reward ``progress``: the metres `gained` along the centre line over the step of
+    `dt` seconds in units of 1 m/s, plus a bonus of up to `centre_weight` for staying near the centre line,
+    minus `off_track_penalty` on an off-track."""
+    width = max(params["track_width"], 1e-3)
+    centre = max(0.0, 1.0 - 2.0 * params["distance_from_center"] / width)
+    reward = weights.progress_weight * gained / dt + weights.centre_weight * centre
+    if params["is_offtrack"]:
+        reward -= weights.off_track_penalty
+    return reward
+
+
 class RewardFunction:
     """A reward function with a label for error messages (its file, or its name)."""
 
@@ -171,3 +208,39 @@ class RewardFunction:
 
     def _error(self, what: str, step: int, car: str, detail: str = "") -> RewardFunctionError:
         return RewardFunctionError(f"reward function {self.label} {what} at step {step} for {car}{detail}")
+
+
+class NoReward(RewardFunction):
+    """The env's reward where the trainer computes its own: every car 0.0, nothing called."""
+
+    def __init__(self):
+        super().__init__(None, "none (the trainer computes the reward)")
+
+    def __call__(self, params: dict, step: int, car: str) -> float:
+        return 0.0
+
+    def rewards(self, params_list: list, step: int, cars: list) -> list:
+        return [0.0] * len(cars)
+
+
+NO_REWARD = NoReward()
+
+
+@dataclasses.dataclass(frozen=True)
+class NamedReward:
+    """A training reward chosen by name: a DeepRacer reward function the env runs for every car
+    (`function`), or a reward the trainer computes from each car's params (`trainer`: `progress_reward`'s
+    signature; the env then runs `NO_REWARD`)."""
+
+    function: Callable[[dict], float] | None = None
+    trainer: Callable[[dict, float, float, RewardWeights], float] | None = None
+
+    def env_reward(self) -> Callable[[dict], float] | RewardFunction:
+        """What the env runs for this reward (its `reward_function`)."""
+        return NO_REWARD if self.trainer is not None else self.function
+
+
+NAMED_REWARDS = {  # `--reward NAME`; any other value names a DeepRacer reward .py file
+    "progress": NamedReward(trainer=progress_reward),
+    "centre": NamedReward(function=follow_centre_line),
+}

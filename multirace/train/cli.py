@@ -6,6 +6,7 @@ import shlex
 import sys
 from pathlib import Path
 
+from ..environment.rewards import NAMED_REWARDS
 from ..options import COUNT, POSITIVE, POSITIVE_INT, SEED, input_file, number, output_file
 from ..resources import agent_argument
 
@@ -36,8 +37,8 @@ def add_train_parser(sub) -> None:
                    help="model_metadata.json with the action space (or a shipped one by name: "
                         "action_space_racer.json)")
     p.add_argument("--reward", default=None,
-                   help="'progress' (built-in, default), 'centre' (DeepRacer default) or a reward .py file (the "
-                        "shipped example: reward_speed_progress.py)")
+                   help="a named reward: 'progress' (built-in, default), 'centre' (DeepRacer default); or a reward "
+                        ".py file (the shipped example: reward_speed_progress.py)")
     p.add_argument("--network", default=None, help="MULTIRACE_SMALL_CNN or DEEP_CONVOLUTIONAL_NETWORK_SHALLOW")
     p.add_argument("--envs", type=POSITIVE_INT, default=None, help="worker processes (default 2)")
     p.add_argument("--cars", type=number(int, minimum=1, maximum=8), default=None,
@@ -105,7 +106,7 @@ def shipped_or_given(path: str | None, suffix: str) -> str | None:
     `reward_speed_progress.py`) when there is no such file here."""
     from ..resources import agents_dir
 
-    if path in (None, "progress", "centre") or Path(path).exists():
+    if path is None or path in NAMED_REWARDS or Path(path).exists():
         return path
     shipped = agents_dir() / Path(path).name
     return str(shipped) if shipped.suffix == suffix and shipped.is_file() else path
@@ -126,8 +127,9 @@ def check_inputs(config) -> None:
     if config.network not in NETWORKS:
         raise ValueError(f"--network: unknown network {config.network!r}; choose from {', '.join(NETWORKS)}")
     check_tracks(config.tracks, "--track")
-    if config.reward not in ("progress", "centre") and not Path(config.reward).is_file():
-        raise ValueError(f"--reward: {config.reward}: no such file (give progress, centre or a reward .py file)")
+    if config.reward not in NAMED_REWARDS and not Path(config.reward).is_file():
+        raise ValueError(f"--reward: {config.reward}: no such file (give {', '.join(NAMED_REWARDS)} or a reward "
+                         f".py file)")
     try:
         load_action_space(config.action_space)
     except (ValueError, OSError) as exc:

@@ -25,6 +25,7 @@ import dataclasses
 import json
 import math
 
+from ..environment.rewards import RewardWeights
 from ..racing.nets import SHALLOW, TINY
 from ..resources import agents_dir
 from ..sensors.suite import SensorSuite, declared_sensors
@@ -33,15 +34,16 @@ SHIPPED_AGENTS = agents_dir()
 
 
 @dataclasses.dataclass
-class TrainConfig:
-    """All training settings; see `PRESETS` for named bundles."""
+class TrainConfig(RewardWeights):
+    """All training settings; see `PRESETS` for named bundles. The reward weights (`progress_weight`,
+    `collision_penalty`, ...) are `RewardWeights`' fields, declared there once."""
 
     # ---- what to train on
     tracks: tuple = ("reinvent_base",)  # bundled track names or .npy paths; several = multi-track training
     reverse: str = "no"  # "no", "yes" or "both": the direction(s) each track is raced in
     procedural_tracks: int = 0  # seeded generated tracks (multirace.sim.trackgen) added to the track list
     action_space: object = None  # model_metadata.json path or dict; None = DeepRacer's 10 discrete actions
-    reward: str = "progress"  # "progress" (built-in shaped), "centre" (DeepRacer default) or a reward .py file
+    reward: str = "progress"  # a named reward (NAMED_REWARDS: "progress", built-in shaped; "centre", DeepRacer default) or a reward .py file
     camera: tuple = (120, 160)  # camera (height, width), grayscale as DeepRacer
     network: str = TINY  # nets.NETWORKS name: MULTIRACE_TINY_CNN, MULTIRACE_SMALL_CNN or DEEP_CONVOLUTIONAL_NETWORK_SHALLOW
     sensor: tuple = ("FRONT_FACING_CAMERA",)  # DeepRacer's sensor list the cars read, e.g. ["STEREO_CAMERAS"] or ["FRONT_FACING_CAMERA", "SECTOR_LIDAR"] (see multirace.sensors.suite)
@@ -54,14 +56,7 @@ class TrainConfig:
     bots_ahead_spread: float = 0.0  # with bots_ahead: each bot starts up to this many metres further ahead, drawn per episode, so the passes happen all round the lap
     episode_steps: int = 1500  # env steps before the env is reset to the start grid (100 s at 15 Hz)
     terminate_off_track: bool = True  # an off-track ends that car's training episode (value target 0)
-    off_track_penalty: float = 1.0  # reward subtracted on an off-track step
-    collision_penalty: float = 0.0  # reward subtracted per collision the car causes (it struck a car or box)
     terminate_collision: bool = False  # a collision the car causes ends its training episode (like an off-track)
-    proximity_penalty: float = 0.0  # reward subtracted per step, up to this, for closing in on a car or box ahead in its lane or running alongside one too close
-    proximity_gap: float = 1.0  # metres ahead within which proximity_penalty starts (0 at this gap, full when touching)
-    proximity_side_room: float = 0.1  # metres of side room below which a car ahead counts as in the lane, or one alongside as too close
-    progress_weight: float = 1.0  # "progress" reward: metres along the centre line per step / (1 m/s * dt)
-    centre_weight: float = 0.1  # "progress" reward: bonus of up to this for staying near the centre line
     randomize: object = None  # env domain randomisation: None, "mild", "strong" or a dict (see randomize.py)
     # ---- PPO
     rollout_steps: int = 256  # steps per env per iteration (batch = num_envs * cars_per_env * rollout_steps)
@@ -205,7 +200,7 @@ def describe() -> str:
     import inspect
 
     lines = []
-    source = inspect.getsource(TrainConfig).splitlines()
+    source = (inspect.getsource(TrainConfig) + inspect.getsource(RewardWeights)).splitlines()
     for f in dataclasses.fields(TrainConfig):
         doc = next((line.split("#", 1)[1].strip() for line in source
                     if line.strip().startswith(f"{f.name}:") and "#" in line), "")

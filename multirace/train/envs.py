@@ -6,10 +6,12 @@ adds what training needs on top of the race env:
 
 - several tracks and directions: each env episode (reset) picks one of the
   `runs` at random; one `RaceEnv` per run is built lazily and kept;
-- the built-in ``"progress"`` reward: metres gained along the centre line per
-  step (in units of 1 m/s), plus a small centre-line bonus, minus a penalty on
-  an off-track; or the env's DeepRacer reward function (``"centre"`` or a
-  ``.py`` file) unchanged;
+- a named training reward (`rewards.NAMED_REWARDS`): the built-in
+  ``"progress"`` (`rewards.progress_reward`: metres gained along the centre
+  line per step in units of 1 m/s, plus a small centre-line bonus, minus a
+  penalty on an off-track), computed here while the env computes none
+  (`rewards.NO_REWARD`); or the env's DeepRacer reward function (``"centre"``
+  or a ``.py`` file) unchanged; the weights are one `RewardWeights`;
 - per-car training episodes: an off-track ends that car's episode (the race
   rules have already put it back on the centre line where it left, which is
   where its next episode starts), so there is no need to end the whole race;
@@ -41,10 +43,12 @@ adds what training needs on top of the race env:
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 
+from ..environment.rewards import NAMED_REWARDS, RewardWeights
 from ..recording.simtrace import closest_waypoint
 
 TEACHER_PREFIX = "teacher:"  # an expert spec naming a teacher file (`teacher.py`) instead of a bot
@@ -68,39 +72,32 @@ def env_settings(config) -> dict:
     return {"num_cars": config.cars_per_env, "bots": tuple(config.bots), "action_space": config.action_space,
             "reward": config.reward, "camera": tuple(config.camera), "sensor": config.sensors().names,
             "episode_steps": config.episode_steps,
-            "terminate_off_track": bool(config.terminate_off_track), "off_track_penalty": config.off_track_penalty,
-            "progress_weight": config.progress_weight, "centre_weight": config.centre_weight,
-            "randomize": config.randomize, "collision_penalty": config.collision_penalty,
-            "terminate_collision": config.terminate_collision, "proximity_penalty": config.proximity_penalty,
-            "proximity_gap": config.proximity_gap, "proximity_side_room": config.proximity_side_room,
+            "terminate_off_track": bool(config.terminate_off_track), "randomize": config.randomize,
+            "terminate_collision": config.terminate_collision, **dataclasses.asdict(RewardWeights.of(config)),
             "bots_ahead": config.bots_ahead, "bots_ahead_spread": config.bots_ahead_spread,
             "expert_labels": config.expert_coef > 0, "expert": config.expert, "deepracer_log": config.deepracer_log}
 
 
 class TrainEnv:
-    """See the module docstring. All arguments are plain data so the env pickles to worker processes."""
+    """See the module docstring. All arguments are plain data so the env pickles to worker processes; the
+    reward weights are `RewardWeights`' fields by name (`progress_weight=`, `collision_penalty=`, ...)."""
 
     def __init__(self, runs, num_cars=4, bots=(), action_space=None, reward="progress", camera=(120, 160),
-                 sensor=None, episode_steps=1500, terminate_off_track=True, off_track_penalty=1.0, progress_weight=1.0,
-                 centre_weight=0.1, randomize=None, shared=None, worker=0, collision_penalty=0.0,
-                 terminate_collision=False, proximity_penalty=0.0, proximity_gap=1.0, proximity_side_room=0.1,
-                 bots_ahead=0.0, bots_ahead_spread=0.0, expert_labels=False, expert="", deepracer_log=False,
-                 observation="camera", pool=1):
+                 sensor=None, episode_steps=1500, terminate_off_track=True, randomize=None, shared=None, worker=0,
+                 terminate_collision=False, bots_ahead=0.0, bots_ahead_spread=0.0, expert_labels=False, expert="",
+                 deepracer_log=False, observation="camera", pool=1, **weights):
         self.runs = list(runs)  # [(track name/path or Track rows, reverse)]
         self.num_cars = int(num_cars)
         self.bots = tuple(bots)
         self.action_space = action_space
         self.reward = reward
+        self.named_reward = NAMED_REWARDS.get(reward)  # None: a reward file
+        self.weights = RewardWeights(**{name: float(value) for name, value in weights.items()})
         self.camera = tuple(camera)
         self.sensor = sensor  # DeepRacer's sensor list (None: the single camera)
         self.episode_steps = int(episode_steps)
         self.terminate_off_track = bool(terminate_off_track)
-        self.off_track_penalty = float(off_track_penalty)
-        self.collision_penalty = float(collision_penalty)
         self.terminate_collision = bool(terminate_collision)
-        self.proximity_penalty = float(proximity_penalty)
-        self.proximity_gap = float(proximity_gap)
-        self.proximity_side_room = float(proximity_side_room)
         self.bots_ahead = float(bots_ahead)
         self.bots_ahead_spread = float(bots_ahead_spread)
         self.expert_labels = bool(expert_labels)
@@ -109,8 +106,6 @@ class TrainEnv:
         self.deepracer_log = bool(deepracer_log)  # each step's info carries the car's sim-trace params
         self.observation = observation  # "camera" (the sensors) or "state" (privileged vectors, for RL teachers)
         self.pool = int(pool)  # > 1: camera images go out as int16 sums of pool x pool pixel blocks (`nets.pool_image`)
-        self.progress_weight = float(progress_weight)
-        self.centre_weight = float(centre_weight)
         self.randomize = randomize
         self.shared = shared  # optional {"scale": mp.Value, "nature": mp.Array} written by the learner
         self.worker = int(worker)
@@ -131,7 +126,7 @@ class TrainEnv:
             track, reverse = self.runs[k]
             if isinstance(track, np.ndarray):
                 track = Track(track, name=f"generated_{k}", source="<trackgen>", reverse=reverse)
-            reward = None if self.reward in ("progress", "centre", None) else self._reward_file()
+            reward = self._reward_file() if self.named_reward is None else self.named_reward.env_reward()
             self._envs[k] = RaceEnv(track=track, reverse=reverse, num_cars=self.num_cars, race="time_trial",
                                     laps=100000, bots=self.bots, action_space=self.action_space,
                                     reward_function=reward, camera=self.camera, sensor=self.sensor,
@@ -259,11 +254,11 @@ class TrainEnv:
             return abs(own - other) - spec.width
 
         cost = 0.0
-        if side_room(ahead) < self.proximity_side_room:
+        if side_room(ahead) < self.weights.proximity_side_room:
             gap = (along[ahead] - here) % self.track_length
-            cost = max(0.0, 1.0 - gap / self.proximity_gap)
+            cost = max(0.0, 1.0 - gap / self.weights.proximity_gap)
         if (here - along[behind]) % self.track_length < spec.length:
-            cost = max(cost, min(1.0, 1.0 - side_room(behind) / self.proximity_side_room))
+            cost = max(cost, min(1.0, 1.0 - side_room(behind) / self.weights.proximity_side_room))
         return cost
 
     def step(self, actions):
@@ -272,24 +267,18 @@ class TrainEnv:
         dt = env.dt
         out_rewards, out_infos = {}, {}
         truncated = all(truncs.values()) or all(terms.values())
+        trainer = self.named_reward.trainer if self.named_reward is not None else None  # None: the env's reward
         for i, agent in enumerate(self.possible_agents):
             info = infos[agent]
             off = bool(info["off_track"])
             s = info["projection_distance"]
             ds = 0.0 if self._prev_s[i] is None else env.track.wrap_ds(s - self._prev_s[i])
             self._prev_s[i] = None if off else s
-            if self.reward == "progress":
-                width = max(info["track_width"], 1e-3)
-                centre = max(0.0, 1.0 - 2.0 * info["distance_from_center"] / width)
-                r = self.progress_weight * ds / dt + self.centre_weight * centre
-                if off:
-                    r -= self.off_track_penalty
-            else:
-                r = float(rewards[agent])
+            r = trainer(info, ds, dt, self.weights) if trainer is not None else float(rewards[agent])
             caused = self._new_collisions_caused(i)
-            r -= self.collision_penalty * caused
-            if self.proximity_penalty and not off:
-                r -= self.proximity_penalty * self._closing_in(info)
+            r -= self.weights.collision_penalty * caused
+            if self.weights.proximity_penalty and not off:
+                r -= self.weights.proximity_penalty * self._closing_in(info)
             self._ep_caused[i] += caused
             self._ep_return[i] += r
             self._ep_length[i] += 1

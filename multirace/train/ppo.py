@@ -31,6 +31,7 @@ from torch import nn
 from torch.distributions import Categorical, Normal
 
 from ..environment.actions import load_action_space
+from ..environment.rewards import NAMED_REWARDS
 from ..racing.nets import build_net, input_pool
 from ..sensors.camera import image_shape_of
 from .config import TrainConfig
@@ -118,7 +119,7 @@ def training_runs(config: TrainConfig) -> list:
 
 def check_reward_file(config: TrainConfig, runs) -> None:
     """Load and call a reward .py file once here, so a bad file fails with its message, not a dead worker."""
-    if config.reward in ("progress", "centre", None):
+    if config.reward is None or config.reward in NAMED_REWARDS:
         return
     from ..environment.rewards import RewardFunctionError
 
