@@ -39,10 +39,10 @@ def league_stages() -> dict[str, type[RaceRules]]:
 
 def make_rules(race: str = "time_trial", laps: int = 3, obstacles: int | None = None, **overrides) -> RaceRules:
     """The rules of a named format with its defaults, overridable per field."""
-    rules = format_class(race)
+    rules_class = format_class(race)
     whole = isinstance(laps, numbers.Integral) or (isinstance(laps, float) and laps.is_integer())
     if isinstance(laps, bool) or not whole or laps < 1:
         raise ValueError(f"laps: expected a whole number of at least 1, got {laps!r}")
     if obstacles is not None:
         overrides["obstacles"] = int(obstacles)
-    return rules(laps=int(laps), **overrides)
+    return rules_class(laps=int(laps), **overrides)
