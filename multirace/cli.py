@@ -280,9 +280,11 @@ def _add_race_parser(sub) -> None:
     race = sub.add_parser("race", help="race agent files and bots against each other",
                           description="Race agent files (.pt) and scripted bots (bot:follow@1.5, "
                                       "bot:lanes@1.0, bot:racingline) and print the result.")
+    from .environment.bots import bot_kinds_help
+
     race.add_argument("entrants", nargs="+",
                       help=f"agent files, shipped agents by name ({', '.join(list_agents())}) or bot:KIND@SPEED "
-                           "(KIND: follow, lanes, pass at SPEED m/s; racingline, racingline@SCALE: the racing line, its speeds x SCALE)")
+                           f"({bot_kinds_help()})")
     race.add_argument("--track", default="reinvent_base",
                       help=f"bundled track name or .npy path (bundled: {', '.join(list_tracks())})")
     race.add_argument("--reverse", action="store_true", help="race the track in the other direction")

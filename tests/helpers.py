@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from multirace.environment.bots import PurePursuit
+from multirace.environment.drivers import car_pose
 from multirace.racing.entrant import COMMAND_SPACE, BotController
 
 
@@ -16,9 +17,10 @@ def drive_expert(env, speed=1.0, steps=None, lateral=0.0):
     history = []
     count = 0
     while env.agents and (steps is None or count < steps):
-        actions = {}
+        actions, state = {}, env.race_state
         for i, agent in enumerate(env.possible_agents):
-            steer, spd = driver.command(env.track, env.car_spec, env.world.poses[i], env.races[i].segment_hint)
+            car = state.cars[i]
+            steer, spd = driver.command(state.track, state.car_spec, car_pose(car), car.segment)
             actions[agent] = env.actions.nearest(steer, spd)
         _, _, _, _, infos = env.step(actions)
         history.append(infos["car_0"])

@@ -78,3 +78,66 @@ def test_racing_line_does_not_steer_for_its_line_into_a_car_beside_it():
     assert steer >= 0.0 and speed == spec.min_speed  # beside a car: away from it (or straight on), not into it
     steer, _ = bot.command(track, spec, (x, y, heading), 0.0, traffic=[(0.27, 0.3, 1.0)])  # on the other side
     assert steer == steer_free
+
+
+class DefenderWatch:
+    """A recorder of car 0's road position each step: (lateral, racing-line offset there, followed, inside side)."""
+
+    def __init__(self):
+        self.rows = []
+
+    def start(self, env):
+        pass
+
+    def step(self, env, observations, rewards, infos):
+        import math
+
+        from multirace.sim.racingline import plan_racing_line
+
+        state = env.race_state
+        me, track = state.cars[0], state.track
+        if not me.located:
+            return
+        line = plan_racing_line(track, state.car_spec)
+        followed = any(-1.5 < track.wrap_ds(ahead) < 0.0 for ahead, _, _ in state.traffic(0))
+        turn = track.point_at(me.s + 3.0)[2] - track.point_at(me.s)[2]
+        turn = math.atan2(math.sin(turn), math.cos(turn))  # the road's turn over the next 3 m, + left
+        inside = 0 if abs(turn) < 0.35 else (1 if turn > 0 else -1)
+        self.rows.append((me.lateral, float(line.offsets[line.index_at(me.s)]), followed, inside))
+
+    def finish(self, env, result):
+        pass
+
+
+def test_defend_bot_covers_the_inside_when_followed_and_keeps_the_racing_line_alone():
+    import numpy as np
+
+    chased, alone = DefenderWatch(), DefenderWatch()
+    result = run_race([make_controller("bot:defend@1.2"), make_controller("bot:follow@2.0")],
+                      RaceConfig(race="head_to_head", laps=1, seed=0), recorders=[chased])
+    run_race([make_controller("bot:defend@1.2")], RaceConfig(laps=1, seed=0), recorders=[alone])
+    assert all(car["collisions"] == 0 and car["status"] == "finished" for car in result["cars"])
+    covering = [(lateral, line, inside) for lateral, line, followed, inside in chased.rows if followed and inside]
+    assert len(covering) > 50  # the faster car sits behind it into most corners
+    # followed into a corner: on the inside half of the road, well inside its racing line
+    assert np.mean([inside * lateral for lateral, _, inside in covering]) > 0.1
+    assert np.mean([inside * (lateral - line) for lateral, line, inside in covering]) > 0.1
+    assert not any(followed for _, _, followed, _ in alone.rows)
+    assert np.mean([abs(lateral - line) for lateral, line, _, _ in alone.rows]) < 0.08  # alone: on the line
+
+
+def test_defend_bot_does_not_move_across_a_car_that_overlaps_it():
+    # reInvent 2018 at 2 m: a left-hander ahead. Followed, the defender moves left to cover its inside; with a
+    # car already beside it on the left it keeps side room to that car instead of moving across it
+    from multirace.sim.car import CarSpec
+    from multirace.sim.tracks import load_track
+
+    track, spec, bot = load_track("reinvent_base"), CarSpec(), parse_bot("defend@1.2")
+    pose = track.point_at(2.0)
+    behind = (-1.0, 0.0, 1.5)  # a car a metre behind, on its line
+    steer_alone, _ = bot.command(track, spec, pose, 0.0)
+    steer_followed, _ = bot.command(track, spec, pose, 0.0, traffic=[behind])
+    steer_beside, _ = bot.command(track, spec, pose, 0.0, traffic=[behind, (0.1, 0.25, 1.2)])
+    assert steer_followed > steer_alone + 3.0  # across to the inside (left)
+    assert steer_beside < 0.0  # not into the car beside it: away from it
+    assert parse_bot("bot:defend@1.2").name == "bot:defend@1.2"

@@ -291,8 +291,7 @@ class RaceEnv(ParallelEnv):
         for b, bot in enumerate(self.bots):
             i = self.num_cars + b
             if self.races[i].racing:
-                steer, speed = bot.command(self.track, spec, self.world.poses[i], self.sim_time,
-                                           self.races[i].segment_hint, self.traffic(i))
+                steer, speed = bot.drive(self.race_state, i)
                 self._commands[i] = spec.clamp_command(math.radians(steer), speed)
         contacts = self.world.step(self._commands)
         self.steps += 1
@@ -443,6 +442,7 @@ class RaceEnv(ParallelEnv):
         """
         for i, (s, lateral) in slots.items():
             self._reset_car(i, s % self.track.length, lateral, clear)
+        self.race_state = self._publish(self.ranks(), [set()] * self.total_cars, [()] * self.total_cars)
         return self._observe()
 
     def traffic(self, i: int) -> list[tuple[float, float, float]]:

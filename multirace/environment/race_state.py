@@ -12,6 +12,7 @@ import dataclasses
 
 import numpy as np
 
+from ..sim.car import CarSpec
 from ..sim.tracks import Track
 from .rules import CarRace, RaceRules
 
@@ -57,6 +58,7 @@ class RaceState:
     cars: tuple[CarState, ...]
     obstacles: np.ndarray  # (boxes, 3): x, y, yaw
     num_learners: int  # cars 0..num_learners-1 are driven by actions, the rest are the env's bots
+    car_spec: CarSpec = CarSpec()  # every car's size and command range (the env's cars are all alike)
 
     def traffic(self, i: int) -> list[tuple[float, float, float]]:
         """The other located cars as seen from car i: (metres ahead along the track, lateral offset, speed)."""

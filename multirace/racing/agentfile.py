@@ -755,7 +755,8 @@ class AgentController(Controller):
         self.steps = 0
         self.step_times = []
 
-    def act(self, observation, info):
+    def drive(self, state, car, observation=None):
+        """The agent's command from its car's observation (its policy reads nothing else)."""
         if self.agent is None:
             raise Forfeit(f"bad agent file: {self.error}")
         self.steps += 1

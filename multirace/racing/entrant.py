@@ -1,8 +1,10 @@
-"""What an entrant is: a `Controller` that turns its car's observation into a command.
+"""What an entrant is: a `Controller`, the driver (`environment.drivers.Driver`) of one car in a race.
 
 Every entrant (an agent file, a scripted bot, an imported DeepRacer model)
 maps its car's camera image (its LIDAR scan too, if it reads one; for bots,
-the privileged state) to a command (steering degrees, speed m/s). A
+the privileged state in the race's `RaceState`) to a command (steering
+degrees, speed m/s). The race env takes those commands as they are
+(`COMMAND_SPACE`): each entrant maps its own actions to commands, once. A
 controller that must leave the race raises `Forfeit`; the race goes on.
 """
 from __future__ import annotations
@@ -12,34 +14,35 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..environment.bots import parse_bot
+from ..environment.drivers import CommandSpace, Driver
 from ..sensors.suite import SensorSuite
 
 if TYPE_CHECKING:
     from ..environment.race_env import RaceEnv
 
-COMMAND_SPACE = {  # what the race env accepts: any DeepRacer command
-    "action_space": {"steering_angle": {"low": -30.0, "high": 30.0}, "speed": {"low": 0.1, "high": 4.0}},
-    "action_space_type": "continuous",
-}
+COMMAND_SPACE = CommandSpace()  # what the race env accepts: any DeepRacer command, as its entrant gives it
 
 
 class Forfeit(Exception):
     """Raised by a controller whose agent must leave the race; the message is the reason."""
 
 
-class Controller:
-    """An entrant: maps its car's observation to a (steering deg, speed m/s) command."""
+class Controller(Driver):
+    """An entrant: drives its car from the race state and its observation to a (steering deg, speed m/s) command."""
 
     name: str = "controller"
     file_sha256: str | None = None
     sensors: SensorSuite = SensorSuite()  # what it reads; the race's env provides what every entrant reads
+    env: RaceEnv | None = None  # the race it drives in, and its car there (`reset`)
+    car: int = 0
 
     def reset(self, env: RaceEnv, car: int) -> None:
         """Called at the start of a race with the env and the car index it drives."""
         self.env, self.car = env, car
 
     def act(self, observation, info) -> tuple[float, float]:
-        raise NotImplementedError
+        """This step's command: `drive` on the race state the env published last (none before a race)."""
+        return self.drive(self.env.race_state if self.env is not None else None, self.car, observation)
 
 
 class BotController(Controller):
@@ -49,10 +52,8 @@ class BotController(Controller):
         self.bot = parse_bot(spec)
         self.name = self.bot.name
 
-    def act(self, observation, info):
-        env, i = self.env, self.car
-        return self.bot.command(env.track, env.car_spec, env.world.poses[i], env.sim_time,
-                                env.races[i].segment_hint, env.traffic(i))
+    def drive(self, state, car, observation=None):
+        return self.bot.drive(state, car)
 
 
 def file_sha256(path: Path) -> str:

@@ -27,7 +27,7 @@ from ..environment.actions import load_action_space
 from ..racing.nets import build_net
 from ..sensors.camera import image_shape_of
 from .config import TrainConfig
-from .envs import TEACHER_PREFIX
+from .experts import TEACHER_PREFIX
 from .imitate import Dataset, fit_labels, greedy_actions, imitation_loss
 from .ppo import init_continuous_head, make_vector_env
 from .rollout import Rollout, expert_actions, finished_episodes

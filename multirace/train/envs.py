@@ -50,8 +50,8 @@ import numpy as np
 
 from ..environment.rewards import NAMED_REWARDS, RewardWeights
 from ..recording.simtrace import closest_waypoint
+from .experts import expert_command, make_expert
 
-TEACHER_PREFIX = "teacher:"  # an expert spec naming a teacher file (`teacher.py`) instead of a bot
 BOT_SPACING = 2.0  # metres between bots started ahead of the learning cars (bots_ahead)
 INFO_KEYS = ("train_done", "time_limit", "ep_return", "ep_length", "ep_laps", "ep_caused", "off_track", "collisions",
              "caused", "perturbation", "expert_action", "deepracer")
@@ -198,25 +198,10 @@ class TrainEnv:
         if not known:
             return -1 if space.discrete else [math.nan, math.nan]
         if self._expert is None:  # every run shares the action space, so one driver serves all
-            self._expert = self._make_expert(space)
-        if self.expert.startswith(TEACHER_PREFIX):
-            steer, speed = (float(v) for v in self._expert.command(env.car_state(i)[None])[0])
-        else:
-            steer, speed = self._expert.command(env.track, env.car_spec, env.world.poses[i], env.sim_time,
-                                                env.races[i].segment_hint, env.traffic(i))
-        label = space.nearest(steer, speed)
+            top = max(a[1] for a in space.actions) if space.discrete else float(space.high[1])
+            self._expert = make_expert(self.expert, top)
+        label = space.nearest(*expert_command(self._expert, env, i))
         return label if space.discrete else [float(v) for v in label]
-
-    def _make_expert(self, space):
-        """The labelling driver: a teacher file's state policy ("teacher:PATH"), a bot spec, or bot:pass."""
-        if self.expert.startswith(TEACHER_PREFIX):
-            from .teacher_net import load_teacher
-
-            return load_teacher(self.expert[len(TEACHER_PREFIX):])
-        from ..environment.bots import Bot, parse_bot
-
-        top = max(a[1] for a in space.actions) if space.discrete else float(space.high[1])
-        return parse_bot(self.expert) if self.expert else Bot(kind="pass", speed=top)
 
     def _small(self, info, done, episode, caused=0, time_limit=False):
         small = {"train_done": done, "time_limit": time_limit, "off_track": bool(info.get("off_track", False)),

@@ -50,9 +50,12 @@ from torch import nn
 from ..environment.actions import load_action_space
 from ..racing.agentfile import make_metadata, save_agent
 from ..environment.bots import Bot, parse_bot
+from ..environment.drivers import Driver
 from ..environment.race_env import parallel_env
 from ..racing.nets import DEFAULT_NETWORK, build_net
 from ..sensors.camera import image_shape_of
+from .experts import TEACHER_PREFIX, expert_command
+from .experts import make_expert as make_driver
 from .threads import default_threads
 from .warmstart import init_lineage, init_settings, load_init_agent
 
@@ -202,31 +205,13 @@ def check_init_action_space(init_space, space, init_path) -> None:
         raise ValueError(f"--action-space: does not fit the net of --init {init_path} ({init_space.kind}, {size})")
 
 
-def make_expert(config: ImitationConfig, space):
+def make_expert(config: ImitationConfig, space) -> Driver:
     """The driver whose commands label the images: a teacher file's state policy, or a scripted bot."""
-    if config.teacher:
-        from .teacher_net import load_teacher
-
-        return load_teacher(config.teacher)
-    expert = parse_bot(config.expert) if config.expert else Bot(kind="pass", speed=float(config.expert_speed))
-    if expert.kind != "racingline" and not space.discrete and not space.low[1] <= expert.speed <= space.high[1]:
+    expert = make_driver(TEACHER_PREFIX + config.teacher if config.teacher else config.expert, config.expert_speed)
+    if isinstance(expert, Bot) and expert.number_is_speed and not space.discrete \
+            and not space.low[1] <= expert.speed <= space.high[1]:
         raise ValueError(f"expert speed {expert.speed} is outside the action space's speed range")
     return expert
-
-
-def expert_command(expert, env) -> tuple[float, float]:
-    """(steering degrees, speed m/s) the expert would command for the env's car 0: a bot from the track and the
-    traffic, a teacher from the car's privileged state."""
-    if isinstance(expert, Bot):
-        return expert.command(env.track, env.car_spec, env.world.poses[0], env.sim_time, env.races[0].segment_hint,
-                              env.traffic(0))
-    steer, speed = expert.command(env.car_state(0)[None])[0]
-    return float(steer), float(speed)
-
-
-def expert_name(expert, config: ImitationConfig) -> str:
-    """The expert as the agent file's training notes name it."""
-    return expert.name if isinstance(expert, Bot) else f"teacher:{Path(config.teacher).name}"
 
 
 def with_init_settings(config: ImitationConfig) -> ImitationConfig:
@@ -378,7 +363,7 @@ def _training_record(config: ImitationConfig, expert, bots, iterations: int, dat
                      wall: float) -> dict:
     """The agent file's `training` record of a DAgger run."""
     training = {
-        "method": "dagger", "expert": expert_name(expert, config), "traffic": list(bots),
+        "method": "dagger", "expert": expert.name, "traffic": list(bots),
         "traffic_share": config.traffic_share, "lidar": bool(config.lidar),
         "tracks": list(dict.fromkeys(str(t) for t in config.tracks)),
         "directions": ["forward", "reverse"] if config.both_directions else ["forward"],

@@ -23,6 +23,7 @@ import math
 import numpy as np
 
 from ..environment.bots import PurePursuit, speed_in_traffic
+from ..environment.drivers import car_pose
 from ..racing.entrant import Controller
 
 TIME_LIMIT = 12.0  # seconds of race time a scenario lasts
@@ -61,11 +62,10 @@ class LaneController(Controller):
         self.speed, self.lateral = speed, lateral
         self.name = f"scenario:lane@{speed:g}"
 
-    def act(self, observation, info):
-        env, i = self.env, self.car
-        speed = speed_in_traffic(self.speed, env.traffic(i), env.car_spec)
-        return PurePursuit(speed=speed, lateral=self.lateral).command(env.track, env.car_spec, env.world.poses[i],
-                                                                      env.races[i].segment_hint)
+    def drive(self, state, car, observation=None):
+        me, spec = state.cars[car], state.car_spec
+        speed = speed_in_traffic(self.speed, state.traffic(car), spec)
+        return PurePursuit(speed=speed, lateral=self.lateral).command(state.track, spec, car_pose(me), me.segment)
 
 
 def track_sites(track) -> dict[str, list[float]]:

@@ -1,0 +1,43 @@
+"""The experts that label training samples (DAgger, PPO's imitation loss): drivers of one car.
+
+An expert is a `environment.drivers.Driver`: a scripted bot (``pass@1.0``,
+``racingline@0.9``; `environment.bots`) drives from the race's `RaceState`,
+an RL teacher file (``teacher:PATH``, `teacher.py`) from its car's privileged
+state vector (`environment.state.car_features`), the observation it reads.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..environment.bots import PassBot, parse_bot
+from ..environment.drivers import Driver
+
+TEACHER_PREFIX = "teacher:"  # an expert spec naming a teacher file (`teacher.py`) instead of a bot
+
+
+class TeacherDriver(Driver):
+    """An RL teacher's state policy (`teacher_net.StatePolicyNet`), driving from its car's privileged state."""
+
+    def __init__(self, path):
+        from .teacher_net import load_teacher
+
+        self.net = load_teacher(path)
+        self.name = f"{TEACHER_PREFIX}{Path(path).name}"
+
+    def drive(self, state, car, observation=None) -> tuple[float, float]:
+        """The teacher's command from `observation`, its car's privileged state vector."""
+        steer, speed = self.net.command(observation[None])[0]
+        return float(steer), float(speed)
+
+
+def make_expert(spec: str | None, default_speed: float) -> Driver:
+    """The expert `spec` names: ``teacher:PATH``, a bot spec, or (None or "") the pass bot at `default_speed`."""
+    if spec and spec.startswith(TEACHER_PREFIX):
+        return TeacherDriver(spec[len(TEACHER_PREFIX):])
+    return parse_bot(spec) if spec else PassBot(speed=float(default_speed))
+
+
+def expert_command(expert: Driver, env, car: int = 0) -> tuple[float, float]:
+    """(steering degrees, speed m/s) the expert commands for the env's car `car` where it stands now."""
+    observation = env.car_state(car) if isinstance(expert, TeacherDriver) else None
+    return expert.drive(env.race_state, car, observation)
