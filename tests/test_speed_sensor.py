@@ -97,3 +97,16 @@ def test_adding_speed_to_a_net_keeps_its_policy():
     assert torch.allclose(out, wide_out) and torch.allclose(value, wide_value)
     with pytest.raises(ValueError, match="'speed'"):
         wide({"camera": images, "lidar": ranges})
+
+
+def test_dagger_trains_a_speed_agent_from_a_camera_agent(tmp_path):
+    from multirace.train.imitate import ImitationConfig, run_dagger
+
+    init = save_agent(tmp_path / "camera.pt", CameraNet(TINY, (120, 160, 1), 10),
+                      make_metadata(SPACE, TINY, "camera_car"))
+    summary = run_dagger(ImitationConfig(out=str(tmp_path / "speedy.pt"), tracks=("Oval_track",), both_directions=False,
+                                         minutes=0.05, rollout_steps=48, train_steps=4, batch_size=16,
+                                         max_samples=600, progress=False, threads=1, sensor=SPEED, init=str(init)))
+    agent = load_agent(summary["out"], step_budget=None)
+    assert agent.metadata["sensor"] == SPEED and agent.net.vector_inputs == {"speed": 1}
+    assert agent.metadata["training"]["init"]["name"] == "camera_car"
