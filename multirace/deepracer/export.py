@@ -38,7 +38,6 @@ from ..racing.agentfile import load_agent, net_sensors
 from ..racing.graphnet import GRAPH_FIELD, GraphNet
 from ..racing.nets import AveragePool, CameraNet
 from ..resources import resolve_agent_path
-from ..sensors.registry import BY_NAME
 from ..sensors.suite import SensorSuite
 from .tfgraph import DT_FLOAT, DT_INT32, GraphBuilder
 
@@ -231,7 +230,7 @@ def export_agent(path, out) -> Path:
         raise ExportError(f"{path}: the agent reads {height}x{width}x{channels} images; the car feeds "
                           f"{CAMERA_SIZE[0]}x{CAMERA_SIZE[1]} grey images (1 channel, 2 for stereo)")
     if not agent.sensors.on_deepracer:
-        theirs = [name for name in agent.sensors.names if not BY_NAME[name].on_deepracer]
+        theirs = [sensor.name for sensor in agent.sensors.entries if not sensor.on_deepracer]
         raise ExportError(f"{path}: the agent reads {', '.join(theirs)} (metadata field 'sensor'), a multirace "
                           "sensor that DeepRacer's cars do not have")
     if graph_net:

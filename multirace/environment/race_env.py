@@ -13,6 +13,7 @@ penalties, resets) -> camera images.
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -80,8 +81,7 @@ class RaceEnv(ParallelEnv):
     (H, W, 2) grey pairs [left, right] with ``STEREO_CAMERAS``
     (`camera.observation_shape`). An observation is the image, or with
     ``LIDAR`` (or ``lidar=True``) or ``SECTOR_LIDAR`` a dict ``{"camera": image,
-    "lidar": 64 float32 ranges}`` or ``{"camera": image, "lidar": 8 binary sectors}``; multirace's
-    ``SPEED`` sensor adds ``"speed"``, the car's drive speed as float32 (1,) (`sensors.registry`).
+    "lidar": 64 float32 ranges}`` or ``{"camera": image, "lidar": 8 binary sectors}``.
 
     ``observation="state"`` gives each car its privileged state instead
     (`state.car_features`: float32 vectors; nothing is rendered), for RL
@@ -466,8 +466,7 @@ class RaceEnv(ParallelEnv):
         if draw is not None and randomization.camera_enabled:
             jitter = np.array(draw.camera_jitter[:self.num_cars])
         if draw is not None and randomization.perception_enabled:
-            def perturb(image):
-                return apply_image(image, self._randomizer_rng, draw)
+            perturb = functools.partial(apply_image, rng=self._randomizer_rng, draw=draw)
         view = SensorView(self.world, self._camera_cars, self.camera, self.car_spec, self._lidar_rng,
                           self._renderer, jitter, perturb, self.race_state)
         return self.sensors.observe(view, self.possible_agents)

@@ -38,7 +38,7 @@ class SectorLidar(VectorSensor):
     inputs = SECTORS
 
     def observe(self, view: SensorView) -> np.ndarray:
-        return sector_lidar(LidarSensor().observe(view))
+        return sector_lidar(scanner(view.car_spec).scan(view.world, view.cars, view.noise))
 
     def reads(self, value):
         value = np.asarray(value, np.float32)

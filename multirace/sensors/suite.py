@@ -25,11 +25,8 @@ import dataclasses
 from gymnasium import spaces
 
 from .camera import CameraSpec
-from .registry import BY_KIND, BY_NAME, CAMERA_KEY, SENSORS, sensor_named
+from .registry import BY_KIND, CAMERA_KEY, SENSORS, sensor_named
 from .sensor import Sensor, SensorView
-
-KNOWN = tuple(BY_NAME)
-RANGE_INPUTS = {sensor.kind: sensor.inputs for sensor in SENSORS if sensor.key == "lidar"}  # values per step
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,14 +50,9 @@ class SensorSuite:
         return [sensor.name for sensor in self.entries]
 
     @property
-    def camera_channels(self) -> int | None:
-        """Channels the camera image must have (2 for stereo; None: 1 or 3, grey or colour)."""
-        return self.entries[0].channels
-
-    @property
     def range_inputs(self) -> int:
         """Values the range sensor gives per step: 64 ranges (LIDAR), 8 sectors (SECTOR_LIDAR) or 0 (none)."""
-        return RANGE_INPUTS.get(self.lidar, 0)
+        return self.vector_inputs.get("lidar", 0)
 
     @property
     def vectors(self) -> tuple[Sensor, ...]:
