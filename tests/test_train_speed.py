@@ -82,7 +82,7 @@ def test_an_update_that_fails_on_its_thread_raises_in_the_learner():
     from multirace.environment.actions import load_action_space
 
     space = load_action_space(None)
-    updater = Updater(net, Policy(space), torch.optim.Adam(net.parameters()), config, space, lidar=False,
+    updater = Updater(net, Policy(space), torch.optim.Adam(net.parameters()), config, space,
                       pooled=False)
     assert updater.behaviour is not net
     updater.start({"obs": torch.zeros(4, 120, 160, dtype=torch.uint8)}, 0.0, False)  # no actions: a KeyError
@@ -113,7 +113,7 @@ def test_recentre_moves_the_clip_to_the_current_policy_and_weights_samples_by_th
         current = policy.log_prob(policy.dist(net.forward_all(obs, pooled=True)[0]), act)
     behaviour = current + torch.linspace(-1.0, 1.0, 10)  # an older policy: likelier and less likely choices
     batch = {"obs": obs, "act": act, "logp": behaviour.clone(), "lidar": torch.zeros(10, 0)}
-    recentre(net, policy, batch, lidar=False, pooled=True, chunk=4)  # chunks: 4, 4, 2
+    recentre(net, policy, batch, pooled=True, chunk=4)  # chunks: 4, 4, 2
     assert torch.allclose(batch["logp"], current, atol=1e-6)
     assert torch.allclose(batch["weight"], (current - behaviour).exp().clamp(max=BEHAVIOUR_WEIGHT_CAP), atol=1e-6)
     assert batch["weight"].max() <= BEHAVIOUR_WEIGHT_CAP and batch["weight"].min() < 1.0

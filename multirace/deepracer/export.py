@@ -20,7 +20,8 @@ Layers are named as DeepRacer's networks name them (``Conv2d_0``,
 VALID NHWC with HWIO kernels, and the flatten is NHWC's, so the graph computes
 exactly what the torch policy computes. An imported DeepRacer network that
 multirace runs as a `graphnet.GraphNet` (5-layer, deep, SAC, stereo) exports from
-its layers the same way (`graph_net_graph`).
+its layers the same way (`graph_net_graph`). An agent that reads a multirace
+sensor DeepRacer's cars lack (``SPEED``, `Sensor.on_deepracer`) is refused.
 """
 from __future__ import annotations
 
@@ -33,10 +34,11 @@ import numpy as np
 import torch
 
 from ..atomic import AtomicOutput
-from ..racing.agentfile import load_agent
+from ..racing.agentfile import load_agent, net_sensors
 from ..racing.graphnet import GRAPH_FIELD, GraphNet
 from ..racing.nets import AveragePool, CameraNet
 from ..resources import resolve_agent_path
+from ..sensors.suite import SensorSuite
 from .tfgraph import DT_FLOAT, DT_INT32, GraphBuilder
 
 CAMERA_SIZE = (120, 160)  # (height, width) the car's inference feeds
@@ -52,10 +54,6 @@ class ExportError(ValueError):
 def input_name(sensor: str) -> str:
     """The car's placeholder name for one sensor."""
     return f"{ROOT}/network_0/{sensor}/{sensor}"
-
-
-def camera_sensor(channels: int) -> str:
-    return "STEREO_CAMERAS" if channels == 2 else "FRONT_FACING_CAMERA"
 
 
 def _dense(g: GraphBuilder, scope: str, x: str, weight: torch.Tensor, bias: torch.Tensor) -> str:
@@ -95,16 +93,17 @@ def _camera_embedder(g: GraphBuilder, net: CameraNet, sensor: str, scope: str) -
     return x, shape
 
 
-def policy_graph(net: CameraNet, space, lidar_sensor: str = "LIDAR") -> bytes:
+def policy_graph(net: CameraNet, space, sensors: SensorSuite | None = None) -> bytes:
     """The frozen GraphDef bytes of `net`'s policy with the car's node names (see the module docstring);
-    `lidar_sensor` names its LIDAR input (``LIDAR`` or ``SECTOR_LIDAR``)."""
+    `sensors` (default: what the net reads, `net_sensors`) name its inputs: the camera, then each vector
+    sensor (``LIDAR`` or ``SECTOR_LIDAR``) in the schema's order."""
+    sensors = sensors if sensors is not None else net_sensors(net)
     height, width, channels = net.image_shape
     g = GraphBuilder()
-    sensor = camera_sensor(channels)
+    sensor = sensors.names[0]
     g.node(input_name(sensor), "Placeholder", dtype=("type", DT_FLOAT), shape=("shape", [-1, height, width, channels]))
-    if net.lidar_samples:
-        g.node(input_name(lidar_sensor), "Placeholder", dtype=("type", DT_FLOAT),
-               shape=("shape", [-1, net.lidar_samples]))
+    for vector in sensors.vectors:
+        g.node(input_name(vector.name), "Placeholder", dtype=("type", DT_FLOAT), shape=("shape", [-1, vector.inputs]))
     net1 = f"{ROOT}/network_1"
     x, (h, w, c) = _camera_embedder(g, net, sensor, f"{net1}/{sensor}")
     fc = net.fc[0]
@@ -113,14 +112,19 @@ def policy_graph(net: CameraNet, space, lidar_sensor: str = "LIDAR") -> bytes:
     # torch flattens (C, H, W); the graph flattens NHWC (H, W, C): reorder the first dense layer's columns
     camera_cols = weight[:, :conv_flat].reshape(-1, c, h, w).permute(0, 2, 3, 1).reshape(-1, conv_flat)
     weight = torch.cat([camera_cols, weight[:, conv_flat:]], dim=1)
-    if net.lidar_samples:
-        scope = f"{net1}/{lidar_sensor}"
-        lidar = g.op(f"{scope}/sub", "Sub", [input_name(lidar_sensor), g.const(f"{scope}/sub/y", np.float32(0.0))])
-        for k, layer in ((0, net.lidar[0]), (2, net.lidar[2])):
-            lidar = _dense(g, f"{scope}/Dense_{k}", lidar, layer.weight, layer.bias)
-            lidar = g.op(f"{scope}/BatchnormActivationDropout_{k + 1}_activation", "Relu", [lidar])
+    embeddings = [x]
+    for vector in sensors.vectors:
+        scope = f"{net1}/{vector.name}"
+        y = g.op(f"{scope}/sub", "Sub", [input_name(vector.name), g.const(f"{scope}/sub/y", np.float32(0.0))])
+        branch = net.get_submodule(vector.key)
+        for k in (0, 2):
+            y = _dense(g, f"{scope}/Dense_{k}", y, branch[k].weight, branch[k].bias)
+            y = g.op(f"{scope}/BatchnormActivationDropout_{k + 1}_activation", "Relu", [y])
+        embeddings.append(y)
+    if len(embeddings) > 1:
         axis = g.const(f"{net1}/concat/axis", np.int32(1))
-        x = g.node(f"{net1}/concat", "ConcatV2", [x, lidar, axis], N=2, T=("type", DT_FLOAT), Tidx=("type", DT_INT32))
+        x = g.node(f"{net1}/concat", "ConcatV2", [*embeddings, axis], N=len(embeddings), T=("type", DT_FLOAT),
+                   Tidx=("type", DT_INT32))
     x = _dense(g, f"{net1}/middleware_fc_embedder/Dense_0", x, weight, fc.bias)
     x = g.op(f"{net1}/middleware_fc_embedder/BatchnormActivationDropout_1_activation", "Relu", [x])
     head_w, head_b = net.head.weight.detach(), net.head.bias.detach()
@@ -206,17 +210,10 @@ def graph_net_graph(net) -> bytes:
     return g.to_bytes()
 
 
-def lidar_sensor_of(metadata: dict) -> str:
-    """The agent's LIDAR sensor name in its metadata: ``SECTOR_LIDAR`` if declared, else ``LIDAR``."""
-    sensor = metadata.get("sensor")
-    return "SECTOR_LIDAR" if "SECTOR_LIDAR" in ([sensor] if isinstance(sensor, str) else sensor or []) else "LIDAR"
-
-
-def car_metadata(metadata: dict, space, channels: int, lidar: bool) -> dict:
+def car_metadata(metadata: dict, space, sensors: SensorSuite) -> dict:
     """model_metadata.json as the car reads it (sensor, algorithm, action space), plus the agent's notes."""
-    sensor = [camera_sensor(channels)] + ([lidar_sensor_of(metadata)] if lidar else [])
     out = {k: v for k, v in metadata.items() if k not in ("action_space", "action_space_type")}
-    out.update(sensor=sensor, training_algorithm=CAR_ALGORITHM, **space.to_metadata())
+    out.update(sensor=sensors.names, training_algorithm=CAR_ALGORITHM, **space.to_metadata())
     out.setdefault("version", "5")
     return out
 
@@ -232,14 +229,18 @@ def export_agent(path, out) -> Path:
     if (height, width) != CAMERA_SIZE or channels not in (1, 2):
         raise ExportError(f"{path}: the agent reads {height}x{width}x{channels} images; the car feeds "
                           f"{CAMERA_SIZE[0]}x{CAMERA_SIZE[1]} grey images (1 channel, 2 for stereo)")
+    if not agent.sensors.on_deepracer:
+        theirs = [sensor.name for sensor in agent.sensors.entries if not sensor.on_deepracer]
+        raise ExportError(f"{path}: the agent reads {', '.join(theirs)} (metadata field 'sensor'), a multirace "
+                          "sensor that DeepRacer's cars do not have")
     if graph_net:
         graph = graph_net_graph(agent.net)
         metadata = {k: v for k, v in agent.metadata.items() if k != GRAPH_FIELD}
-        metadata = car_metadata(metadata, agent.action_space, channels, False)
+        metadata = car_metadata(metadata, agent.action_space, agent.sensors)
         metadata["sensor"] = list(agent.net.sensors)
     else:
-        graph = policy_graph(agent.net, agent.action_space, lidar_sensor_of(agent.metadata))
-        metadata = car_metadata(agent.metadata, agent.action_space, channels, bool(agent.lidar_samples))
+        graph = policy_graph(agent.net, agent.action_space, agent.sensors)
+        metadata = car_metadata(agent.metadata, agent.action_space, agent.sensors)
     with AtomicOutput(out) as tmp, tarfile.open(tmp, "w:gz", compresslevel=6) as tar:
         for name, data in (("agent/model.pb", graph),
                            ("model_metadata.json", json.dumps(metadata, indent=4).encode())):

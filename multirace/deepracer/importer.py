@@ -38,10 +38,10 @@ import numpy as np
 import torch
 
 from ..environment.actions import ActionSpace, ActionSpaceError
-from ..racing.agentfile import MAX_PARAMETERS, AgentFileError, make_metadata, save_agent
+from ..racing.agentfile import MAX_PARAMETERS, AgentFileError, make_metadata, net_sensors, save_agent
 from ..racing.graphnet import GraphNet, plan
 from ..racing.nets import NETWORKS, AveragePool, CameraNet, num_outputs_for, parameter_count
-from ..sensors.lidar import LidarSpec
+from ..sensors.registry import BY_KIND, BY_NAME, CAMERA_KEY
 from .drnet import save_graph_agent, spec_from_graph
 from .tfgraph import GraphError, Tensor, parse_graph
 
@@ -311,8 +311,8 @@ def _dense_stack(layers, source, what):
 
 def to_camera_net(spec: GraphSpec, space: ActionSpace, source: str) -> CameraNet:
     """The `CameraNet` computing what the graph computes (multirace's output conventions)."""
-    cameras = [s for s in spec.inputs if s not in ("LIDAR", "SECTOR_LIDAR")]
-    lidars = [s for s in spec.inputs if s in ("LIDAR", "SECTOR_LIDAR")]
+    lidars = [s for s in spec.inputs if s in BY_NAME and BY_NAME[s].key != CAMERA_KEY]  # the registry's names
+    cameras = [s for s in spec.inputs if s not in lidars]
     if len(cameras) != 1 or len(lidars) > 1:
         raise NotCameraNet(f"{source}: inputs {list(spec.inputs)}: multirace agents read one camera (and a LIDAR)")
     shape, cam_layers = spec.inputs[cameras[0]]
@@ -339,9 +339,9 @@ def to_camera_net(spec: GraphSpec, space: ActionSpace, source: str) -> CameraNet
         raise NotCameraNet(f"{source}: a SAC policy (tanh-squashed mean) is not one of multirace's networks")
     outputs = num_outputs_for(space)
     lidar_samples = int(lidar_stack[0][0].shape[0]) if lidar_stack else 0
-    if lidars and (lidars[0] != "LIDAR" or lidar_samples != LidarSpec().samples):
+    if lidars and (BY_NAME[lidars[0]].kind != "lidar" or lidar_samples != BY_KIND["lidar"].inputs):
         raise NotCameraNet(f"{source}: {lidars[0]} with {lidar_samples} inputs; multirace's networks read the "
-                           f"{LidarSpec().samples}-beam LIDAR")
+                           f"{BY_KIND['lidar'].inputs}-beam LIDAR")
     for network in NETWORKS:
         try:
             with torch.device("meta"):  # sized and matched before anything is allocated
@@ -527,7 +527,7 @@ def import_model(path, out, name: str | None = None) -> Path:
         return _import_graph_net(spec, space, metadata, source, out, name, notes, reason=str(exc))
     agent_meta = make_metadata(space, net.network, name, net.image_shape,
                                version=str(metadata.get("version", "5")), training_algorithm="deepracer_import",
-                               lidar=bool(net.lidar_samples), training=notes)
+                               sensor=net_sensors(net).names, training=notes)
     return _saved(lambda: save_agent(out, net, agent_meta, verify=True), source)
 
 

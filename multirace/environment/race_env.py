@@ -13,6 +13,7 @@ penalties, resets) -> camera images.
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -23,10 +24,11 @@ from pettingzoo.utils import OrderEnforcingWrapper, parallel_to_aec
 from .actions import load_action_space
 from .kernels import announce_compile
 from .bots import parse_bot
-from ..sensors.camera import CameraSpec, camera_poses, observation_shape, stereo_poses
+from ..sensors.camera import CameraSpec
 from ..sensors.renderers import make_renderer
 from ..sim.car import CarSpec
-from ..sensors.lidar import SECTORS, Lidar, sector_lidar
+from ..sensors.lidar_sensors import scanner
+from ..sensors.sensor import SensorView
 from ..sensors.suite import declared_sensors
 from ..sim.objects import objects_seen
 from .randomize import Randomization, apply_command, apply_image
@@ -138,18 +140,9 @@ class RaceEnv(ParallelEnv):
         if len(names) != self.num_cars:
             raise ValueError(f"car_names: expected {self.num_cars} names, got {len(names)}")
         self.car_names = names + [bot.name for bot in self.bots]
-        self.sensors = declared_sensors(sensor, lidar)
-        if self.sensors.camera == "stereo" and not self.camera.grayscale:
-            raise ValueError("sensor: STEREO_CAMERAS are a pair of grey cameras; use grayscale=True")
-        channels = self.sensors.camera_channels or self.camera.channels
-        obs_space = spaces.Box(0, 255, observation_shape((height, width, channels)), np.uint8)
-        self.lidar = Lidar(self.car_spec) if self.sensors.lidar else None
-        if self.sensors.lidar == "lidar":
-            spec = self.lidar.spec
-            obs_space = spaces.Dict({"camera": obs_space, "lidar": spaces.Box(
-                spec.min_range, spec.max_range, (spec.samples,), np.float32)})
-        elif self.sensors.lidar == "sector":
-            obs_space = spaces.Dict({"camera": obs_space, "lidar": spaces.Box(0.0, 1.0, (SECTORS,), np.float32)})
+        self.sensors = declared_sensors(sensor, lidar)  # the registry's sensors the cars carry (`sensors.suite`)
+        obs_space = self.sensors.space(self.camera)
+        self.lidar = scanner(self.car_spec) if self.sensors.lidar else None  # its beams, for replays' echoes
         if observation not in ("camera", "state"):
             raise ValueError(f"observation: expected 'camera' or 'state', got {observation!r}")
         self.observation = observation
@@ -470,30 +463,15 @@ class RaceEnv(ParallelEnv):
     def _observe(self) -> dict:
         if self.observation == "state":
             return {agent: car_features(self, i) for i, agent in enumerate(self.possible_agents)}
-        draw = self._draw
-        jitter = None
-        if draw is not None and self.randomization.camera_enabled:
+        draw, randomization = self._draw, self.randomization
+        jitter = perturb = None
+        if draw is not None and randomization.camera_enabled:
             jitter = np.array(draw.camera_jitter[:self.num_cars])
-        eyes, rotations = camera_poses(self.camera, self.world.poses[:self.num_cars], jitter)
-        cars = self._camera_cars
-        if self.sensors.camera == "stereo":  # render the left cameras, then the right ones
-            eyes, rotations = stereo_poses(self.camera, eyes, rotations)
-            cars = np.concatenate([cars, cars])
-        images = self._renderer.render_many(self.world, cars, eyes, rotations)
-        if draw is not None and self.randomization.perception_enabled:
-            images = [apply_image(image, self._randomizer_rng, draw) for image in images]
-        if self.sensors.camera == "stereo":
-            n = self.num_cars
-            images = [np.concatenate([left, right], axis=2) for left, right in zip(images[:n], images[n:])]
-        elif self.camera.grayscale:  # one grey channel: (H, W)
-            images = [image[:, :, 0] for image in images]
-        if self.lidar is None:
-            return dict(zip(self.possible_agents, images))
-        scans = self.lidar.scan(self.world, self._camera_cars, self._lidar_rng)
-        if self.sensors.lidar == "sector":
-            scans = sector_lidar(scans)
-        return {agent: {"camera": image, "lidar": scan}
-                for agent, image, scan in zip(self.possible_agents, images, scans)}
+        if draw is not None and randomization.perception_enabled:
+            perturb = functools.partial(apply_image, rng=self._randomizer_rng, draw=draw)
+        view = SensorView(self.world, self._camera_cars, self.camera, self.car_spec, self._lidar_rng,
+                          self._renderer, jitter, perturb, self.race_state)
+        return self.sensors.observe(view, self.possible_agents)
 
     def car_state(self, i: int) -> np.ndarray:
         """Car i's privileged ego state (`state.car_features`), what an RL teacher reads."""

@@ -12,9 +12,12 @@ The metadata is DeepRacer's ``model_metadata.json`` (``sensor``,
 (``{"height", "width", "channels"}`` of the camera it expects) and optional
 ``training`` notes. ``sensor`` is DeepRacer's list (`sensors.suite`): one
 camera, ``FRONT_FACING_CAMERA`` (1 grey or 3 colour channels) or
-``STEREO_CAMERAS`` (2 channels, [left, right]), and at most one range sensor,
-``LIDAR`` (64 ranges) or ``SECTOR_LIDAR`` (8 binary sectors). In a race an
-agent takes what it reads from the race's observation (`Agent.reads`). The
+``STEREO_CAMERAS`` (2 channels, [left, right]), at most one range sensor,
+``LIDAR`` (64 ranges) or ``SECTOR_LIDAR`` (8 binary sectors), and multirace's
+own sensors such as ``SPEED`` (`sensors.registry`); the net reads each sensor
+beside the camera as the registry's schema sizes it
+(`SensorSuite.vector_inputs`). In a race an agent takes what it reads from the
+race's observation (`Agent.reads`). The
 network is rebuilt from its name (`nets.NETWORKS`), so a custom network
 travels without Python source.
 
@@ -59,8 +62,8 @@ import torch
 from ..atomic import write_bytes
 from ..environment.actions import ActionSpace, ActionSpaceError
 from ..sensors.camera import observation_shape
-from ..sensors.lidar import LidarSpec, sector_lidar
-from ..sensors.suite import RANGE_INPUTS, SensorSuite, declared_sensors, parse_sensors
+from ..sensors.registry import BY_KIND, CAMERA_KEY, SENSORS
+from ..sensors.suite import SensorSuite, declared_sensors, parse_sensors, suite_of
 from .graphnet import GRAPH_FIELD, GraphNet, plan
 from .nets import NETWORKS, CameraNet, num_outputs_for, parameter_count
 from .entrant import Controller, Forfeit
@@ -125,12 +128,16 @@ def save_agent(path, net: CameraNet, metadata: dict, verify: bool = False) -> Pa
 
 
 def net_sensors(net: CameraNet) -> SensorSuite:
-    """The sensors a net reads: a stereo pair on 2-channel images; LIDAR (64 inputs) or SECTOR_LIDAR (8)."""
-    kinds = {inputs: kind for kind, inputs in RANGE_INPUTS.items()}
-    if net.lidar_samples and net.lidar_samples not in kinds:
-        raise ValueError(f"the net reads {net.lidar_samples} range inputs; DeepRacer's LIDAR gives "
-                         f"{RANGE_INPUTS['lidar']}, its SECTOR_LIDAR {RANGE_INPUTS['sector']}")
-    return SensorSuite("stereo" if net.image_shape[2] == 2 else "mono", kinds.get(net.lidar_samples))
+    """The sensors a net reads: a stereo pair on 2-channel images; per vector input the registry's sensor of
+    that key and size (LIDAR 64 inputs, SECTOR_LIDAR 8, SPEED 1)."""
+    sensors = [BY_KIND["stereo" if net.image_shape[2] == 2 else "mono"]]
+    for key, size in net.vector_inputs.items():
+        fits = [sensor for sensor in SENSORS if sensor.key == key and sensor.inputs == size]
+        if not fits:
+            known = ", ".join(f"{s.name} {s.inputs}" for s in SENSORS if s.key == key) or "none"
+            raise ValueError(f"the net reads {size} {key!r} inputs; the sensors of that key give: {known}")
+        sensors.append(fits[0])
+    return suite_of(sensors)
 
 
 def agent_file_bytes(metadata: dict, net) -> bytes:
@@ -448,35 +455,36 @@ class Agent:
     def reads(self, observation):
         """What the agent reads of a race env's observation (see `race_suite`): its camera image as the env
         gives it (`camera.observation_shape`: (H, W) when grey; (H, W, 1) is taken too), a single-camera
-        agent the left image of a stereo pair; a SECTOR_LIDAR agent reduces a 64-beam scan to its sectors.
-        ValueError if the observation does not match its model_metadata."""
-        scan = None
-        if isinstance(observation, dict):
-            observation, scan = observation.get("camera"), observation.get("lidar")
-        image = np.asarray(observation)
+        agent the left image of a stereo pair; each of its other sensors' values (`Sensor.reads`: a
+        SECTOR_LIDAR agent reduces a 64-beam scan to its sectors). ValueError if the observation does not
+        match its model_metadata."""
+        values = observation if isinstance(observation, dict) else {CAMERA_KEY: observation}
+        image = np.asarray(values.get(CAMERA_KEY))
         height, width, channels = self.image_shape
         if channels == 1 and image.shape in ((height, width, 1), (height, width, 2)):  # grey, or a stereo pair's left
             image = image[:, :, 0]
         if image.shape != observation_shape(self.image_shape) or image.dtype != np.uint8:
             raise ValueError(f"observation {image.shape} {image.dtype} does not match the {height}x{width}x{channels} "
                              f"uint8 images the agent reads (field 'image' of its model_metadata)")
-        if not self.lidar_samples:
+        if not self.sensors.vectors:
             return image
-        scan = np.asarray(scan if scan is not None else [], np.float32)
-        if self.sensors.lidar == "sector" and scan.shape == (RANGE_INPUTS["lidar"],):
-            scan = sector_lidar(scan)
-        if scan.shape != (self.lidar_samples,):
-            raise ValueError(f"LIDAR observation of shape {scan.shape} does not match the agent's "
-                             f"{self.lidar_samples} inputs (sensor {self.sensors.names} in its model_metadata)")
-        return {"camera": image, "lidar": scan}
+        read = {CAMERA_KEY: image}
+        for sensor in self.sensors.vectors:
+            value = values.get(sensor.key)
+            value = np.asarray(sensor.reads(value) if value is not None else [], np.float32)
+            if value.shape != (sensor.inputs,):
+                raise ValueError(f"{sensor.name} observation of shape {value.shape} does not match the agent's "
+                                 f"{sensor.inputs} inputs (sensor {self.sensors.names} in its model_metadata)")
+            read[sensor.key] = value
+        return read
 
     def outputs(self, observation) -> np.ndarray:
-        """The net's raw output row for one uint8 image as `reads` gives it (agents with a range sensor: the
-        {"camera", "lidar"} dict)."""
+        """The net's raw output row for one observation as `reads` gives it (an image, or with sensors beside
+        the camera a {"camera", key, ...} dict)."""
         with torch.no_grad():
-            if self.lidar_samples:
-                out = self.net({"camera": torch.from_numpy(np.ascontiguousarray(observation["camera"])),
-                                "lidar": torch.from_numpy(np.asarray(observation["lidar"], np.float32))})
+            if isinstance(observation, dict):
+                out = self.net({key: torch.from_numpy(np.ascontiguousarray(value))
+                                for key, value in observation.items()})
             else:
                 out = self.net(torch.from_numpy(np.ascontiguousarray(observation)))
         return out.numpy()
@@ -526,10 +534,10 @@ def agent_from_bytes(data: bytes, path: Path, step_budget: float | None = None, 
         net.load_state_dict(state, strict=True)
     except RuntimeError as exc:
         lines = [line.strip() for line in str(exc).splitlines() if line.strip()][1:4]
-        kind = {"lidar": "LIDAR ranges", "sector": "SECTOR_LIDAR sectors"}.get(sensors.lidar)
-        with_lidar = f" and {sensors.range_inputs} {kind} (metadata field 'sensor')" if kind else ""
+        vectors = " and ".join(f"{sensor.inputs} {sensor.unit}" for sensor in sensors.vectors)
+        with_vectors = f" and {vectors} (metadata field 'sensor')" if vectors else ""
         raise AgentFileError(f"{source}: weights do not match the {network} architecture for "
-                             f"{shape[0]}x{shape[1]}x{shape[2]} images{with_lidar}: {' '.join(lines)}") from None
+                             f"{shape[0]}x{shape[1]}x{shape[2]} images{with_vectors}: {' '.join(lines)}") from None
     net.eval()
     agent = Agent(path, net, metadata, space, hashlib.sha256(data).hexdigest(), sensors)
     smoke_test(agent, step_budget, smoke_runs)
@@ -550,7 +558,7 @@ def _build_net(metadata: dict, space: ActionSpace, network: str, shape: tuple, s
     def make():
         if GRAPH_FIELD in metadata:
             return _graph_net(metadata, space, shape, sensors, source)
-        return CameraNet(network, shape, expected, value_head=value_head, lidar_samples=sensors.range_inputs)
+        return CameraNet(network, shape, expected, value_head=value_head, vector_inputs=sensors.vector_inputs)
 
     try:
         with torch.device("meta"):  # sized before anything is allocated
@@ -587,14 +595,15 @@ def _graph_net(metadata: dict, space: ActionSpace, shape: tuple, sensors: Sensor
 
 
 def smoke_test(agent: Agent, step_budget: float | None, runs: int = 5) -> None:
-    """One inference on a blank image (and a LIDAR scan without echoes): right shape, finite, within budget.
+    """One inference on a blank image (and blank readings of its other sensors: a LIDAR scan without echoes):
+    right shape, finite, within budget.
 
     Timed in CPU time on one torch thread (as `AgentController` runs, see `inference_clock`); up to
     `runs` tries, the fastest counts.
     """
     source = str(agent.path)
-    blank = agent.reads({"camera": np.zeros(observation_shape(agent.image_shape), np.uint8),
-                         "lidar": np.full(LidarSpec().samples, LidarSpec().max_range, np.float32)})
+    blank = agent.reads({CAMERA_KEY: np.zeros(observation_shape(agent.image_shape), np.uint8),
+                         **{sensor.key: sensor.blank() for sensor in agent.sensors.vectors}})
     fastest = math.inf
     threads = torch.get_num_threads()
     torch.set_num_threads(1)

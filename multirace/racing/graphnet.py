@@ -144,6 +144,7 @@ class GraphNet(nn.Module):
         self.camera, self.lidar_sensor = cameras[0], (lidars[0] if lidars else None)
         self.image_shape = tuple(spec["inputs"][self.camera]["shape"])
         self.lidar_samples = spec["inputs"][self.lidar_sensor]["shape"][0] if self.lidar_sensor else 0
+        self.vector_inputs = {"lidar": self.lidar_samples} if self.lidar_samples else {}  # as `CameraNet` names them
         self.num_outputs = len(action_space.actions) if action_space.discrete else CONTINUOUS_OUTPUTS
         self.has_value = False
 

@@ -24,14 +24,18 @@ one trunk pass (for PPO). Networks (``NETWORKS``):
   conv 16 5x5/2, conv 32 3x3/2, conv 32 3x3/1, fully connected 128 (about
   0.11 M parameters); about 3x cheaper than the small net to train and run.
 
-With a LIDAR (``lidar_samples`` > 0) a net takes observations as the env
-gives them, ``{"camera": images, "lidar": ranges}``: the ranges go through
-two fully connected layers of 64 (DeepRacer's own LIDAR embedder is dense
-layers too), whose output joins the flattened convolution features before the
-hidden layer. `add_lidar_inputs` widens a camera-only net into one that starts
-out acting exactly as it did.
+Beside the camera a net may read vector sensors (`sensors.registry`): its
+``vector_inputs`` are the schema's {observation key: values per step}
+(`SensorSuite.vector_inputs`, e.g. ``{"lidar": 64, "speed": 1}``;
+``lidar_samples=n`` is the shorthand for ``{"lidar": n}``). Such a net takes
+observations as the env gives them, ``{"camera": images, "lidar": ranges,
+...}``: each vector goes through two fully connected layers of 64 (named after
+its key: DeepRacer's own LIDAR embedder is dense layers too), whose outputs
+join the flattened convolution features, in the schema's order, before the
+hidden layer. `add_vector_inputs` widens a net into one that reads more
+vectors and starts out acting exactly as it did.
 
-A network is fully determined by (name, image shape, LIDAR samples, number of
+A network is fully determined by (name, image shape, vector inputs, number of
 outputs, value head), which is what an agent file's metadata records; weights
 are loaded into it as plain tensors.
 """
@@ -49,7 +53,7 @@ SHALLOW = "DEEP_CONVOLUTIONAL_NETWORK_SHALLOW"
 TINY = "MULTIRACE_TINY_CNN"
 DEFAULT_NETWORK = SMALL
 CONTINUOUS_OUTPUTS = 4  # mean steer, mean speed, log-std steer, log-std speed
-LIDAR_HIDDEN = 64  # width of the two LIDAR layers
+VECTOR_HIDDEN = 64  # width of the two layers each vector input goes through
 
 
 class AveragePool(nn.AvgPool2d):
@@ -138,11 +142,14 @@ def channels_first(images, image_shape) -> torch.Tensor:
     return x.reshape(-1, height * width * channels).view(-1, height, width, channels).permute(0, 3, 1, 2)
 
 
+RESERVED = ("camera", "conv", "fc", "head", "value_head", "vector_inputs", "network")  # not vector keys
+
+
 class CameraNet(nn.Module):
     """A camera CNN: convolutional trunk, one hidden fully connected layer, output (and value) head."""
 
     def __init__(self, network: str = DEFAULT_NETWORK, image_shape=(120, 160, 1), num_outputs: int = 10,
-                 value_head: bool = False, lidar_samples: int = 0):
+                 value_head: bool = False, lidar_samples: int = 0, vector_inputs: dict | None = None):
         super().__init__()
         if network not in NETWORKS:
             raise ValueError(f"neural_network: unknown network {network!r}; known: {', '.join(NETWORKS)}")
@@ -161,17 +168,21 @@ class CameraNet(nn.Module):
                 flat = self.conv(torch.zeros(1, channels, height, width)).shape[1]
         except RuntimeError:
             raise ValueError(f"image shape {image_shape}: too small for {network}") from None
-        self.lidar_samples = int(lidar_samples)
-        if self.lidar_samples < 0:
-            raise ValueError(f"lidar_samples: must be 0 (no LIDAR) or positive, got {lidar_samples}")
-        self.lidar = None
-        if self.lidar_samples:
-            self.lidar = nn.Sequential(nn.Linear(self.lidar_samples, LIDAR_HIDDEN), nn.ReLU(),
-                                       nn.Linear(LIDAR_HIDDEN, LIDAR_HIDDEN), nn.ReLU())
-            flat += LIDAR_HIDDEN
+        self.vector_inputs = _vector_inputs(lidar_samples, vector_inputs)
+        for key, size in self.vector_inputs.items():  # one branch per key, named after it ("lidar.0.weight")
+            self.add_module(key, nn.Sequential(nn.Linear(size, VECTOR_HIDDEN), nn.ReLU(),
+                                               nn.Linear(VECTOR_HIDDEN, VECTOR_HIDDEN), nn.ReLU()))
+            flat += VECTOR_HIDDEN
+        if "lidar" not in self.vector_inputs:
+            self.lidar = None
         self.fc = nn.Sequential(nn.Linear(flat, hidden), nn.ReLU())
         self.head = nn.Linear(hidden, self.num_outputs)
         self.value_head = nn.Linear(hidden, 1) if value_head else None
+
+    @property
+    def lidar_samples(self) -> int:
+        """The LIDAR values it reads per step (0: none)."""
+        return self.vector_inputs.get("lidar", 0)
 
     @property
     def has_value(self) -> bool:
@@ -180,14 +191,17 @@ class CameraNet(nn.Module):
     def features(self, obs, pooled: bool = False) -> torch.Tensor:
         """The hidden features of uint8 images, one or a batch (see `channels_first`).
 
-        A LIDAR net takes ``{"camera": images, "lidar": ranges (B, samples) or (samples,)}``. With `pooled`,
+        A net with vector inputs takes ``{"camera": images, key: values (B, n) or (n,), ...}``. With `pooled`,
         the images are the block sums of `pool_image` (the net's own first pool done already): the same
         features, without the pool's cost.
         """
-        if self.lidar is not None:
-            if not isinstance(obs, dict):
-                raise ValueError("this net needs {'camera': images, 'lidar': ranges} observations")
-            obs, ranges = obs["camera"], torch.as_tensor(obs["lidar"], dtype=torch.float32)
+        vectors = {}
+        if self.vector_inputs:
+            if not isinstance(obs, dict) or not all(key in obs for key in self.vector_inputs):
+                raise ValueError(f"this net needs {{'camera': images, {', '.join(map(repr, self.vector_inputs))}: "
+                                 "values}} observations")
+            vectors = {key: torch.as_tensor(obs[key], dtype=torch.float32) for key in self.vector_inputs}
+            obs = obs["camera"]
         if pooled:
             k = input_pool(self.network)
             height, width, channels = self.image_shape
@@ -195,8 +209,9 @@ class CameraNet(nn.Module):
             x = self.conv[1:](sums.mul_(1.0 / (255 * k * k)))
         else:
             x = self.conv(channels_first(obs, self.image_shape).float().div_(255.0))
-        if self.lidar is not None:
-            x = torch.cat([x, self.lidar(ranges.reshape(x.shape[0], self.lidar_samples))], dim=1)
+        if vectors:
+            x = torch.cat([x, *(self.get_submodule(key)(values.reshape(x.shape[0], self.vector_inputs[key]))
+                                for key, values in vectors.items())], dim=1)
         return self.fc(x)
 
     def forward(self, obs) -> torch.Tensor:
@@ -216,22 +231,45 @@ class CameraNet(nn.Module):
         return self.head(h), value
 
 
-def add_lidar_inputs(net: CameraNet, lidar_samples: int) -> CameraNet:
-    """A copy of camera-only `net` with a LIDAR branch whose inputs start with zero weight.
+def _vector_inputs(lidar_samples: int, vector_inputs: dict | None) -> dict[str, int]:
+    """{key: size} of a net's vector inputs, from the schema's dict or the LIDAR shorthand; ValueError if bad."""
+    inputs = dict(vector_inputs or {})
+    if lidar_samples:
+        if int(lidar_samples) < 0 or inputs.get("lidar", lidar_samples) != lidar_samples:
+            raise ValueError(f"lidar_samples: must be 0 (no LIDAR) or positive, got {lidar_samples}")
+        inputs = {"lidar": int(lidar_samples), **inputs}
+    for key, size in inputs.items():
+        if not key.isidentifier() or key in RESERVED or int(size) < 1:
+            raise ValueError(f"vector input {key!r}: {size} values; a net's vector inputs are named by their "
+                             f"observation keys (not {', '.join(RESERVED)}) and read at least one value")
+    return {key: int(size) for key, size in inputs.items()}
 
-    The new net's outputs equal the old net's for any scan, until training gives the LIDAR a say.
-    """
-    if net.lidar is not None:
-        raise ValueError("the net already has a LIDAR branch")
-    wide = CameraNet(net.network, net.image_shape, net.num_outputs, net.has_value, lidar_samples)
+
+def add_vector_inputs(net: CameraNet, inputs: dict[str, int]) -> CameraNet:
+    """A copy of `net` that also reads the vector `inputs` ({key: size}, new keys only), whose new branches
+    start with zero weight into the hidden layer: its outputs equal the old net's for any values, until
+    training gives them a say. The branches keep the order of `inputs` after the net's own."""
+    added = {key: size for key, size in inputs.items() if key not in net.vector_inputs}
+    if not added or len(added) != len(inputs):
+        raise ValueError(f"the net already reads {sorted(set(inputs) & set(net.vector_inputs))}; "
+                         f"add only new vector inputs, not {sorted(inputs)}")
+    wide = CameraNet(net.network, net.image_shape, net.num_outputs, net.has_value,
+                     vector_inputs={**net.vector_inputs, **added})
     state = net.state_dict()
     old = state["fc.0.weight"]
     weight = torch.zeros_like(wide.fc[0].weight)
     weight[:, :old.shape[1]] = old
     state["fc.0.weight"] = weight
-    state.update({k: v for k, v in wide.state_dict().items() if k.startswith("lidar.")})
+    state.update({k: v for k, v in wide.state_dict().items() if k.split(".")[0] in added})
     wide.load_state_dict(state)
     return wide
+
+
+def add_lidar_inputs(net: CameraNet, lidar_samples: int) -> CameraNet:
+    """A copy of camera-only `net` with a LIDAR branch whose inputs start with zero weight (`add_vector_inputs`)."""
+    if net.lidar is not None:
+        raise ValueError("the net already has a LIDAR branch")
+    return add_vector_inputs(net, {"lidar": lidar_samples})
 
 
 def num_outputs_for(action_space) -> int:
@@ -240,13 +278,14 @@ def num_outputs_for(action_space) -> int:
 
 
 def build_net(network: str = DEFAULT_NETWORK, image_shape=(120, 160, 1), action_space=None,
-              value_head: bool = False, lidar_samples: int = 0) -> CameraNet:
-    """A freshly initialised net for an action space (default: the 10-action DeepRacer space)."""
+              value_head: bool = False, lidar_samples: int = 0, vector_inputs: dict | None = None) -> CameraNet:
+    """A freshly initialised net for an action space (default: the 10-action DeepRacer space); `vector_inputs`
+    are the schema's {key: size} of the sensors beside the camera (`SensorSuite.vector_inputs`)."""
     from ..environment.actions import load_action_space
 
     space = load_action_space(action_space)
     return CameraNet(network, image_shape, num_outputs_for(space), value_head=value_head,
-                     lidar_samples=lidar_samples)
+                     lidar_samples=lidar_samples, vector_inputs=vector_inputs)
 
 
 def parameter_count(net: nn.Module) -> int:

@@ -30,7 +30,7 @@ from .config import TrainConfig
 from .experts import TEACHER_PREFIX
 from .imitate import Dataset, fit_labels, greedy_actions, imitation_loss
 from .ppo import init_continuous_head, make_vector_env
-from .rollout import Rollout, expert_actions, finished_episodes
+from .rollout import Rollout, expert_actions, finished_episodes, vector_sizes
 from .run import TrainingRun
 from .teacher import train_teacher
 from .teacher_net import load_teacher
@@ -70,9 +70,9 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
     try:
         obs, infos = vec.reset(seeds=[config.seed * 100_000 + e for e in range(E)])
         obs_shape = (obs["camera"] if isinstance(obs, dict) else obs).shape[2:]
-        lidar = obs["lidar"].shape[-1] if isinstance(obs, dict) else 0
+        vectors = vector_sizes(obs)  # the sensors beside the camera, {key: size}
         image_shape = image_shape_of(obs_shape)
-        net = build_net(config.network, image_shape, space, lidar_samples=lidar)
+        net = build_net(config.network, image_shape, space, vector_inputs=vectors)
         if init:
             load_init_agent(init, net)
         elif not space.discrete:
@@ -80,8 +80,8 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
         optimiser = torch.optim.Adam(net.parameters(), lr=config.distill_lr)
         loss_fn = imitation_loss(space)
         label_shape, label_dtype = ((), np.int64) if space.discrete else ((2,), np.float32)
-        data = Dataset(config.distill_samples, obs_shape, label_shape, label_dtype, rng, lidar)
-        view = Rollout(1, E * A, obs_shape, lidar, space)  # only for its net_input(): (E, A, ...) -> (N, ...)
+        data = Dataset(config.distill_samples, obs_shape, label_shape, label_dtype, rng, vectors)
+        view = Rollout(1, E * A, obs_shape, vectors, space)  # only for its net_input(): (E, A, ...) -> (N, ...)
         labels = expert_actions(infos, space.discrete).numpy()
         while run.keep_going(0):
             t0 = time.perf_counter()
@@ -92,7 +92,7 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
                 x = view.net_input(obs)
                 known = labels >= 0 if space.discrete else ~np.isnan(labels).any(-1)
                 for k in np.flatnonzero(known):
-                    data.add({key: x[key][k] for key in x} if lidar else x[k], labels[k])
+                    data.add({key: x[key][k] for key in x} if vectors else x[k], labels[k])
                 with torch.no_grad():
                     mine = np.asarray(greedy_actions(space, net(x)))
                 teacher_drives = (rng.random(E * A) < beta) & known

@@ -100,13 +100,14 @@ class ImitationConfig:
 class Dataset:
     """Aggregated (observation, label) pairs with a size cap (random replacement when full).
 
-    An observation is an image, or with `lidar_samples` the env's {"camera", "lidar"} dict.
+    An observation is an image, or with `vector_inputs` ({key: size}: the sensors beside the camera) the
+    env's {"camera", key, ...} dict.
     """
 
     def __init__(self, capacity: int, obs_shape, label_shape, label_dtype, rng: np.random.Generator,
-                 lidar_samples: int = 0):
+                 vector_inputs: dict | None = None):
         self.images = np.zeros((capacity, *obs_shape), np.uint8)
-        self.lidar = np.zeros((capacity, lidar_samples), np.float32) if lidar_samples else None
+        self.vectors = {key: np.zeros((capacity, size), np.float32) for key, size in (vector_inputs or {}).items()}
         self.labels = np.zeros((capacity, *label_shape), label_dtype)
         self.size, self.capacity, self.seen, self.rng = 0, capacity, 0, rng
 
@@ -116,10 +117,9 @@ class Dataset:
             self.size += 1
         else:
             k = int(self.rng.integers(self.capacity))
-        if self.lidar is not None:
-            self.images[k], self.lidar[k] = observation["camera"], observation["lidar"]
-        else:
-            self.images[k] = observation
+        self.images[k] = observation["camera"] if self.vectors else observation
+        for key, values in self.vectors.items():
+            values[k] = observation[key]
         self.labels[k] = label
         self.seen += 1
 
@@ -127,14 +127,16 @@ class Dataset:
         """(net input, labels) of `n` random samples."""
         idx = self.rng.integers(self.size, size=n)
         images = torch.from_numpy(self.images[idx])
-        inputs = images if self.lidar is None else {"camera": images, "lidar": torch.from_numpy(self.lidar[idx])}
+        if not self.vectors:
+            return images, torch.from_numpy(self.labels[idx])
+        inputs = {"camera": images, **{key: torch.from_numpy(values[idx]) for key, values in self.vectors.items()}}
         return inputs, torch.from_numpy(self.labels[idx])
 
 
 def stack_observations(observations: list):
-    """One net input from per-car observations (images, or {"camera", "lidar"} dicts)."""
+    """One net input from per-car observations (images, or {"camera", key, ...} dicts)."""
     if isinstance(observations[0], dict):
-        return {key: torch.from_numpy(np.stack([o[key] for o in observations])) for key in ("camera", "lidar")}
+        return {key: torch.from_numpy(np.stack([o[key] for o in observations])) for key in observations[0]}
     return torch.from_numpy(np.stack(observations))
 
 
@@ -310,15 +312,15 @@ def run_dagger(config: ImitationConfig) -> dict:
     expert = make_expert(config, space)
     runs = DaggerEnvs(config, space, rng)
     observation_space, sensors = runs.envs[0].observation_space("car_0"), runs.envs[0].sensors
-    obs_shape = observation_space["camera"].shape if sensors.lidar else observation_space.shape
+    obs_shape = observation_space["camera"].shape if sensors.vectors else observation_space.shape
     image_shape = image_shape_of(obs_shape)  # (H, W, C), as the net and its metadata record it
-    net = build_net(config.network, image_shape, space, lidar_samples=sensors.range_inputs)
+    net = build_net(config.network, image_shape, space, vector_inputs=sensors.vector_inputs)
     if config.init:
         load_init_agent(config.init, net)
     optimiser = torch.optim.Adam(net.parameters(), lr=config.lr)
     loss_fn = imitation_loss(space)
     label_shape, label_dtype = ((), np.int64) if space.discrete else ((2,), np.float32)
-    data = Dataset(config.max_samples, obs_shape, label_shape, label_dtype, rng, sensors.range_inputs)
+    data = Dataset(config.max_samples, obs_shape, label_shape, label_dtype, rng, sensors.vector_inputs)
     out_of_time = lambda: time.perf_counter() - started >= budget  # noqa: E731
     progress = _progress_bar(config, budget)
     history = []

@@ -37,7 +37,7 @@ from ..sensors.camera import image_shape_of
 from .config import TrainConfig
 from .envs import INFO_KEYS, TrainEnv, env_settings
 from .robust import RobustKnobs
-from .rollout import Rollout, expert_actions, finished_episodes
+from .rollout import Rollout, batch_input, expert_actions, finished_episodes, vector_sizes
 from .run import TrainingRun
 from .threads import update_threads
 from .warmstart import init_lineage, init_settings, load_init_agent
@@ -152,11 +152,12 @@ def make_vector_env(config: TrainConfig, shared=None, cars=None, bots=None, pool
 
 
 def observation_shapes(obs, pool: int) -> tuple:
-    """(one car's observation shape as sent, the camera's (H, W, C) as the net records it, LIDAR ranges per
-    car) of the vector env's first observations, their images pooled by `pool`."""
+    """(one car's observation shape as sent, the camera's (H, W, C) as the net records it, {key: values per
+    car} of the sensors beside the camera) of the vector env's first observations, their images pooled by
+    `pool`."""
     obs_shape = (obs["camera"] if isinstance(obs, dict) else obs).shape[2:]
     height, width, channels = image_shape_of(obs_shape)
-    return obs_shape, (height * pool, width * pool, channels), obs["lidar"].shape[-1] if isinstance(obs, dict) else 0
+    return obs_shape, (height * pool, width * pool, channels), vector_sizes(obs)
 
 
 def input_pooling(config: TrainConfig) -> int:
@@ -233,7 +234,7 @@ def anneal_learning_rate(optimiser, config: TrainConfig, fraction: float) -> Non
 
 
 # ------------------------------------------------------------------ the PPO update
-def ppo_update(net, policy: Policy, optimiser, batch: dict, config: TrainConfig, space, lidar: bool,
+def ppo_update(net, policy: Policy, optimiser, batch: dict, config: TrainConfig, space,
                value_only: bool, pooled: bool = False, generator=None) -> dict:
     """Clipped PPO epochs over minibatches of the learner's samples (plus the expert loss where asked);
     `value_only` fits the value head alone (a fresh head under an --init policy); `pooled`: the images
@@ -247,8 +248,7 @@ def ppo_update(net, policy: Policy, optimiser, batch: dict, config: TrainConfig,
         order = torch.randperm(size, generator=generator)
         for start in range(0, size - mb + 1, mb):
             idx = order[start:start + mb]
-            out, value = forward(net, {"camera": batch["obs"][idx], "lidar": batch["lidar"][idx]} if lidar
-                                 else batch["obs"][idx], pooled)
+            out, value = forward(net, batch_input(net, batch, idx), pooled)
             dist = policy.dist(out)
             logp = policy.log_prob(dist, batch["act"][idx])
             log_ratio = logp - batch["logp"][idx]
@@ -298,15 +298,14 @@ def ppo_update(net, policy: Policy, optimiser, batch: dict, config: TrainConfig,
 BEHAVIOUR_WEIGHT_CAP = 1.0  # truncation of the current / behaviour probability ratio (IMPALA's rho-bar)
 
 
-def recentre(net, policy: Policy, batch: dict, lidar: bool, pooled: bool, chunk: int) -> None:
+def recentre(net, policy: Policy, batch: dict, pooled: bool, chunk: int) -> None:
     """Decoupled PPO (Hilton et al., 2022) for a batch an older policy sampled: the clip is centred on the
     current policy (`batch["logp"]` becomes its log-probabilities) and each sample's policy loss is weighted
     by the current / behaviour probability ratio, truncated at `BEHAVIOUR_WEIGHT_CAP` (`batch["weight"]`)."""
     parts = []
     with torch.no_grad():
         for start in range(0, len(batch["obs"]), chunk):
-            obs = batch["obs"][start:start + chunk]
-            x = {"camera": obs, "lidar": batch["lidar"][start:start + chunk]} if lidar else obs
+            x = batch_input(net, batch, slice(start, start + chunk))
             parts.append(policy.log_prob(policy.dist(forward(net, x, pooled)[0]), batch["act"][start:start + chunk]))
     logp = torch.cat(parts) if parts else batch["logp"]
     batch["weight"] = (logp - batch["logp"]).exp().clamp(max=BEHAVIOUR_WEIGHT_CAP)
@@ -320,9 +319,9 @@ class Updater:
     for). The overlapped update runs on one torch thread and draws its minibatches from its own
     generator, so a seed still gives the same run."""
 
-    def __init__(self, net, policy: Policy, optimiser, config: TrainConfig, space, lidar: bool, pooled: bool):
+    def __init__(self, net, policy: Policy, optimiser, config: TrainConfig, space, pooled: bool):
         self.net, self.policy, self.optimiser, self.config, self.space = net, policy, optimiser, config, space
-        self.lidar, self.pooled = lidar, pooled
+        self.pooled = pooled
         self.overlap = bool(config.overlap_update)
         self.behaviour = copy.deepcopy(net) if self.overlap else net
         self.generator = torch.Generator().manual_seed(config.seed + 1) if self.overlap else None
@@ -334,9 +333,9 @@ class Updater:
         try:
             anneal_learning_rate(self.optimiser, self.config, fraction)
             if self.overlap:  # sampled by the policy from before the last update
-                recentre(self.net, self.policy, batch, self.lidar, self.pooled, self.config.minibatch_size)
+                recentre(self.net, self.policy, batch, self.pooled, self.config.minibatch_size)
             self.stats = ppo_update(self.net, self.policy, self.optimiser, batch, self.config, self.space,
-                                    lidar=self.lidar, value_only=value_only, pooled=self.pooled,
+                                    value_only=value_only, pooled=self.pooled,
                                     generator=self.generator)
         except BaseException as exc:  # raised again in the main thread by `finish`
             self.error = exc
@@ -418,10 +417,10 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
     vec = make_vector_env(config, robust.shared, pool=pool)
     E, A, T, N = config.num_envs, config.cars_per_env, config.rollout_steps, config.num_envs * config.cars_per_env
     obs, reset_infos = vec.reset(seeds=[config.seed * 100_000 + e for e in range(E)])
-    obs_shape, image_shape, R = observation_shapes(obs, pool)
+    obs_shape, image_shape, vectors = observation_shapes(obs, pool)
 
     # --- 3. the net (policy + value head), optimiser, reward scale, opponent pool, rollout storage
-    net = build_net(config.network, image_shape, space, value_head=True, lidar_samples=R)
+    net = build_net(config.network, image_shape, space, value_head=True, vector_inputs=vectors)
     if not space.discrete:
         init_continuous_head(net, space)
     if init:
@@ -429,11 +428,11 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
     optimiser = torch.optim.Adam(net.parameters(), lr=config.lr, eps=1e-5)
     reward_scale = RewardScale(N, config.gamma) if config.norm_reward else None
     run.restore(checkpoint, net, optimiser, reward_scale)
-    robust.start_pool(space, image_shape, np.random.default_rng(config.seed), R)
-    rollout = Rollout(T, N, obs_shape, R, space, obs_dtype=np.int16 if pool > 1 else np.uint8)
+    robust.start_pool(space, image_shape, np.random.default_rng(config.seed), vectors)
+    rollout = Rollout(T, N, obs_shape, vectors, space, obs_dtype=np.int16 if pool > 1 else np.uint8)
     rollout.start(obs, expert_actions(reset_infos, space.discrete))
     deepracer = run.deepracer_folder(net, space, image_shape)  # out.deepracer/ (deepracer_log), else None
-    updater = Updater(net, Policy(space), optimiser, config, space, lidar=bool(R), pooled=pool > 1)
+    updater = Updater(net, Policy(space), optimiser, config, space, pooled=pool > 1)
     try:
         start_iteration = run.iteration
         while run.keep_going(start_iteration):

@@ -44,12 +44,12 @@ class RobustKnobs:
             if self.nature is not None:
                 self.shared["nature"] = ctx.Array("d", self.nature.weights().tolist())
 
-    def start_pool(self, space, image_shape, rng, lidar_samples: int) -> None:
-        """The opponent pool, once the observation shape is known."""
+    def start_pool(self, space, image_shape, rng, vector_inputs: dict) -> None:
+        """The opponent pool, once the observation shape (and the sensors beside the camera) is known."""
         if self.config.opponent_pool:
             from .selfplay import OpponentPool
 
-            self.pool = OpponentPool(self.config, space, image_shape, rng, lidar_samples=lidar_samples)
+            self.pool = OpponentPool(self.config, space, image_shape, rng, vector_inputs=vector_inputs)
 
     def before_iteration(self, fraction: float, envs: int, cars: int):
         """Set this iteration's knobs; returns which cars the learner drives (the pool drives the rest)."""

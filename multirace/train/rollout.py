@@ -6,18 +6,37 @@ import math
 import numpy as np
 import torch
 
+from ..sensors.registry import CAMERA_KEY
+
+
+def vector_sizes(obs) -> dict[str, int]:
+    """{key: values per car} of the sensors beside the camera in a vector env's observations (the schema's
+    `SensorSuite.vector_inputs`, as the env sends them); {} for bare images."""
+    if not isinstance(obs, dict):
+        return {}
+    return {key: int(value.shape[-1]) for key, value in obs.items() if key != CAMERA_KEY}
+
+
+def batch_input(net, batch: dict, rows):
+    """The net's input for `rows` of a learner batch: its images, with the vectors the net reads beside them."""
+    images = batch["obs"][rows]
+    if not net.vector_inputs:
+        return images
+    return {CAMERA_KEY: images, **{key: batch[key][rows] for key in net.vector_inputs}}
+
 
 class Rollout:
-    """(T, N) buffers: uint8 images, LIDAR ranges, actions, log-probs, rewards, dones, values, expert labels,
-    and which cars' samples train the learner (opponent-pool cars do not)."""
+    """(T, N) buffers: uint8 images, the vectors of the sensors beside the camera ({key: size}, e.g. LIDAR
+    ranges), actions, log-probs, rewards, dones, values, expert labels, and which cars' samples train the
+    learner (opponent-pool cars do not)."""
 
-    def __init__(self, steps: int, cars: int, obs_shape, lidar_samples: int, space, obs_dtype=np.uint8):
+    def __init__(self, steps: int, cars: int, obs_shape, vector_inputs: dict, space, obs_dtype=np.uint8):
         T, N = steps, cars
-        self.steps, self.cars, self.obs_shape, self.lidar_samples = T, N, tuple(obs_shape), lidar_samples
+        self.steps, self.cars, self.obs_shape, self.vector_inputs = T, N, tuple(obs_shape), dict(vector_inputs)
         self.act_shape = () if space.discrete else (2,)
         act_dtype = torch.long if space.discrete else torch.float32
         self.obs = np.zeros((T, N, *obs_shape), obs_dtype)  # images, or a state policy's float vectors
-        self.lidar = np.zeros((T, N, lidar_samples), np.float32)
+        self.vectors = {key: np.zeros((T, N, size), np.float32) for key, size in self.vector_inputs.items()}
         self.act = torch.zeros((T, N, *self.act_shape), dtype=act_dtype)
         self.logp = torch.zeros((T, N))
         self.rew = torch.zeros((T, N))
@@ -34,17 +53,17 @@ class Rollout:
         self.next_obs, self.next_expert = obs, expert
 
     def net_input(self, obs):
-        """(E, A, ...) observations as the net's input for N cars: images, or images and LIDAR ranges."""
-        if not self.lidar_samples:
+        """(E, A, ...) observations as the net's input for N cars: images, or images and their vectors."""
+        if not self.vector_inputs:
             return torch.from_numpy(obs.reshape(self.cars, *self.obs_shape))
-        return {"camera": torch.from_numpy(obs["camera"].reshape(self.cars, *self.obs_shape)),
-                "lidar": torch.from_numpy(obs["lidar"].reshape(self.cars, self.lidar_samples))}
+        return {CAMERA_KEY: torch.from_numpy(obs[CAMERA_KEY].reshape(self.cars, *self.obs_shape)),
+                **{key: torch.from_numpy(obs[key].reshape(self.cars, size)) for key, size in self.vector_inputs.items()}}
 
     def store_input(self, t: int, x) -> None:
         """Keep step t's net input."""
-        self.obs[t] = x["camera"] if self.lidar_samples else x
-        if self.lidar_samples:
-            self.lidar[t] = x["lidar"]
+        self.obs[t] = x[CAMERA_KEY] if self.vector_inputs else x
+        for key, values in self.vectors.items():
+            values[t] = x[key]
 
     def advantages(self, next_value, gamma: float, gae_lambda: float):
         """GAE advantages and returns, bootstrapped with the value of `next_obs`; a done at step t+1 means
@@ -61,11 +80,13 @@ class Rollout:
         return advantages, advantages + self.val
 
     def learner_batch(self, advantages, returns) -> dict:
-        """The learner's samples, flattened: obs, lidar, act, logp, adv, ret, val, expert."""
+        """The learner's samples, flattened: obs, each vector by its key (lidar, ...), act, logp, adv, ret, val,
+        expert."""
         T, N = self.steps, self.cars
         keep = torch.from_numpy(self.learn.reshape(-1))
         return {"obs": torch.from_numpy(self.obs.reshape(T * N, *self.obs_shape))[keep],
-                "lidar": torch.from_numpy(self.lidar.reshape(T * N, self.lidar_samples))[keep],
+                **{key: torch.from_numpy(values.reshape(T * N, values.shape[-1]))[keep]
+                   for key, values in self.vectors.items()},
                 "act": self.act.reshape(T * N, *self.act_shape)[keep],
                 "logp": self.logp.reshape(-1)[keep], "adv": advantages.reshape(-1)[keep],
                 "ret": returns.reshape(-1)[keep], "val": self.val.reshape(-1)[keep],

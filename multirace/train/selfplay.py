@@ -37,9 +37,9 @@ class OpponentPool:
     """See the module docstring."""
 
     def __init__(self, config, space, image_shape, rng, max_snapshots: int = 8, power: float = 2.0,
-                 shipped_dir=SHIPPED_DIR, lidar_samples: int = 0):
+                 shipped_dir=SHIPPED_DIR, vector_inputs: dict | None = None):
         self.config, self.space, self.image_shape, self.rng = config, space, tuple(image_shape), rng
-        self.lidar_samples = int(lidar_samples)  # the envs' LIDAR ranges (0: no LIDAR)
+        self.vector_inputs = dict(vector_inputs or {})  # the envs' sensors beside the camera, {key: size}
         self.max_snapshots, self.power = int(max_snapshots), float(power)
         self.members: list[Opponent] = []
         self.last_snapshot = time.perf_counter()
@@ -55,7 +55,9 @@ class OpponentPool:
                 agent = load_agent(path, step_budget=None)
             except (AgentFileError, OSError, ValueError):
                 continue
-            if tuple(agent.image_shape) == self.image_shape and agent.lidar_samples in (0, self.lidar_samples):
+            reads = agent.sensors.vector_inputs  # each one the envs give, at the size they give it
+            if tuple(agent.image_shape) == self.image_shape and all(
+                    self.vector_inputs.get(key) == size for key, size in reads.items()):
                 self.members.append(Opponent(agent.name, agent.net, agent.action_space, "shipped"))
 
     # ------------------------------------------------------------ members
@@ -96,7 +98,7 @@ class OpponentPool:
     def override(self, actions: np.ndarray, obs, mask: np.ndarray) -> np.ndarray:
         """Replace the opponent cars' actions by their opponent's greedy actions.
 
-        `obs`: images (E, A, H, W, C), or {"camera": images, "lidar": ranges (E, A, R)}.
+        `obs`: images (E, A, H, W, C), or {"camera": images, key: values (E, A, n), ...}.
         """
         actions = actions.copy()
         images = obs["camera"] if isinstance(obs, dict) else obs
@@ -105,8 +107,9 @@ class OpponentPool:
                 continue
             cars = np.nonzero(~mask[e])[0]
             x = torch.from_numpy(np.ascontiguousarray(images[e, cars]))
-            if opponent.net.lidar_samples:
-                x = {"camera": x, "lidar": torch.from_numpy(np.ascontiguousarray(obs["lidar"][e, cars]))}
+            if opponent.net.vector_inputs:
+                x = {"camera": x, **{key: torch.from_numpy(np.ascontiguousarray(obs[key][e, cars]))
+                                     for key in opponent.net.vector_inputs}}
             with torch.no_grad():
                 out = opponent.net(x).numpy()
             for row, a in zip(out, cars):

@@ -76,7 +76,7 @@ def train_teacher(config: TrainConfig, out, seconds: float, log=print) -> dict:
     last_eval = time.perf_counter()
     try:
         obs, _ = vec.reset(seeds=[config.seed * 100_000 + e for e in range(E)])
-        rollout = Rollout(T, N, obs.shape[2:], 0, space, obs_dtype=np.float32)
+        rollout = Rollout(T, N, obs.shape[2:], {}, space, obs_dtype=np.float32)
         rollout.start(obs, expert_actions([[{}] * A] * E, discrete=False))  # no expert labels: NaN
         torch.set_num_threads(1)
         while time.perf_counter() - started < seconds and not (
@@ -89,7 +89,7 @@ def train_teacher(config: TrainConfig, out, seconds: float, log=print) -> dict:
             advantages, returns = rollout.advantages(next_value, config.gamma, config.gae_lambda)
             anneal_learning_rate(optimiser, teacher_config, fraction)
             ppo_update(net, policy, optimiser, rollout.learner_batch(advantages, returns), teacher_config, space,
-                       lidar=False, value_only=False)
+                       value_only=False)
             summary["sample_seconds"] += t1 - t0
             summary["update_seconds"] += time.perf_counter() - t1
             summary["agent_steps"] += T * N

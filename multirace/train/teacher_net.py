@@ -24,6 +24,8 @@ class StatePolicyNet(nn.Module):
     learned vector, so the net learns in units of the box whatever the space's range.
     """
 
+    vector_inputs: dict = {}  # it reads the state vector alone, no sensors beside a camera (`rollout.batch_input`)
+
     def __init__(self, space, features: int = CAR_FEATURES, hidden: int = 128):
         super().__init__()
         if space.discrete:

@@ -5,20 +5,27 @@ import hashlib
 from pathlib import Path
 
 from ..racing.agentfile import metadata_sensors, parse_metadata, read_payload
-from ..racing.nets import CameraNet, add_lidar_inputs
+from ..racing.nets import CameraNet, add_vector_inputs
+from ..sensors.suite import SensorSuite
 
 
 def load_init_agent(path, net) -> None:
     """Initialise the policy from an agent file (e.g. a DAgger imitation agent); the value head stays new.
 
-    A camera-only agent can start a LIDAR net: its LIDAR inputs start with zero weight (`add_lidar_inputs`).
+    An agent can start a net that reads more vector sensors (a camera-only agent a LIDAR net): the inputs it
+    lacks start with zero weight (`add_vector_inputs`), after the ones it has.
     """
     payload = read_payload(path)
     state = {k: v for k, v in payload["state_dict"].items() if not k.startswith("value_head.")}
-    if net.lidar is not None and not any(k.startswith("lidar.") for k in state):
-        camera_only = CameraNet(net.network, net.image_shape, net.num_outputs, value_head=net.has_value)
-        load_init_agent(path, camera_only)
-        net.load_state_dict(add_lidar_inputs(camera_only, net.lidar_samples).state_dict())
+    has = {key: size for key, size in net.vector_inputs.items() if any(k.startswith(f"{key}.") for k in state)}
+    lacks = {key: size for key, size in net.vector_inputs.items() if key not in has}
+    if lacks:
+        if list(net.vector_inputs) != [*has, *lacks]:
+            raise ValueError(f"--init {path}: the agent reads {list(has)} but the net reads "
+                             f"{list(net.vector_inputs)}; new inputs can only follow the agent's")
+        narrow = CameraNet(net.network, net.image_shape, net.num_outputs, value_head=net.has_value, vector_inputs=has)
+        load_init_agent(path, narrow)
+        net.load_state_dict(add_vector_inputs(narrow, lacks).state_dict())
         return
     missing, unexpected = net.load_state_dict(state, strict=False)
     if unexpected or any(not k.startswith("value_head.") for k in missing):
@@ -27,13 +34,13 @@ def load_init_agent(path, net) -> None:
 
 def init_settings(path) -> dict:
     """The network, image and action space an --init agent file was built with, and its sensors unless it reads
-    the single camera alone (such a file leaves them as configured: it can start a LIDAR net)."""
+    the single camera alone (such a file leaves them as configured: it can start a LIDAR or SPEED net)."""
     metadata = parse_metadata(read_payload(path), str(path))
     image = metadata["image"]
     settings = {"network": metadata["neural_network"], "action_space": {k: metadata[k] for k in
                 ("action_space", "action_space_type")}, "camera": (image["height"], image["width"])}
     sensors = metadata_sensors(metadata, str(path))
-    if sensors.camera == "stereo" or sensors.lidar:
+    if sensors != SensorSuite():
         settings["sensor"] = sensors.names
     return settings
 

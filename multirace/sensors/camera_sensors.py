@@ -1,0 +1,60 @@
+"""DeepRacer's cameras as sensors: ``FRONT_FACING_CAMERA`` (one camera) and ``STEREO_CAMERAS`` (a grey pair).
+
+Both fill the observation key ``camera`` with uint8 images
+(`camera.observation_shape`): (H, W) grey, (H, W, 3) colour, or (H, W, 2) for
+the stereo pair [left, right]. ``observation`` and ``LEFT_CAMERA`` are
+DeepRacer's older names for the single camera.
+"""
+from __future__ import annotations
+
+import numpy as np
+from gymnasium import spaces
+
+from .camera import CameraSpec, camera_poses, observation_shape, stereo_poses
+from .sensor import Sensor, SensorView
+
+
+def render_cameras(view: SensorView, stereo: bool) -> list[np.ndarray]:
+    """The cars' camera images (H, W, C) from the renderer, the stereo pairs' left images first, then the right
+    ones; perturbed by the episode's randomisation, if any."""
+    eyes, rotations = camera_poses(view.camera, view.world.poses[view.cars], view.camera_jitter)
+    cars = view.cars
+    if stereo:  # render the left cameras, then the right ones
+        eyes, rotations = stereo_poses(view.camera, eyes, rotations)
+        cars = np.concatenate([cars, cars])
+    images = view.renderer.render_many(view.world, cars, eyes, rotations)
+    if view.perturb is not None:
+        images = [view.perturb(image) for image in images]
+    return images
+
+
+class FrontCamera(Sensor):
+    """One front camera: grey (H, W) images, or (H, W, 3) in colour."""
+
+    name, aliases, key, kind, unit = "FRONT_FACING_CAMERA", ("observation", "LEFT_CAMERA"), "camera", "mono", "images"
+    channels = None  # the env's: 1 grey or 3 colour
+
+    def space(self, camera: CameraSpec) -> spaces.Box:
+        return spaces.Box(0, 255, observation_shape((camera.height, camera.width, camera.channels)), np.uint8)
+
+    def observe(self, view: SensorView) -> list[np.ndarray]:
+        images = render_cameras(view, stereo=False)
+        return [image[:, :, 0] for image in images] if view.camera.grayscale else images
+
+
+class StereoCameras(Sensor):
+    """Two grey cameras side by side (`CameraSpec.stereo_baseline` apart): (H, W, 2) images [left, right]."""
+
+    name, key, kind, unit = "STEREO_CAMERAS", "camera", "stereo", "stereo images"
+    covers = ("FRONT_FACING_CAMERA",)  # a single camera reads the pair's left image
+    channels = 2
+
+    def space(self, camera: CameraSpec) -> spaces.Box:
+        if not camera.grayscale:
+            raise ValueError("sensor: STEREO_CAMERAS are a pair of grey cameras; use grayscale=True")
+        return spaces.Box(0, 255, (camera.height, camera.width, 2), np.uint8)
+
+    def observe(self, view: SensorView) -> list[np.ndarray]:
+        images = render_cameras(view, stereo=True)
+        n = len(view.cars)
+        return [np.concatenate([left, right], axis=2) for left, right in zip(images[:n], images[n:])]
