@@ -219,6 +219,11 @@ class RaceEnv(ParallelEnv):
         return self.core.obstacle_slots
 
     @property
+    def renderer(self):
+        """The camera renderer (built at reset; None before, and for ``observation="state"`` envs)."""
+        return self._renderer
+
+    @property
     def texture(self) -> TrackTexture:
         """The track's top-down texture (built on first use)."""
         if self._texture is None:
