@@ -34,7 +34,7 @@ from ..sim.objects import objects_seen
 from .randomize import Randomization, apply_command, apply_image
 from .reward_process import load_reward_function
 from .core import RaceCore
-from .race_state import RaceState
+from .race_state import CarState, RaceState
 from .rules import CarRace, make_rules
 from .state import CAR_FEATURES, GLOBAL_PER_CAR, STATE_BOUND, car_features, global_state
 from ..sim.texture import DEFAULT_PALETTE, TrackTexture
@@ -263,34 +263,33 @@ class RaceEnv(ParallelEnv):
         params = [self._params(i, set(), table) for i in range(self.num_cars)]
         state = self.core.publish([set()] * self.total_cars, [()] * self.total_cars)
         observations = self._observe()
-        ranks = [car.rank for car in state.cars]
-        infos = {a: self._info(i, params[i], set(), ranks) for i, a in enumerate(self.agents)}
+        infos = {a: self._info(params[i], state.cars[i], state.time) for i, a in enumerate(self.agents)}
         return observations, infos
 
     # -------------------------------------------------------------- step
     def step(self, actions):
         if not self.agents:
             raise RuntimeError("step() called on a finished episode; call reset() first")
-        touched = self.core.advance(self._commands_for(actions))
+        core = self.core
+        touched = core.advance(self._commands_for(actions))
         table = self._object_table()
         params = [self._params(i, touched[i], table) for i in range(self.num_cars)]
-        racing = [i for i in range(self.num_cars) if self.races[i].racing]
+        races = core.races
+        racing = [i for i in range(self.num_cars) if races[i].racing]
         rewards = dict.fromkeys(self.possible_agents, 0.0)
         if racing:  # one call for all cars: a reward file answers from its own process
-            values = self.reward_function.rewards([params[i] for i in racing], self.steps,
+            values = self.reward_function.rewards([params[i] for i in racing], core.steps,
                                                   [self.possible_agents[i] for i in racing])
             rewards.update(zip((self.possible_agents[i] for i in racing), values))
-        events = self.core.apply_rules(touched)  # self.rules.judge per car, then self.rules.time_up
+        events = core.apply_rules(touched)  # self.rules.judge per car, then self.rules.time_up
 
-        done = not any(race.racing for race in self.races)
-        truncated = not done and self.steps >= self.max_steps
+        done = not any(race.racing for race in races)
+        truncated = not done and core.steps >= self.max_steps
         if truncated:
-            self.core.end_unfinished("not_finished", f"step limit {self.max_steps} reached")
-        state = self.core.publish(touched, events)
+            core.end_unfinished("not_finished", f"step limit {self.max_steps} reached")
+        state = core.publish(touched, events)
         observations = self._observe()
-        ranks = [car.rank for car in state.cars]
-        infos = {a: self._info(i, params[i], touched[i], ranks, events[i])
-                 for i, a in enumerate(self.possible_agents)}
+        infos = {a: self._info(params[i], state.cars[i], state.time) for i, a in enumerate(self.possible_agents)}
         terminations = {a: done for a in self.possible_agents}
         truncations = {a: truncated for a in self.possible_agents}
         if done or truncated:
@@ -300,11 +299,11 @@ class RaceEnv(ParallelEnv):
     def _commands_for(self, actions: dict) -> list[tuple[float, float]]:
         """Every car's (steer rad, speed m/s) this step: the racing learners' actions with DeepRacer's noise (or
         the episode's randomised dynamics), the bots' own commands; a car without one keeps its last command."""
-        spec = self.car_spec
+        spec, races = self.car_spec, self.core.races
         commands = list(self.core.commands)
         noise = self._rng.standard_normal((self.num_cars, 2)).tolist()  # DeepRacer's action noise
         for i, agent in enumerate(self.possible_agents):
-            if self.races[i].racing and agent in actions:
+            if races[i].racing and agent in actions:
                 try:
                     steer, speed = self.actions.command(actions[agent])
                 except ValueError as exc:
@@ -318,9 +317,9 @@ class RaceEnv(ParallelEnv):
                 commands[i] = spec.clamp_command(steer, speed)
         for b, bot in enumerate(self.bots):
             i = self.num_cars + b
-            if self.races[i].racing:
+            if races[i].racing:
                 steer, speed = bot.command(self.track, spec, self.world.poses[i], self.sim_time,
-                                           self.races[i].segment_hint, self.traffic(i))
+                                           races[i].segment_hint, self.traffic(i))
                 commands[i] = spec.clamp_command(math.radians(steer), speed)
         return commands
 
@@ -381,10 +380,10 @@ class RaceEnv(ParallelEnv):
 
     def _params(self, i: int, touched: set, table: tuple) -> dict:
         """The 27 DeepRacer reward params of car i, in DeepRacer's units."""
-        geo = self.core.last_geometry(i)  # a parked car: where it was when its run ended
-        race, track = self.races[i], self.track
-        proj = geo["proj"]
-        steer, speed = self.core.commands[i]
+        core, track = self.core, self.track
+        geo = core.last_geometry(i)  # a parked car: where it was when its run ended
+        race, proj = core.races[i], geo["proj"]
+        steer, speed = core.commands[i]
         objects = self._objects_for(i, table)
         return {
             "all_wheels_on_track": geo["wheels_on"] == 4,
@@ -394,7 +393,7 @@ class RaceEnv(ParallelEnv):
             "distance_from_center": abs(proj.lateral),
             "projection_distance": proj.s,
             "progress": race.lap_progress(track.length) if race.racing else 100.0 * (race.status == "finished"),
-            "steps": self.steps,
+            "steps": core.steps,
             "speed": float(speed),
             "steering_angle": math.degrees(steer),
             "track_width": proj.width,
@@ -406,7 +405,7 @@ class RaceEnv(ParallelEnv):
             **objects,
             "is_crashed": bool(touched),
             "is_offtrack": geo["wheels_on"] == 0,
-            "sim_time": self.sim_time,
+            "sim_time": core.sim_time,
         }
 
     def _object_table(self) -> tuple:
@@ -460,23 +459,23 @@ class RaceEnv(ParallelEnv):
         panel): the result's positions once the race is over."""
         return self.core.standings()
 
-    def _info(self, i: int, params: dict, touched: set, ranks: list[int], events=()) -> dict:
-        """Car i's info: its reward params (the same dict, extended) plus its race state."""
-        race = self.races[i]
-        names = sorted(self.car_names[o[1]] if o[0] == "car" else f"obstacle_{o[1]}" for o in touched)
+    def _info(self, params: dict, car: CarState, sim_time: float) -> dict:
+        """A car's info: its reward params (the same dict, extended) plus its published race state."""
+        race, names = car.race, self.car_names
+        touched = sorted(names[o[1]] if o[0] == "car" else f"obstacle_{o[1]}" for o in car.touched)
         params.update(
             lap=race.laps + (1 if race.racing else 0),
             laps_completed=race.laps,
             lap_times=list(race.lap_times),
-            race_time=race.clock(self.sim_time) if race.racing else race.finish_time,
+            race_time=race.clock(sim_time) if race.racing else race.finish_time,
             resets=race.resets,
             penalties=race.penalties,
             penalty_time=race.penalty_time,
             off_track=params["is_offtrack"],
-            collisions=names,
-            rank=ranks[i],
+            collisions=touched,
+            rank=car.rank,
             status=race.status,
-            events=list(events),
+            events=list(car.events),
         )
         return params
 
