@@ -143,9 +143,9 @@ class RaceCore:
         ruling = self.rules.judge(race, measure, self.sim_time)
         if ruling.reset is not None:
             s, lane = ruling.reset
-            self.reset_car(i, s, 0.0 if lane is None else self.track.lane_offset(lane, s))
+            self._reset_car(i, s, 0.0 if lane is None else self.track.lane_offset(lane, s))
         if ruling.end is not None:
-            self.end_run(i, *ruling.end)
+            self._end_run(i, *ruling.end)
         return ruling.events
 
     # ------------------------------------------------------- measurement
@@ -176,7 +176,7 @@ class RaceCore:
         return geo if geo is not None else self._stopped[i]
 
     # ------------------------------------------------------ moving cars
-    def reset_car(self, i: int, s: float, lateral: float, clear: bool = True) -> None:
+    def _reset_car(self, i: int, s: float, lateral: float, clear: bool = True) -> None:
         """Put car i back on the track at arc length s, facing along the track, at rest.
 
         If another car or a box occupies the spot, the car is put further back until it is clear (`clear`).
@@ -210,10 +210,10 @@ class RaceCore:
         """Put cars at rest at {car index: (arc length from the start line, lateral offset)}, as a reset does,
         and publish the race as it now stands (`clear=False`: exactly there, not moved back off a taken spot)."""
         for i, (s, lateral) in slots.items():
-            self.reset_car(i, s % self.track.length, lateral, clear)
+            self._reset_car(i, s % self.track.length, lateral, clear)
         self.publish([set()] * self.total_cars, [()] * self.total_cars)
 
-    def end_run(self, i: int, status: str, reason: str, clock: float | None = None) -> None:
+    def _end_run(self, i: int, status: str, reason: str, clock: float | None = None) -> None:
         """End car i's run with `status` and park it; it keeps the location it had."""
         race = self.races[i]
         race.status, race.reason = status, reason
@@ -224,14 +224,14 @@ class RaceCore:
     def forfeit(self, i: int, reason: str) -> None:
         """End car i's run now (its agent failed) and publish the race as it now stands."""
         if self.races[i].racing:
-            self.end_run(i, "forfeit", reason)
+            self._end_run(i, "forfeit", reason)
             self.publish([car.touched for car in self.state.cars], [car.events for car in self.state.cars])
 
     def end_unfinished(self, status: str, reason: str) -> None:
         """End the run of every car still racing (the race's time or step limit)."""
         for i, race in enumerate(self.races):
             if race.racing:
-                self.end_run(i, status, reason)
+                self._end_run(i, status, reason)
 
     # ----------------------------------------------------------- outputs
     def ranks(self) -> list[int]:
