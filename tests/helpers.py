@@ -38,11 +38,7 @@ CONTINUOUS = COMMAND_SPACE  # the full continuous range of DeepRacer commands
 
 def place(env, i, x, y, yaw):
     """Teleport car i to a pose and re-measure it, as if it had driven there (for geometry checks)."""
-    env.world.place_car(i, x, y, yaw)
-    env._measure_all()
-    s = env._geometry[i]["proj"].s
-    env.races[i].distance += env.track.wrap_ds(s - env._s[i])
-    env._s[i] = s
+    env.core.place_cars({i: (x, y, yaw)})
 
 
 def overflow_on_camera_images(net) -> None:

@@ -18,9 +18,8 @@ def _race(slots):
     (`move_cars` would move a car off a spot next to another)."""
     env = multirace.parallel_env(num_cars=len(slots), race="head_to_head", action_space=CONTINUOUS, max_steps=2000)
     env.reset(seed=0)
-    for i, (s, lateral) in slots.items():
-        env.world.place_car(i, *env.track.point_at(s - env.car_spec.reported_point_offset, lateral))
-    env._measure_all()
+    env.core.place_cars({i: env.track.point_at(s - env.car_spec.reported_point_offset, lateral)
+                         for i, (s, lateral) in slots.items()})
     return env
 
 

@@ -38,7 +38,7 @@ def test_state_observations_render_nothing_and_match_the_env():
     env = multirace.parallel_env(num_cars=2, observation="state", action_space=CONTINUOUS, max_steps=50)
     parallel_api_test(env, num_cycles=50)
     obs, _ = env.reset(seed=0)
-    assert env._renderer is None, "a state env never builds a camera renderer"
+    assert env.renderer is None, "a state env never builds a camera renderer"
     x = obs["car_0"]
     assert x.shape == (CAR_FEATURES,) and x.dtype == np.float32
     assert env.observation_space("car_0").contains(x)

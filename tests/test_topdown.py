@@ -9,7 +9,7 @@ import pytest
 
 from multirace.environment.race_env import RaceEnv
 from multirace.racing.runner import RaceConfig, make_controller, run_race
-from multirace.sensors.topdown import layout_for, panel_order, render_topdown
+from multirace.sensors.topdown import layout_for, panel_order, render_topdown, view_state
 from multirace.recording.replay import ReplayRecorder
 from multirace.recording.replay_video import ReplayScene
 from multirace.recording.video import VideoRecorder, write_video
@@ -86,7 +86,7 @@ def test_parked_cars_not_drawn_and_trails():
         # a new episode clears the trails
         env.reset(seed=1)
         env.render()
-        assert all(len(t) == 1 for t in env._topdown_state.trails)
+        assert all(len(t) == 1 for t in view_state(env).trails)
     finally:
         env.close()
 
@@ -233,7 +233,7 @@ def test_penalties_and_resets_are_marked_on_the_car_and_in_the_panel():
     env.reset(seed=0)
     plain = render_topdown(env)
     env.races[1].penalty_time, env.races[1].penalties, env.races[1].resets = 5.0, 1, 1
-    env.sim_time += 0.1
+    env.core.sim_time += 0.1  # a moment later (the core keeps the clock)
     marked = render_topdown(env)
     layout = layout_for(env)
     col, row = (int(v) for v in layout.to_frame(env.world.poses[1][None, :2])[0])

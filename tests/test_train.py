@@ -215,7 +215,7 @@ def test_bots_ahead_start_on_the_centre_line_in_front_of_the_learning_cars_and_d
     env = TrainEnv([("reinvent_base", False)], num_cars=2, bots=("follow@1.0", "follow@1.0"), camera=(30, 40),
                    bots_ahead=3.0, episode_steps=15)
     env.reset(seed=0)
-    start = [geo["proj"] for geo in env.env._geometry]
+    start = env.env.race_state.cars
     for k, bot in enumerate(start[2:]):
         assert bot.s == pytest.approx(3.0 + BOT_SPACING * k, abs=0.1) and abs(bot.lateral) < 0.02
     for step in range(15):
@@ -235,7 +235,7 @@ def test_bots_ahead_spread_starts_the_bots_at_random_gaps_each_episode():
     starts = []
     for seed in range(4):
         env.reset(seed=seed)
-        bots = [geo["proj"].s for geo in env.env._geometry[2:]]
+        bots = [car.s for car in env.env.race_state.cars[2:]]
         for k, s in enumerate(bots):
             assert 3.0 + BOT_SPACING * k - 0.1 < s < 3.0 + BOT_SPACING * k + 8.0 + 0.1
         starts.append(tuple(round(s, 1) for s in bots))

@@ -6,10 +6,12 @@
 race rules, a car whose run is over is parked off the scene and its actions
 are ignored until every car is done.
 
-Per step (15 Hz): actions -> commands (with DeepRacer's steering and speed
-noise) -> physics -> measurements (projection on the track, wheels on track,
-contacts) -> DeepRacer reward params -> rewards -> race rules (laps,
-penalties, resets) -> camera images.
+`RaceEnv` is a thin adapter over `core.RaceCore` (the world, the race
+records, the stewards and the rules): per step (15 Hz) it turns actions into
+commands (with DeepRacer's steering and speed noise), lets the core run the
+physics and locate the cars, builds the DeepRacer reward params and rewards,
+lets the core apply the race rules (laps, penalties, resets) and publish the
+`RaceState` (``env.race_state``), then renders the camera images and infos.
 """
 from __future__ import annotations
 
@@ -33,9 +35,10 @@ from ..sensors.suite import declared_sensors
 from ..sim.objects import objects_seen
 from .randomize import Randomization, apply_command, apply_image
 from .reward_process import load_reward_function
+from .core import RaceCore
 from .race_state import CarState, RaceState
 from .formats import make_rules
-from .rules import CarRace, StepMeasure, Stewards
+from .rules import CarRace
 from .state import CAR_FEATURES, GLOBAL_PER_CAR, STATE_BOUND, car_features, global_state
 from ..sim.texture import DEFAULT_PALETTE, TrackTexture
 from ..sim.tracks import Track, load_track
@@ -45,7 +48,6 @@ ACTION_HZ = 15
 MAX_CARS = 8
 MIN_AVERAGE_SPEED = 0.4  # m/s; sets the default step limit of a race
 CAMERA_RANGE = 8.0  # m; objects farther ahead do not count as `object_in_camera`
-CLEAR_RADIUS = 0.45  # m; a reset spot closer than this to another body is taken
 
 
 def parallel_env(**config) -> "RaceEnv":
@@ -129,9 +131,6 @@ class RaceEnv(ParallelEnv):
             raise ValueError(f"renderer: unknown renderer {renderer!r}; choose 'fast' or 'pybullet'")
         self.renderer_name = renderer
         self.car_spec = CarSpec()
-        self._wheels = np.array(self.car_spec.wheel_offsets())
-        self.dt = 1.0 / ACTION_HZ
-        self.world = World(self.car_spec, self.total_cars, self.rules.obstacles, physics_hz, ACTION_HZ, dynamics)
         self.max_steps = positive_int(max_steps, "max_steps") if max_steps is not None else self._default_max_steps()
 
         self.possible_agents = [f"car_{i}" for i in range(self.num_cars)]
@@ -139,7 +138,8 @@ class RaceEnv(ParallelEnv):
         names = list(car_names) if car_names is not None else list(self.possible_agents)
         if len(names) != self.num_cars:
             raise ValueError(f"car_names: expected {self.num_cars} names, got {len(names)}")
-        self.car_names = names + [bot.name for bot in self.bots]
+        self.core = RaceCore(self.track, self.rules, self.car_spec, names + [bot.name for bot in self.bots],
+                             self.num_cars, physics_hz, ACTION_HZ, dynamics)
         self.sensors = declared_sensors(sensor, lidar)  # the registry's sensors the cars carry (`sensors.suite`)
         obs_space = self.sensors.space(self.camera)
         self.lidar = scanner(self.car_spec) if self.sensors.lidar else None  # its beams, for replays' echoes
@@ -158,10 +158,6 @@ class RaceEnv(ParallelEnv):
         self._randomizer_rng = np.random.default_rng()
         self._lidar_rng = np.random.default_rng()  # LIDAR noise: its own stream, so a scan changes no other draw
         self._draw = None  # this episode's domain-randomisation draw
-        self.races: list[CarRace] = []
-        self.steps = 0
-        self.sim_time = 0.0
-        self.race_state: RaceState | None = None  # published at the end of every reset and step
 
     def _check_args(self) -> None:
         """Refuse up front what would fail at reset: a loop too short for every car's start slot."""
@@ -179,6 +175,47 @@ class RaceEnv(ParallelEnv):
             return int(math.ceil(self.rules.time_limit * ACTION_HZ)) + 1
         seconds = max(60.0, self.rules.laps * self.track.length / MIN_AVERAGE_SPEED)
         return int(math.ceil(seconds * ACTION_HZ))
+
+    # ------------------------------------------------ the core, read-only
+    @property
+    def world(self) -> World:
+        return self.core.world
+
+    @property
+    def races(self) -> list[CarRace]:
+        """Every car's race record (laps, lap times, distance, penalties, status), learning cars then bots."""
+        return self.core.races
+
+    @property
+    def race_state(self) -> RaceState | None:
+        """The `RaceState` published at the end of the last reset or step (None before the first reset)."""
+        return self.core.state
+
+    @property
+    def car_names(self) -> list[str]:
+        return self.core.car_names
+
+    @property
+    def steps(self) -> int:
+        return self.core.steps
+
+    @property
+    def sim_time(self) -> float:
+        return self.core.sim_time
+
+    @property
+    def dt(self) -> float:
+        return self.core.dt
+
+    @property
+    def obstacle_slots(self) -> list[tuple[float, int]]:
+        """(arc length, lane) of every box."""
+        return self.core.obstacle_slots
+
+    @property
+    def renderer(self):
+        """The camera renderer (built at reset; None before, and for ``observation="state"`` envs)."""
+        return self._renderer
 
     @property
     def texture(self) -> TrackTexture:
@@ -214,62 +251,53 @@ class RaceEnv(ParallelEnv):
             self._renderer = None
         if self._renderer is None and self.observation == "camera":
             self._renderer = make_renderer(self.renderer_name, self.camera, self.texture)
-        self.steps = 0
-        self.sim_time = 0.0
-        track = self.track
-        self.races = []
-        self._s = [0.0] * self.total_cars
-        self._commands = [(0.0, 0.0)] * self.total_cars  # (steer rad, speed m/s) per car
-        for i, (s, lateral) in enumerate(track.start_grid(self.total_cars)):
-            # the grid slot is where DeepRacer's reported point (ahead of the body centre) starts
-            self.world.place_car(i, *track.point_at(s - self.car_spec.reported_point_offset, lateral))
-        self._place_obstacles()
-        self._measure_all()
-        for i, geo in enumerate(self._geometry):
-            s = geo["proj"].s
-            signed = s - track.length if s > track.length / 2 else s
-            self._s[i] = s
-            self.races.append(CarRace(name=self.car_names[i], distance=signed, start_distance=signed,
-                                      lap_start_distance=signed, last_on_track_s=s,
-                                      segment_hint=geo["proj"].segment))
-        self._stewards = Stewards(self.rules, self.races, self.car_names, self.car_spec.length, track.length, self.dt)
+        self.core.start(self._rng)
         self.agents = list(self.possible_agents)
         table = self._object_table()
         params = [self._params(i, set(), table) for i in range(self.num_cars)]
+        state = self.core.publish([set()] * self.total_cars, [()] * self.total_cars)
         observations = self._observe()
-        ranks = self.ranks()
-        self.race_state = self._publish(ranks, [set()] * self.total_cars, [()] * self.total_cars)
-        infos = {a: self._info(i, params[i], set(), ranks) for i, a in enumerate(self.agents)}
+        infos = {a: self._info(params[i], state.cars[i], state.time) for i, a in enumerate(self.agents)}
         return observations, infos
-
-    def _place_obstacles(self) -> None:
-        """Boxes spread around the lap, in alternating lanes, with seeded jitter."""
-        count = self.rules.obstacles
-        self.obstacle_slots = []
-        self._obstacle_rows = []
-        if not count:
-            return
-        track, rng = self.track, self._rng
-        spacing = 0.75 * track.length / count
-        first = 0.15 * track.length + rng.uniform(0, 0.1) * track.length
-        lane = int(rng.integers(2))
-        for k in range(count):
-            s = (first + k * spacing + rng.uniform(-0.1, 0.1) * spacing) % track.length
-            lateral = track.lane_offset(lane, s)
-            x, y, yaw = track.point_at(s, lateral)
-            self.world.place_obstacle(k, x, y, yaw)
-            self.obstacle_slots.append((s, lane))
-            self._obstacle_rows.append((-1, x, y, lateral > 0, 0.0, math.degrees(yaw), abs(lateral), s))
-            lane = 1 - lane
 
     # -------------------------------------------------------------- step
     def step(self, actions):
         if not self.agents:
             raise RuntimeError("step() called on a finished episode; call reset() first")
-        spec = self.car_spec
+        core = self.core
+        touched = core.advance(self._commands_for(actions))
+        table = self._object_table()
+        params = [self._params(i, touched[i], table) for i in range(self.num_cars)]
+        races = core.races
+        racing = [i for i in range(self.num_cars) if races[i].racing]
+        rewards = dict.fromkeys(self.possible_agents, 0.0)
+        if racing:  # one call for all cars: a reward file answers from its own process
+            values = self.reward_function.rewards([params[i] for i in racing], core.steps,
+                                                  [self.possible_agents[i] for i in racing])
+            rewards.update(zip((self.possible_agents[i] for i in racing), values))
+        events = core.apply_rules(touched)  # self.rules.judge per car, then self.rules.time_up
+
+        done = not any(race.racing for race in races)
+        truncated = not done and core.steps >= self.max_steps
+        if truncated:
+            core.end_unfinished("not_finished", f"step limit {self.max_steps} reached")
+        state = core.publish(touched, events)
+        observations = self._observe()
+        infos = {a: self._info(params[i], state.cars[i], state.time) for i, a in enumerate(self.possible_agents)}
+        terminations = {a: done for a in self.possible_agents}
+        truncations = {a: truncated for a in self.possible_agents}
+        if done or truncated:
+            self.agents = []
+        return observations, rewards, terminations, truncations, infos
+
+    def _commands_for(self, actions: dict) -> list[tuple[float, float]]:
+        """Every car's (steer rad, speed m/s) this step: the racing learners' actions with DeepRacer's noise (or
+        the episode's randomised dynamics), the bots' own commands; a car without one keeps its last command."""
+        spec, races = self.car_spec, self.core.races
+        commands = list(self.core.commands)
         noise = self._rng.standard_normal((self.num_cars, 2)).tolist()  # DeepRacer's action noise
         for i, agent in enumerate(self.possible_agents):
-            if self.races[i].racing and agent in actions:
+            if races[i].racing and agent in actions:
                 try:
                     steer, speed = self.actions.command(actions[agent])
                 except ValueError as exc:
@@ -280,185 +308,31 @@ class RaceEnv(ParallelEnv):
                 else:
                     steer = math.radians(steer) + spec.steer_noise * noise[i][0]
                     speed = speed + spec.speed_noise * noise[i][1]
-                self._commands[i] = spec.clamp_command(steer, speed)
+                commands[i] = spec.clamp_command(steer, speed)
         for b, bot in enumerate(self.bots):
             i = self.num_cars + b
-            if self.races[i].racing:
+            if races[i].racing:
                 steer, speed = bot.drive(self.race_state, i)
-                self._commands[i] = spec.clamp_command(math.radians(steer), speed)
-        contacts = self.world.step(self._commands)
-        self.steps += 1
-        self.sim_time = self.steps * self.dt
+                commands[i] = spec.clamp_command(math.radians(steer), speed)
+        return commands
 
-        prev_distance = [race.distance for race in self.races]
-        self._measure_all()
-        self._advance_distances()
-        touched = self._apply_contacts(contacts)
-        table = self._object_table()
-        params = [self._params(i, touched[i], table) for i in range(self.num_cars)]
-        racing = [i for i in range(self.num_cars) if self.races[i].racing]
-        rewards = dict.fromkeys(self.possible_agents, 0.0)
-        if racing:  # one call for all cars: a reward file answers from its own process
-            values = self.reward_function.rewards([params[i] for i in racing], self.steps,
-                                                  [self.possible_agents[i] for i in racing])
-            rewards.update(zip((self.possible_agents[i] for i in racing), values))
-        events = [self._apply_rules(i, prev_distance[i], touched[i]) for i in range(self.total_cars)]
-        if self.rules.time_up(self.sim_time):
-            status, reason = self.rules.window_end()
-            for i, race in enumerate(self.races):
-                if race.racing:
-                    self._end_run(i, status, reason)
-
-        done = not any(race.racing for race in self.races)
-        truncated = not done and self.steps >= self.max_steps
-        if truncated:
-            for i, race in enumerate(self.races):
-                if race.racing:
-                    self._end_run(i, "not_finished", f"step limit {self.max_steps} reached")
-        observations = self._observe()
-        ranks = self.ranks()
-        self.race_state = self._publish(ranks, touched, events)
-        infos = {a: self._info(i, params[i], touched[i], ranks, events[i])
-                 for i, a in enumerate(self.possible_agents)}
-        terminations = {a: done for a in self.possible_agents}
-        truncations = {a: truncated for a in self.possible_agents}
-        if done or truncated:
-            self.agents = []
-        return observations, rewards, terminations, truncations, infos
-
-    def _publish(self, ranks: list[int], touched: list[set], events: list) -> RaceState:
-        """The step's `RaceState`: every car as the rules left it."""
-        poses, speeds = self.world.poses.tolist(), self.world.drive_speed.tolist()
-        cars = []
-        for i, race in enumerate(self.races):
-            geo = self._geometry[i]
-            located = geo is not None
-            if not located:
-                geo = self._last_params_geometry(i)
-            proj = geo["proj"]
-            x, y, yaw = poses[i]
-            cars.append(CarState(i, self.car_names[i], x, y, yaw, speeds[i], self._commands[i], located,
-                                 geo["x"], geo["y"], proj.s, proj.lateral, proj.width, proj.segment,
-                                 geo["wheels_on"], ranks[i], tuple(sorted(touched[i])), tuple(events[i]), race))
-        return RaceState(self.steps, self.sim_time, self.dt, self.track, self.rules, tuple(cars),
-                         np.asarray(self.world.obstacle_poses, float).reshape(-1, 3), self.num_cars)
-
-    # ------------------------------------------------------- measurement
-    def _measure_all(self) -> None:
-        """Project every racing car on the track and test its wheels."""
-        self._geometry = [None] * self.total_cars
-        cars = [i for i in range(self.total_cars) if i >= len(self.races) or self.races[i].racing]
-        if cars:
-            for i, geo in zip(cars, self._locate(cars)):
-                self._geometry[i] = geo
-
-    def _measure(self, i: int) -> dict | None:
-        """Car i's geometry (None when its run is over)."""
-        racing = i >= len(self.races) or self.races[i].racing
-        return self._locate([i])[0] if racing else None
-
-    def _locate(self, cars: list[int]) -> list[dict]:
-        """Geometry of these cars: reported point, heading, projection and wheels on track."""
-        hints = [self.races[i].segment_hint if i < len(self.races) else None for i in cars]
-        hints = np.array([-1 if hint is None else hint for hint in hints], np.int64)
-        poses = self.world.poses[cars]
-        located = self.track.locate_cars(poses, hints, self.car_spec.reported_point_offset, self._wheels)
-        geometry = []
-        for i, yaw, (px, py, proj, wheels_on) in zip(cars, poses[:, 2].tolist(), located):
-            if i < len(self.races):
-                self.races[i].segment_hint = proj.segment
-            geometry.append({"x": px, "y": py, "yaw": yaw, "proj": proj, "wheels_on": wheels_on})
-        return geometry
-
-    def _advance_distances(self) -> None:
-        """Add what each car drove along the centre line since the last step to its race distance."""
-        for i, geo in enumerate(self._geometry):
-            if geo is not None:
-                s = geo["proj"].s
-                self.races[i].distance += self.track.wrap_ds(s - self._s[i])
-                self._s[i] = s
-
-    def _apply_contacts(self, contacts) -> list[set]:
-        """Hand the step's contacts to the stewards (incidents, fault, penalties). Returns who each car touched."""
-        touched = [set() for _ in range(self.total_cars)]
-        for contact in contacts:
-            for me, other in ((contact.a, contact.b), (contact.b, contact.a)):
-                if me[0] == "car":
-                    touched[me[1]].add(other)
-        places = {i: (self.races[i].distance, geo["proj"].lateral)
-                  for i, geo in enumerate(self._geometry) if geo is not None}
-        self._stewards.judge(contacts, places, self.sim_time)
-        return touched
-
-    # ------------------------------------------------------------- rules
-    def _apply_rules(self, i: int, prev_distance: float, touched: set) -> list[str]:
-        """Ask the rules about car i's step and carry out their ruling; returns the step's events."""
-        race, geo = self.races[i], self._geometry[i]
-        if geo is None or not race.racing:
-            return []
-        hit_box = sorted(o[1] for o in touched if o[0] == "obstacle")
-        measure = StepMeasure(prev_distance=prev_distance, dt=self.dt, track_length=self.track.length,
-                              wheels_on=geo["wheels_on"], s=geo["proj"].s,
-                              obstacle_hit=self.obstacle_slots[hit_box[0]] if hit_box else None)
-        ruling = self.rules.judge(race, measure, self.sim_time)
-        if ruling.reset is not None:
-            s, lane = ruling.reset
-            self._reset_car(i, s, 0.0 if lane is None else self.track.lane_offset(lane, s))
-        if ruling.end is not None:
-            self._end_run(i, *ruling.end)
-        return ruling.events
-
-    def _reset_car(self, i: int, s: float, lateral: float, clear: bool = True) -> None:
-        """Put car i back on the track at arc length s, facing along the track, at rest.
-
-        If another car or a box occupies the spot, the car is put further back until it is clear (`clear`).
-        """
-        track = self.track
-        others = [self.world.poses[j][:2] for j in range(self.total_cars)
-                  if j != i and not self.world.parked[j]] + [p[:2] for p in self.world.obstacle_poses]
-        for _ in range(8):
-            x, y, yaw = track.point_at(s, lateral)
-            if not clear or all(math.hypot(x - ox, y - oy) > CLEAR_RADIUS for ox, oy in others):
-                break
-            s -= CLEAR_RADIUS
-        self.world.place_car(i, x, y, yaw)
-        geo = self._measure(i)
-        self.races[i].distance += track.wrap_ds(geo["proj"].s - self._s[i])
-        self._s[i] = geo["proj"].s
-        self._geometry[i] = geo
-
+    # ------------------------------------------------- moving and ending
     def move_cars(self, slots: dict, clear: bool = True) -> dict:
         """Put cars at rest at {car index: (arc length from the start line, lateral offset)}, as a reset does
         (`clear=False`: exactly there, side by side if asked, not moved back off a spot next to a car).
 
         For training set-ups (bots started ahead of the learners). Returns the camera cars' new observations.
         """
-        for i, (s, lateral) in slots.items():
-            self._reset_car(i, s % self.track.length, lateral, clear)
-        self.race_state = self._publish(self.ranks(), [set()] * self.total_cars, [()] * self.total_cars)
+        self.core.move_cars(slots, clear)
         return self._observe()
 
     def traffic(self, i: int) -> list[tuple[float, float, float]]:
         """The other cars on track as seen from car i: (metres ahead, lateral offset, speed)."""
-        mine = self._geometry[i]
-        if mine is None:
-            return []
-        s_i, lateral_i = mine["proj"].s, mine["proj"].lateral
-        length = self.track.length
-        return [((geo["proj"].s - s_i) % length, geo["proj"].lateral - lateral_i, float(self.world.drive_speed[j]))
-                for j, geo in enumerate(self._geometry) if geo is not None and j != i]
+        return self.core.state.traffic(i)
 
     def forfeit(self, i: int, reason: str) -> None:
         """End car i's run now (its agent failed); the race goes on for the others."""
-        if self.races[i].racing:
-            self._end_run(i, "forfeit", reason)
-
-    def _end_run(self, i: int, status: str, reason: str, clock: float | None = None) -> None:
-        race = self.races[i]
-        race.status, race.reason = status, reason
-        race.finish_time = round(clock if clock is not None else race.clock(self.sim_time), 4)
-        self.world.park(i)
-
+        self.core.forfeit(i, reason)
     # ----------------------------------------------------------- outputs
     def _observe(self) -> dict:
         if self.observation == "state":
@@ -484,10 +358,10 @@ class RaceEnv(ParallelEnv):
 
     def _params(self, i: int, touched: set, table: tuple) -> dict:
         """The 27 DeepRacer reward params of car i, in DeepRacer's units."""
-        geo = self._geometry[i] if self._geometry[i] is not None else self._last_params_geometry(i)
-        race, track = self.races[i], self.track
-        proj = geo["proj"]
-        steer, speed = self._commands[i]
+        core, track = self.core, self.track
+        geo = core.last_geometry(i)  # a parked car: where it was when its run ended
+        race, proj = core.races[i], geo["proj"]
+        steer, speed = core.commands[i]
         objects = self._objects_for(i, table)
         return {
             "all_wheels_on_track": geo["wheels_on"] == 4,
@@ -497,7 +371,7 @@ class RaceEnv(ParallelEnv):
             "distance_from_center": abs(proj.lateral),
             "projection_distance": proj.s,
             "progress": race.lap_progress(track.length) if race.racing else 100.0 * (race.status == "finished"),
-            "steps": self.steps,
+            "steps": core.steps,
             "speed": float(speed),
             "steering_angle": math.degrees(steer),
             "track_width": proj.width,
@@ -509,13 +383,8 @@ class RaceEnv(ParallelEnv):
             **objects,
             "is_crashed": bool(touched),
             "is_offtrack": geo["wheels_on"] == 0,
-            "sim_time": self.sim_time,
+            "sim_time": core.sim_time,
         }
-
-    def _last_params_geometry(self, i: int) -> dict:
-        """Geometry of a parked car: where it was when its run ended."""
-        x, y, yaw = self.world.poses[i]
-        return {"x": x, "y": y, "yaw": yaw, "proj": self.track.project(x, y), "wheels_on": 4}
 
     def _object_table(self) -> tuple:
         """Every object a car can see this step (boxes, then cars on track), as columns:
@@ -523,16 +392,16 @@ class RaceEnv(ParallelEnv):
         (car index or -1, x, y, left_of_centre, speed, heading_deg, distance_from_centre, s),
         then per learning car `object_in_camera` and `closest_objects` (see `objects.objects_seen`).
         """
-        rows = list(self._obstacle_rows)
-        for j, geo in enumerate(self._geometry):
+        core = self.core
+        rows = list(core.obstacle_rows)
+        for j, geo in enumerate(core.geometry):
             if geo is None:
                 continue
             proj = geo["proj"]
             rows.append((j, geo["x"], geo["y"], proj.lateral > 0, float(self.world.drive_speed[j]),
                          math.degrees(geo["yaw"]), abs(proj.lateral), proj.s))
         columns = tuple(list(column) for column in zip(*rows)) if rows else ([],) * 8
-        car_s = [geo["proj"].s if geo is not None else self._s[i]
-                 for i, geo in enumerate(self._geometry[:self.num_cars])]
+        car_s = [core.last_geometry(i)["proj"].s for i in range(self.num_cars)]
         in_camera, closest = objects_seen(np.array(columns[0], np.int64), np.array(columns[1], float),
                                           np.array(columns[2], float), np.array(columns[7], float),
                                           self.world.poses[:self.num_cars], np.array(car_s), self.track.length,
@@ -561,30 +430,30 @@ class RaceEnv(ParallelEnv):
 
     def ranks(self) -> list[int]:
         """Current position (1 = leading) of every car, learning cars then bots."""
-        return _positions(self.rules.ranking(self.races, self.track.length))
+        return self.core.ranks()
 
     def standings(self) -> list[int]:
         """Every car's position with penalties counted while it races (`RaceRules.standings`; the race view's
         panel): the result's positions once the race is over."""
-        return _positions(self.rules.standings(self.races, self.track.length, self.sim_time))
+        return self.core.standings()
 
-    def _info(self, i: int, params: dict, touched: set, ranks: list[int], events=()) -> dict:
-        """Car i's info: its reward params (the same dict, extended) plus its race state."""
-        race = self.races[i]
-        names = sorted(self.car_names[o[1]] if o[0] == "car" else f"obstacle_{o[1]}" for o in touched)
+    def _info(self, params: dict, car: CarState, sim_time: float) -> dict:
+        """A car's info: its reward params (the same dict, extended) plus its published race state."""
+        race, names = car.race, self.car_names
+        touched = sorted(names[o[1]] if o[0] == "car" else f"obstacle_{o[1]}" for o in car.touched)
         params.update(
             lap=race.laps + (1 if race.racing else 0),
             laps_completed=race.laps,
             lap_times=list(race.lap_times),
-            race_time=race.clock(self.sim_time) if race.racing else race.finish_time,
+            race_time=race.clock(sim_time) if race.racing else race.finish_time,
             resets=race.resets,
             penalties=race.penalties,
             penalty_time=race.penalty_time,
             off_track=params["is_offtrack"],
-            collisions=names,
-            rank=ranks[i],
+            collisions=touched,
+            rank=car.rank,
             status=race.status,
-            events=list(events),
+            events=list(car.events),
         )
         return params
 
@@ -614,10 +483,3 @@ class RaceEnv(ParallelEnv):
             self._renderer.close()
         self.world.close()
 
-
-def _positions(order: list[int]) -> list[int]:
-    """Positions (1 = first) of the cars listed in `order` (car indices, first first)."""
-    positions = [0] * len(order)
-    for place, i in enumerate(order):
-        positions[i] = place + 1
-    return positions

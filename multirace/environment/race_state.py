@@ -40,6 +40,9 @@ class CarState:
     touched: tuple  # what it touched this step: ("car", j) / ("obstacle", k), sorted
     events: tuple  # the rules' events for it this step ("lap", "off_track", ...)
     race: CarRace  # its race record (laps, lap times, distance, penalties, resets, collisions, status)
+    track_heading: float  # the centre line's direction at `s`
+    left_width: float  # road extent left and right of the centre line at `s`
+    right_width: float
 
     @property
     def racing(self) -> bool:

@@ -1,6 +1,6 @@
 """Privileged state of a race: what a car would know with perfect sensing, as flat float32 vectors.
 
-Two views of the same step, read from the env after its cars are located:
+Two views of the same step, read from the env's published `RaceState` (``env.race_state``):
 
 - `car_features(env, i)`: car i's own view (ego-centric), the observation of
   ``observation="state"`` envs and of the RL teachers that learn from it
@@ -53,16 +53,16 @@ def _motion(env, i: int) -> tuple[float, float, float]:
     return float(world.drive_speed[i]), 0.0, 0.0
 
 
-def _traffic_features(env, i: int) -> list[float]:
+def _traffic_features(state, i: int) -> list[float]:
     """(present, gap / range, lateral difference, speed difference / max) of the nearest cars ahead, then behind."""
     ahead, behind = [], []
-    length = env.track.length
-    for along, lateral, speed in env.traffic(i):
+    length = state.track.length
+    for along, lateral, speed in state.traffic(i):
         if along <= TRAFFIC_RANGE:
             ahead.append((along, lateral, speed))
         elif length - along <= TRAFFIC_RANGE:
             behind.append((length - along, lateral, speed))
-    own = float(env.world.drive_speed[i])
+    own = state.cars[i].speed
     rows = []
     for cars, count in ((sorted(ahead), TRAFFIC_AHEAD), (sorted(behind), TRAFFIC_BEHIND)):
         for k in range(count):
@@ -76,23 +76,23 @@ def _traffic_features(env, i: int) -> list[float]:
 
 def car_features(env, i: int) -> np.ndarray:
     """Car i's privileged ego view (`CAR_FEATURES` float32 values; see the module docstring)."""
-    geo = env._geometry[i]
-    x, y, yaw = (float(v) for v in env.world.poses[i])
-    if geo is None:  # a parked car: nothing to see
+    state = env.race_state
+    car = state.cars[i]
+    if not car.located:  # a parked car: nothing to see
         return np.zeros(CAR_FEATURES, np.float32)
-    proj = geo["proj"]
+    x, y, yaw = car.x, car.y, car.yaw
     forward, left, yaw_rate = _motion(env, i)
-    steer, speed = env._commands[i]
-    half = max(proj.width / 2, 1e-3)
-    error = _wrap(yaw - proj.heading)
-    px, py, _ = centre_points(env.track, proj.s + LOOKAHEAD)
+    steer, speed = car.command
+    half = max(car.track_width / 2, 1e-3)
+    error = _wrap(yaw - car.track_heading)
+    px, py, _ = centre_points(state.track, car.s + LOOKAHEAD)
     dx, dy = px - x, py - y
     cos, sin = math.cos(yaw), math.sin(yaw)
     ahead_x, ahead_y = cos * dx + sin * dy, -sin * dx + cos * dy  # the centre line in the car's frame
-    values = [forward / MAX_SPEED, left, yaw_rate / 3.0, float(env.world.drive_speed[i]) / MAX_SPEED,
-              steer / env.car_spec.max_steer, speed / MAX_SPEED, proj.lateral / half, proj.left_width,
-              proj.right_width, math.sin(error), math.cos(error)]
-    values += (ahead_x / LOOKAHEAD).tolist() + (ahead_y / LOOKAHEAD).tolist() + _traffic_features(env, i)
+    values = [forward / MAX_SPEED, left, yaw_rate / 3.0, car.speed / MAX_SPEED,
+              steer / env.car_spec.max_steer, speed / MAX_SPEED, car.lateral / half, car.left_width,
+              car.right_width, math.sin(error), math.cos(error)]
+    values += (ahead_x / LOOKAHEAD).tolist() + (ahead_y / LOOKAHEAD).tolist() + _traffic_features(state, i)
     return np.clip(np.asarray(values, np.float32), -STATE_BOUND, STATE_BOUND)
 
 
@@ -101,16 +101,15 @@ def global_state(env) -> np.ndarray:
     track = env.track
     rows = np.zeros((env.total_cars, GLOBAL_PER_CAR), np.float32)
     centre = (track.bounds[0] + track.bounds[1]) / 2
-    for i in range(env.total_cars):
-        geo = env._geometry[i] if i < len(env._geometry) else None
-        if geo is None:
+    cars = env.race_state.cars if env.race_state is not None else ()
+    for car in cars:
+        if not car.located:
             continue
-        proj, race = geo["proj"], env.races[i]
-        x, y, yaw = (float(v) for v in env.world.poses[i])
+        i, race, yaw = car.index, car.race, car.yaw
         forward, left, yaw_rate = _motion(env, i)
-        _, _, headings = centre_points(track, proj.s + np.array(CURVATURE_AHEAD))
-        rows[i] = [1.0, (x - centre[0]) / 10.0, (y - centre[1]) / 10.0, math.cos(yaw), math.sin(yaw),
+        _, _, headings = centre_points(track, car.s + np.array(CURVATURE_AHEAD))
+        rows[i] = [1.0, (car.x - centre[0]) / 10.0, (car.y - centre[1]) / 10.0, math.cos(yaw), math.sin(yaw),
                    forward / MAX_SPEED, left, yaw_rate / 3.0, race.distance / track.length, race.laps,
-                   proj.lateral / max(proj.width / 2, 1e-3), math.sin(_wrap(yaw - proj.heading)),
-                   math.cos(_wrap(yaw - proj.heading)), *(_wrap(headings - proj.heading))]
+                   car.lateral / max(car.track_width / 2, 1e-3), math.sin(_wrap(yaw - car.track_heading)),
+                   math.cos(_wrap(yaw - car.track_heading)), *(_wrap(headings - car.track_heading))]
     return np.clip(rows.reshape(-1), -STATE_BOUND, STATE_BOUND)

@@ -64,92 +64,112 @@ class _SharedArray:
 
 
 def _worker(remote, make_env, info_keys, spin_wait: float) -> None:
+    """A worker process: builds its env and serves the learner's commands until told to close."""
     import cv2
 
     cv2.setNumThreads(1)  # one core per worker; OpenCV's own threads only contend
-    env = make_env()
-    agents = env.possible_agents
-    fd = remote.fileno()
-    shared: dict = {}  # name -> _SharedArray, once the learner has sent them
-    slot = 0
-    integer_actions = True
-    episode_seed = None
+    _Worker(remote, make_env(), info_keys, spin_wait).serve()
 
-    def small_infos(infos):
-        return [{key: infos[a][key] for key in info_keys if key in infos[a]} for a in agents]
 
-    def publish_images(obs):
-        nonlocal slot
+class _Worker:
+    """One worker's env and the shared arrays it reads actions from and writes observations and rewards to."""
+
+    def __init__(self, remote, env, info_keys, spin_wait: float):
+        self.remote, self.env, self.info_keys, self.spin_wait = remote, env, info_keys, spin_wait
+        self.agents = env.possible_agents
+        self.fd = remote.fileno()
+        self.shared: dict = {}  # name -> _SharedArray, once the learner has sent them
+        self.slot = 0
+        self.integer_actions = True
+        self.episode_seed = None
+
+    def serve(self) -> None:
+        """Answer the learner's commands (step, reset, new action arrays) until it closes or goes away."""
+        handlers = {STEP: self.step, RESET: self.reset, ACTIONS: self.attach_actions}
+        try:
+            while True:
+                command = self.next_command()
+                if command in (CLOSE, b""):  # b"": the learner is gone
+                    break
+                if command in handlers:
+                    handlers[command]()
+        except RewardFunctionError as failure:
+            self.report(failure)
+        finally:
+            for array in self.shared.values():
+                array.close()
+            self.env.close()
+            self.remote.close()
+
+    def next_command(self) -> bytes:
+        """The learner's next command byte; polled for `spin_wait` seconds (yielding the core) before sleeping."""
+        deadline = time.perf_counter() + self.spin_wait
+        while time.perf_counter() < deadline:
+            if select.select([self.fd], [], [], 0)[0]:
+                break
+            os.sched_yield()
+        return os.read(self.fd, 1)
+
+    def step(self) -> None:
+        """Step the env with the actions in this worker's row (a new episode when it ends) and publish the result."""
+        agents, shared = self.agents, self.shared
+        row = shared["actions"].array[self.slot]
+        actions = row[:, 0].astype(int).tolist() if self.integer_actions else row.tolist()
+        obs, rewards, terms, truncs, infos = self.env.step(dict(zip(agents, actions)))
+        truncated = all(truncs.values())
+        done = all(terms.values()) or truncated
+        shared["rewards"].array[self.slot] = [rewards[a] for a in agents]
+        shared["flags"].array[self.slot] = (done, truncated)
+        small = self.small_infos(infos) if self.info_keys else None
+        if done:
+            self.episode_seed = None if self.episode_seed is None else self.episode_seed + 1000
+            obs, _ = self.env.reset(seed=self.episode_seed)
+        self.publish_images(obs)
+        if self.info_keys:
+            self.remote.send(small)
+        else:
+            os.write(self.fd, DONE)
+
+    def reset(self) -> None:
+        """Start an episode with the seed the learner sends; publish its first observations."""
+        self.episode_seed = self.remote.recv()
+        obs, infos = self.env.reset(seed=self.episode_seed)
+        self.publish_images(obs)
+        self.remote.send(self.small_infos(infos))
+
+    def attach_actions(self) -> None:
+        """Attach the action array the learner sends (and whether its actions are integers)."""
+        spec, self.integer_actions = self.remote.recv()
+        if "actions" in self.shared:
+            self.shared["actions"].close()
+        self.shared["actions"] = _SharedArray.attach(spec)
+
+    def small_infos(self, infos) -> list[dict]:
+        return [{key: infos[a][key] for key in self.info_keys if key in infos[a]} for a in self.agents]
+
+    def publish_images(self, obs) -> None:
+        """Write the observations to this worker's slot of the shared arrays (sized by the learner on first use)."""
+        agents, shared = self.agents, self.shared
         scans = isinstance(obs[agents[0]], dict)  # {"camera", "lidar"} observations
         if "images" not in shared:  # first images: the learner sizes the shared blocks from them
             first = obs[agents[0]]
             image = first["camera"] if scans else first
-            remote.send(((len(agents),) + image.shape, first["lidar"].shape if scans else None, image.dtype.str))
-            slot, specs = remote.recv()
+            self.remote.send(((len(agents),) + image.shape, first["lidar"].shape if scans else None, image.dtype.str))
+            self.slot, specs = self.remote.recv()
             shared.update({name: _SharedArray.attach(spec) for name, spec in specs.items()})
-        images = shared["images"].array[slot]
+        images = shared["images"].array[self.slot]
         for k, agent in enumerate(agents):
             images[k] = obs[agent]["camera"] if scans else obs[agent]
         if scans:
-            ranges = shared["lidar"].array[slot]
+            ranges = shared["lidar"].array[self.slot]
             for k, agent in enumerate(agents):
                 ranges[k] = obs[agent]["lidar"]
 
-    def next_command():
-        """The learner's next command byte; polled for `spin_wait` seconds (yielding the core) before sleeping."""
-        deadline = time.perf_counter() + spin_wait
-        while time.perf_counter() < deadline:
-            if select.select([fd], [], [], 0)[0]:
-                break
-            os.sched_yield()
-        return os.read(fd, 1)
-
-    def report(failure: RewardFunctionError) -> None:
+    def report(self, failure: RewardFunctionError) -> None:
         """Tell the learner why this worker stops (it raises it, once), instead of a traceback per worker."""
-        if not info_keys:
-            os.write(fd, FAILED)
-        remote.send(str(failure))
-
-    try:
-        while True:
-            command = next_command()
-            if command == STEP:
-                row = shared["actions"].array[slot]
-                actions = row[:, 0].astype(int).tolist() if integer_actions else row.tolist()
-                obs, rewards, terms, truncs, infos = env.step(dict(zip(agents, actions)))
-                truncated = all(truncs.values())
-                done = all(terms.values()) or truncated
-                shared["rewards"].array[slot] = [rewards[a] for a in agents]
-                shared["flags"].array[slot] = (done, truncated)
-                small = small_infos(infos) if info_keys else None
-                if done:
-                    episode_seed = None if episode_seed is None else episode_seed + 1000
-                    obs, _ = env.reset(seed=episode_seed)
-                publish_images(obs)
-                if info_keys:
-                    remote.send(small)
-                else:
-                    os.write(fd, DONE)
-            elif command == RESET:
-                episode_seed = remote.recv()
-                obs, infos = env.reset(seed=episode_seed)
-                publish_images(obs)
-                remote.send(small_infos(infos))
-            elif command == ACTIONS:
-                spec, integer_actions = remote.recv()
-                if "actions" in shared:
-                    shared["actions"].close()
-                shared["actions"] = _SharedArray.attach(spec)
-            elif command in (CLOSE, b""):  # b"": the learner is gone
-                break
-    except RewardFunctionError as failure:
-        report(failure)
-    finally:
-        for array in shared.values():
-            array.close()
-        env.close()
-        remote.close()
-
+        if not self.info_keys:
+            os.write(self.fd, FAILED)
+        self.remote.send(str(failure))
 
 def _checked(reply):
     """A worker's reply, or the RewardFunctionError it reported (a message: infos are lists)."""

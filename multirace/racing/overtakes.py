@@ -81,11 +81,12 @@ class OvertakeRecorder:
     """A `run_race` recorder that adds every car's overtake figures (`FIELDS`) to the result's cars."""
 
     def start(self, env) -> None:
-        self.tracker = OvertakeTracker(len(env.races), env.car_spec.length)
-        self.tracker.update(env.races, env.sim_time, env.dt)
+        self.tracker = OvertakeTracker(len(env.race_state.cars), env.car_spec.length)
+        self.step(env)
 
     def step(self, env, observations=None, rewards=None, infos=None) -> None:
-        self.tracker.update(env.races, env.sim_time, env.dt)
+        state = env.race_state
+        self.tracker.update([car.race for car in state.cars], state.time, state.dt)
 
     def finish(self, env, result: dict) -> None:
         for car in result["cars"]:

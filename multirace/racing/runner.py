@@ -74,7 +74,7 @@ def run_race(controllers: list[Controller], config: RaceConfig, recorders=()) ->
         while env.agents:
             actions = {}
             for i, agent in enumerate(env.possible_agents):
-                if not env.races[i].racing:
+                if not env.race_state.cars[i].racing:
                     continue
                 try:
                     actions[agent] = controllers[i].act(observations[agent], infos[agent])
@@ -96,15 +96,17 @@ def run_race(controllers: list[Controller], config: RaceConfig, recorders=()) ->
 
 
 def race_result(env: RaceEnv, controllers: list[Controller], config: RaceConfig) -> dict:
-    """The result record of a finished race: every car, the entrants' and the env's bots, in finishing order."""
-    positions = env.ranks()
+    """The result record of a finished race (from its last `RaceState`): every car, the entrants' and the env's
+    bots, in finishing order."""
+    state = env.race_state
     cars = []
-    for i, race in enumerate(env.races):
+    for i, car in enumerate(state.cars):
+        race = car.race
         cars.append({
             "car": f"car_{i}",  # its slot: entrants first, in the order given, then the env's bots
-            "name": env.car_names[i],
+            "name": car.name,
             "file_sha256": controllers[i].file_sha256 if i < len(controllers) else None,
-            "position": positions[i],
+            "position": car.rank,
             "laps": race.laps,
             "lap_times": list(race.lap_times),
             "best_lap": race.best_lap,
@@ -114,10 +116,10 @@ def race_result(env: RaceEnv, controllers: list[Controller], config: RaceConfig)
             "penalties": race.penalties,
             "collisions": len(race.collisions),
             "collisions_caused": race.collisions_caused(),
-            "progress": round(race.race_progress(env.track.length, env.rules.laps), 2),
+            "progress": round(race.race_progress(state.track.length, state.rules.laps), 2),
             "status": race.status,
             "reason": race.reason,
         })
     cars.sort(key=lambda c: c["position"])
-    return {"format": config.race, "track": env.track.name, "reverse": config.reverse, "seed": config.seed,
+    return {"format": config.race, "track": state.track.name, "reverse": config.reverse, "seed": config.seed,
             "laps": config.laps, "cars": cars}

@@ -97,26 +97,27 @@ class ReplayRecorder:
         with self._output.guard():
             self._file = open(self._output.tmp, "wb")
         rec.set_log_time_enabled(False)  # wall-clock time says nothing about a simulated race
-        self.n = n = env.total_cars if hasattr(env, "total_cars") else len(env.races)
+        state = env.race_state
+        self.n = n = len(state.cars)
         self.ids = [car_id(i) for i in range(n)]
         self._agents = [env.possible_agents[i] if i < len(env.possible_agents) else None for i in range(n)]
-        self._prev = [self._race_state(race) for race in env.races]
-        self._ended = [not race.racing for race in env.races]
+        self._prev = [self._race_state(car.race) for car in state.cars]
+        self._ended = [not car.racing for car in state.cars]
         self._buffer_reset()
         info = {
-            "track": env.track.name, "reverse": bool(env.track.reverse), "track_length": env.track.length,
-            "format": env.rules.name, "laps": env.rules.laps, "dt": env.dt,
-            "cars": [{"id": self.ids[i], "name": env.car_names[i], "colour": list(CAR_COLOURS[i % len(CAR_COLOURS)])}
-                     for i in range(n)],
+            "track": state.track.name, "reverse": bool(state.track.reverse), "track_length": state.track.length,
+            "format": state.rules.name, "laps": state.rules.laps, "dt": state.dt,
+            "cars": [{"id": self.ids[i], "name": car.name, "colour": list(CAR_COLOURS[i % len(CAR_COLOURS)])}
+                     for i, car in enumerate(state.cars)],
         }
         rec.log("race/info", rr.TextDocument(json.dumps(info, indent=1)), static=True)
-        self._log_track(env)
+        self._log_track(state)
         spec = env.car_spec
         self._z = spec.height / 2
         for i in range(n):
             rec.log(f"world/cars/{self.ids[i]}",
                     rr.Boxes3D(half_sizes=[[spec.length / 2, spec.width / 2, spec.height / 2]],
-                               colors=[CAR_COLOURS[i % len(CAR_COLOURS)]], labels=[env.car_names[i]],
+                               colors=[CAR_COLOURS[i % len(CAR_COLOURS)]], labels=[state.cars[i].name],
                                fill_mode="solid"), static=True)
         rec.send_blueprint(self._blueprint(n), make_active=True, make_default=True)
         # the grid at step 0
@@ -177,14 +178,14 @@ class ReplayRecorder:
         return {"laps": race.laps, "resets": race.resets, "penalties": race.penalties,
                 "penalty_time": race.penalty_time, "collisions": len(race.collisions), "status": race.status}
 
-    def _log_track(self, env) -> None:
-        rr, rec, track = _rr(), self.rec, env.track
+    def _log_track(self, state) -> None:
+        rr, rec, track = _rr(), self.rec, state.track
         for name, xy, colour, radius in (("center", track.center, (235, 190, 40), 0.01),
                                          ("inner", track.inner, (240, 240, 240), 0.025),
                                          ("outer", track.outer, (240, 240, 240), 0.025)):
             pts = np.column_stack([xy, np.zeros(len(xy))]).astype(np.float32)
             rec.log(f"world/track/{name}", rr.LineStrips3D([pts], colors=[colour], radii=[radius]), static=True)
-        poses = np.asarray(env.world.obstacle_poses, dtype=np.float64).reshape(-1, 3)
+        poses = state.obstacles
         if len(poses):
             lx, ly, lz = OBSTACLE_SIZE
             rec.log("world/obstacles", rr.Boxes3D(
@@ -217,15 +218,16 @@ class ReplayRecorder:
 
     def _record_step(self, env, observations, rewards, infos) -> None:
         row = len(self._buf_steps)
-        step = int(env.steps)
+        state = env.race_state
+        step = state.step
         self._buf_steps.append(step)
-        self._buf_times.append(float(env.sim_time))
-        races, n = env.races, self.n
+        self._buf_times.append(state.time)
+        races, n = [car.race for car in state.cars], self.n
         # a car is recorded while it races, on the step its run ends, and on the grid at step 0
         active = [race.racing or not ended or step == 0 for race, ended in zip(races, self._ended)]
         self._buf_active.append(active)
-        self._buf_pose.append(env.world.poses[:n].copy())
-        self._buf_scalar["speed"].append(env.world.drive_speed[:n].copy())
+        self._buf_pose.append(np.array([(car.x, car.y, car.yaw) for car in state.cars], np.float64))
+        self._buf_scalar["speed"].append(np.array([car.speed for car in state.cars], np.float64))
         agents = self._agents
         infos, rewards = infos or {}, rewards or {}
         for name in ("progress", "rank"):
@@ -243,7 +245,7 @@ class ReplayRecorder:
                 image = observations[agent]
                 if isinstance(image, dict):  # a LIDAR env: {"camera", "lidar"}
                     if env.sensors.lidar == "lidar":  # (SECTOR_LIDAR's 8 sectors have no echo points)
-                        self._log_lidar_echoes(env, i, image["lidar"])
+                        self._log_lidar_echoes(env, state.cars[i], image["lidar"])
                     image = image["camera"]
                 image = np.asarray(image)
                 if image.ndim == 3 and image.shape[2] == 2:  # a stereo pair: its left camera
@@ -256,24 +258,25 @@ class ReplayRecorder:
                 if (race.laps != prev["laps"] or race.resets != prev["resets"] or race.penalties != prev["penalties"]
                         or len(race.collisions) != prev["collisions"] or race.status != prev["status"]
                         or infos.get(agent, {}).get("events")):
-                    self._log_events(env, i, race, infos)
+                    self._log_events(env, state.cars[i], infos)
             if not race.racing:
                 self._ended[i] = True
         if cameras:  # JPEG encoding (OpenCV releases the GIL) runs on the other core meanwhile, one job a step
             cars, images = zip(*cameras)
             self._buf_img.append((row, cars, self._encoder.submit(self._encode_all, images)))
 
-    def _set_step_time(self, env) -> None:
+    def _set_step_time(self, state) -> None:
         """Point the recording's time lines at this step (once per step) before a direct `log`."""
         if not self._time_set:
-            self.rec.set_time("step", sequence=int(env.steps))
-            self.rec.set_time("race_time", duration=float(env.sim_time))
+            self.rec.set_time("step", sequence=state.step)
+            self.rec.set_time("race_time", duration=state.time)
             self._time_set = True
 
-    def _log_lidar_echoes(self, env, i: int, ranges) -> None:
-        """Car i's LIDAR echoes as world points (beams that met nothing are left out)."""
-        points = env.lidar.echoes(env.world.poses[i], ranges)
-        self._set_step_time(env)
+    def _log_lidar_echoes(self, env, car, ranges) -> None:
+        """A car's LIDAR echoes as world points (beams that met nothing are left out)."""
+        i = car.index
+        points = env.lidar.echoes((car.x, car.y, car.yaw), ranges)
+        self._set_step_time(env.race_state)
         self.rec.log(f"world/lidar/{self.ids[i]}", _rr().Points3D(points, colors=[CAR_COLOURS[i % len(CAR_COLOURS)]],
                                                                   radii=[0.015]))
 
@@ -284,15 +287,15 @@ class ReplayRecorder:
         ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
         return jpeg.tobytes() if ok else None
 
-    def _log_events(self, env, i: int, race, infos) -> None:
-        """Text log entries for what changed in car i's race state this step."""
-        rr, rec = _rr(), self.rec
+    def _log_events(self, env, car, infos) -> None:
+        """Text log entries for what changed in a car's race record this step."""
+        rr, rec, state = _rr(), self.rec, env.race_state
+        i, race, name = car.index, car.race, car.name
         prev, now = self._prev[i], self._race_state(race)
-        agent = env.possible_agents[i] if i < len(env.possible_agents) else None
+        agent = self._agents[i]
         info = infos.get(agent) if agent else None
         step_events = list(info["events"]) if info is not None else []
-        name = env.car_names[i]
-        clock = race.clock(env.sim_time) if race.racing else race.finish_time
+        clock = race.clock(state.time) if race.racing else race.finish_time
         entries = []  # (kind, level, text)
         for k in range(prev["laps"], now["laps"]):
             lap_time = race.lap_times[k]
@@ -316,7 +319,7 @@ class ReplayRecorder:
             level = "INFO" if now["status"] == "finished" else "WARN"
             entries.append((now["status"], level, f"{name}: {text} at {race.finish_time:.3f} s{reason}"))
         if entries:
-            self._set_step_time(env)
+            self._set_step_time(state)
         for kind, level, text in entries:
             rec.log(f"events/{self.ids[i]}", rr.TextLog(text, level=level),
                     rr.AnyValues(kind=kind, car=self.ids[i], clock=float(clock if clock is not None else 0.0)))

@@ -221,13 +221,13 @@ class SimTraceRecorder:
 
     def start(self, env) -> None:
         self.writer = SimTraceWriter(self.path)
-        self._ended = [not race.racing for race in env.races]
+        self._ended = [not car.racing for car in env.race_state.cars]
 
     def step(self, env, observations, rewards, infos) -> None:
         for i, agent in enumerate(env.possible_agents):
             if self._ended[i] or agent not in infos:
                 continue
-            racing = env.races[i].racing
+            racing = env.race_state.cars[i].racing
             tap = self.taps[i] if i < len(self.taps) else None
             self.writer.write_step(infos[agent], reward=float(rewards.get(agent, 0.0)), episode=i,
                                    done=not racing, action=tap.index if tap else None,

@@ -10,14 +10,15 @@ position, name, lap k/N, status, penalty seconds, resets and at-fault collisions
 penalised or put back is ringed in white for `MARK_SECONDS` with what it got
 ("+5s", "reset"). Parked cars (finished or forfeited runs) are not drawn.
 
-Per-env state (the scaled background and the trails) lives in the attribute
-`env._topdown_state`; a new episode (the env's step counter going back) clears
-the trails.
+What the view keeps per env (the scaled background, the trails, the marks) is
+its own `view_state(env)`, held in this module while the env lives; a new
+episode (the env's step counter going back) clears the trails.
 """
 from __future__ import annotations
 
 import collections
 import math
+import weakref
 
 import cv2
 import numpy as np
@@ -86,17 +87,20 @@ class _Layout:
         return self.texture.world_to_pixel(xy) * self.scale + np.asarray(self.offset, dtype=np.float64)
 
 
-def _state(env) -> _State:
-    state = getattr(env, "_topdown_state", None)
+_VIEW_STATES: "weakref.WeakKeyDictionary[object, _State]" = weakref.WeakKeyDictionary()
+
+
+def view_state(env) -> _State:
+    """What the view keeps between frames of `env` (an env or a replay's scene): layouts, trails, marks."""
+    state = _VIEW_STATES.get(env)
     if state is None:
-        state = _State()
-        env._topdown_state = state
+        state = _VIEW_STATES[env] = _State()
     return state
 
 
 def layout_for(env, size=DEFAULT_SIZE) -> _Layout:
     """The (cached) layout of `env`'s track in a frame of `size` = (height, width)."""
-    state = _state(env)
+    state = view_state(env)
     texture = env.texture
     key = (id(texture), tuple(size))
     layout = state.layouts.get(key)
@@ -162,7 +166,7 @@ def render_topdown(env, size=DEFAULT_SIZE) -> np.ndarray:
     height, width = (int(v) for v in size)
     if height < 32 or width < 64:
         raise ValueError(f"render_topdown: size {size!r} too small (need at least 32x64)")
-    state = _state(env)
+    state = view_state(env)
     layout = layout_for(env, (height, width))
     frame = layout.background.copy()
     world = env.world

@@ -132,7 +132,7 @@ def _floor_stepper(num_cars: int, seed: int = 0, steps: int = 900):
         for k, pose in enumerate(obstacle_poses):
             world.place_obstacle(k, *pose)
 
-    renderer = env._renderer
+    renderer = env.renderer
     ground = renderer._ground
     size = (env.camera.width, env.camera.height)
     homographies = [renderer.ground_homography(camera_pose(env.camera, world.poses[i])) for i in range(num_cars)]

@@ -187,7 +187,8 @@ def scene_labels(env, car: int = 0, renderer: FastRenderer | None = None) -> np.
     """
     spec = env.camera
     renderer = renderer if renderer is not None else FastRenderer(spec, env.texture)
-    pose = camera_pose(spec, env.world.poses[car])
+    here = env.race_state.cars[car]
+    pose = camera_pose(spec, (here.x, here.y, here.yaw))
     labels = cv2.warpPerspective(texture_labels(env.texture), renderer.ground_homography(pose),
                                  (spec.width, spec.height), flags=cv2.INTER_NEAREST,
                                  borderMode=cv2.BORDER_CONSTANT, borderValue=FLOOR)

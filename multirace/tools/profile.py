@@ -3,9 +3,9 @@
 The stages of `RaceEnv.step`: dynamics (the car model: pushes, tyre kernel,
 free moves, the broad phase), contacts (PyBullet: syncing bodies, stepping,
 contact points, reading poses), rules (track measurement, contacts and the
-race rules), params (the reward params and infos), reward (the reward
-function) and render (the observations). Each is timed by wrapping the env's
-and world's own methods on one instance with `time.perf_counter`, so the
+race rules, publishing the race state), params (the reward params and
+infos), reward (the reward function) and render (the observations). Each is
+timed by wrapping the env's, its race core's and the world's own methods on one instance with `time.perf_counter`, so the
 code of an unprofiled env is untouched; what no stage covers (actions,
 commands, bots) is "other".
 """
@@ -19,11 +19,11 @@ from ..sensors.camera import CameraSpec, camera_poses
 from ..sensors.fast_renderer import FastRenderer
 
 STAGES = ("dynamics", "contacts", "rules", "params", "reward", "render", "other")
-# the methods timed as each stage: (object: "env", "world" or "reward"; method names)
+# the methods timed as each stage: (object: "env", "core", "world" or "reward"; method names)
 _TIMED = {
     "dynamics": ("world", ("_pushes", "_command_dynamic", "_command_kinematic", "_may_touch", "_move_freely")),
-    "rules": ("env", ("_measure_all", "_advance_distances", "_apply_contacts", "_apply_rules")),
-    "params": ("env", ("_object_table", "_params", "ranks", "_info")),
+    "rules": ("core", ("_measure_all", "_apply_contacts", "apply_rules", "publish")),
+    "params": ("env", ("_object_table", "_params", "_info")),
     "reward": ("reward", ("rewards",)),
     "render": ("env", ("_observe",)),
 }
@@ -42,7 +42,7 @@ def _timed(method, totals: dict, stage: str):
 def profile_step(step, env, steps: int) -> dict:
     """Microseconds per env step of each stage, over `steps` calls of `step` (which steps `env`)."""
     totals = dict.fromkeys(STAGES + ("world", "total"), 0.0)
-    owners = {"env": env, "world": env.world, "reward": env.reward_function}
+    owners = {"env": env, "core": env.core, "world": env.world, "reward": env.reward_function}
     for stage, (owner, names) in _TIMED.items():
         for name in names:
             setattr(owners[owner], name, _timed(getattr(owners[owner], name), totals, stage))

@@ -118,7 +118,8 @@ class TrainEnv:
         self.perturbation = -1
 
     # -------------------------------------------------------------- envs
-    def _env_for(self, k: int):
+    def env_for(self, k: int):
+        """The race env of run k (built on first use, then kept)."""
         if k not in self._envs:
             from ..environment.race_env import RaceEnv
             from ..sim.tracks import Track
@@ -165,7 +166,7 @@ class TrainEnv:
         if seed is not None:
             self._rng = np.random.default_rng([int(seed), self.worker, 7])
         k = int(self._rng.integers(len(self.runs)))
-        self.env = self._env_for(k)
+        self.env = self.env_for(k)
         self.env.randomization = self._episode_randomization()
         obs, infos = self.env.reset(seed=None if seed is None else int(seed))
         if self.bots_ahead > 0:  # every episode starts with slower cars to pass: bots on the centre line ahead

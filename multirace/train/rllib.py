@@ -81,7 +81,7 @@ def _parallel_env_class():
             self.possible_agents = list(self.cars)
             self._lives = [0] * len(self.cars)
             self.agents = list(self.possible_agents)
-            probe = train_env._env_for(0)
+            probe = train_env.env_for(0)
             self._obs_space = probe.observation_space(self.cars[0])
             self._act_space = probe.action_space(self.cars[0])
 

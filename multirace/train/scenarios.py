@@ -114,25 +114,33 @@ class ScenarioJudge:
 
     def start(self, env) -> None:
         self.passed, self.ahead_at_end, self.fouled, self.void = None, False, False, False
-        length, me = env.track.length, env.races[0].distance
+        races = _races(env)
+        length, me = env.track.length, races[0].distance
         # race distances of cars moved to their spots may differ by a lap: the gaps start from the road's
         self._offsets = [(me - race.distance + length / 2) % length - length / 2 - (me - race.distance)
-                         for race in env.races[1:]]
+                         for race in races[1:]]
 
     def step(self, env, observations=None, rewards=None, infos=None) -> None:
-        self.fouled |= env.races[0].collisions_caused() > 0
-        self.void |= any(race.off_tracks for race in env.races[1:])
+        races = _races(env)
+        self.fouled |= races[0].collisions_caused() > 0
+        self.void |= any(race.off_tracks for race in races[1:])
         if self.passed is None and self._ahead(env):
-            self.passed = env.sim_time
+            self.passed = env.race_state.time
 
     def finish(self, env, result=None) -> None:
         self.ahead_at_end = self._ahead(env)
 
     def _ahead(self, env) -> bool:
         """Does car 0 lead every other car by a car length on the road (or by a lap and more)?"""
-        me = env.races[0].distance
-        gaps = [me - race.distance + offset for race, offset in zip(env.races[1:], self._offsets)]
+        races = _races(env)
+        me = races[0].distance
+        gaps = [me - race.distance + offset for race, offset in zip(races[1:], self._offsets)]
         return min(gaps) >= env.car_spec.length
+
+
+def _races(env) -> list:
+    """Every car's race record from the env's published `RaceState`."""
+    return [car.race for car in env.race_state.cars]
 
 
 def run_scenario(agent, scenario: Scenario, track: str = "reinvent_base", seed: int = 0, step_budget=30.0) -> dict:

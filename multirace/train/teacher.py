@@ -41,7 +41,7 @@ def evaluate_teacher(net: StatePolicyNet, space, track: str, laps: int = 3, seed
         while env.agents:
             action = net.command(obs["car_0"][None])[0]
             obs, _, _, _, infos = env.step({"car_0": action})
-        race = env.races[0]
+        race = env.race_state.cars[0].race
         return {"laps": race.laps, "resets": race.resets, "total_time": race.finish_time,
                 "best_lap": min(race.lap_times) if race.lap_times else None, "status": race.status}
     finally:
