@@ -110,3 +110,13 @@ def test_dagger_trains_a_speed_agent_from_a_camera_agent(tmp_path):
     agent = load_agent(summary["out"], step_budget=None)
     assert agent.metadata["sensor"] == SPEED and agent.net.vector_inputs == {"speed": 1}
     assert agent.metadata["training"]["init"]["name"] == "camera_car"
+
+
+def test_ppo_trains_an_agent_that_reads_speed_through_the_worker_envs(tmp_path):
+    from multirace.cli import main as cli_main
+
+    out = tmp_path / "ppo_speed.pt"
+    assert cli_main(["train", "--config", "tiny", "--minutes", "0.05", "--no-progress", "--envs", "1", "--cars", "1",
+                     "--set", 'sensor=["FRONT_FACING_CAMERA", "SPEED"]', "--out", str(out)]) == 0
+    agent = load_agent(out)
+    assert agent.metadata["sensor"] == ["FRONT_FACING_CAMERA", "SPEED"] and agent.net.vector_inputs == {"speed": 1}

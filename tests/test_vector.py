@@ -50,3 +50,23 @@ def test_continuous_actions_reach_the_workers_unchanged():
             assert rewards[0, 1] == np.float32(reward["car_1"]) and infos[0][1]["progress"] == info["car_1"]["progress"]
     finally:
         vec.close()
+
+
+def test_vector_sensors_reach_the_learner_as_the_env_observes_them():
+    make = functools.partial(RaceEnv, num_cars=2, sensor=["FRONT_FACING_CAMERA", "SECTOR_LIDAR", "SPEED"],
+                             max_steps=30)
+    vec = SubprocVectorEnv([make], info_keys=("progress",))
+    try:
+        env = make()
+        obs, _ = vec.reset(seeds=[4])
+        env.reset(seed=4)
+        assert set(obs) == {"camera", "lidar", "speed"} and obs["speed"].shape == (1, 2, 1)
+        for k in range(8):
+            actions = np.array([[k % 10, (k + 5) % 10]])
+            obs, _, _, _, _ = vec.step(actions)
+            expected, _, _, _, _ = env.step({"car_0": actions[0, 0], "car_1": actions[0, 1]})
+            for key in ("camera", "lidar", "speed"):
+                assert np.array_equal(obs[key][0, 1], expected["car_1"][key]), (k, key)
+        assert obs["speed"][0, 0, 0] > 0.1  # the cars drive
+    finally:
+        vec.close()

@@ -3,8 +3,8 @@
 Each worker process owns one `RaceEnv` (built there from a picklable factory)
 and resets it automatically when its episode ends. Everything per step that
 has a fixed shape lives in shared memory, one block per kind with a slot per
-worker: the actions the learner writes, and the camera images (and LIDAR
-ranges, for envs that scan one; or the state vectors of state envs),
+worker: the actions the learner writes, and the camera images (and the vector
+sensors' values: LIDAR ranges, SPEED; or the state vectors of state envs),
 rewards and done flags the workers write. A
 step is then one command byte down each pipe and one byte back (or, when info
 keys were asked for, a small pickled list of those infos): the pipe round
@@ -36,6 +36,7 @@ DEFAULT_INFO_KEYS = ("progress", "laps_completed", "lap_times", "resets", "statu
 RESET, ACTIONS, STEP, CLOSE, DONE = b"r", b"a", b"s", b"c", b"d"  # one-byte commands and the bare reply
 FAILED = b"f"  # the reply of a worker whose env's reward function failed; its message follows
 SPIN_WAIT = 0.0005  # seconds a worker polls for its next command before it sleeps in a blocking read
+VECTOR_PREFIX = "vector:"  # shared-array names of the vector sensors (LIDAR, SPEED, ...): "vector:lidar"
 
 
 class _SharedArray:
@@ -150,20 +151,21 @@ class _Worker:
     def publish_images(self, obs) -> None:
         """Write the observations to this worker's slot of the shared arrays (sized by the learner on first use)."""
         agents, shared = self.agents, self.shared
-        scans = isinstance(obs[agents[0]], dict)  # {"camera", "lidar"} observations
+        first = obs[agents[0]]
+        vectors = [key for key in first if key != "camera"] if isinstance(first, dict) else []  # LIDAR, SPEED, ...
         if "images" not in shared:  # first images: the learner sizes the shared blocks from them
-            first = obs[agents[0]]
-            image = first["camera"] if scans else first
-            self.remote.send(((len(agents),) + image.shape, first["lidar"].shape if scans else None, image.dtype.str))
+            image = first["camera"] if isinstance(first, dict) else first
+            self.remote.send(((len(agents),) + image.shape, tuple((key, first[key].shape) for key in vectors),
+                              image.dtype.str))
             self.slot, specs = self.remote.recv()
             shared.update({name: _SharedArray.attach(spec) for name, spec in specs.items()})
         images = shared["images"].array[self.slot]
         for k, agent in enumerate(agents):
-            images[k] = obs[agent]["camera"] if scans else obs[agent]
-        if scans:
-            ranges = shared["lidar"].array[self.slot]
+            images[k] = obs[agent]["camera"] if vectors else obs[agent]
+        for key in vectors:
+            values = shared[VECTOR_PREFIX + key].array[self.slot]
             for k, agent in enumerate(agents):
-                ranges[k] = obs[agent]["lidar"]
+                values[k] = obs[agent][key]
 
     def report(self, failure: RewardFunctionError) -> None:
         """Tell the learner why this worker stops (it raises it, once), instead of a traceback per worker."""
@@ -197,20 +199,21 @@ class SubprocVectorEnv:
             self.remotes.append(parent)
             self.processes.append(process)
         self.num_envs = len(make_envs)
-        self.shared: dict = {}  # images (E, A, H, W, C), [lidar (E, A, R)], rewards (E, A), flags (E, 2), actions
+        # images (E, A, H, W, C), per vector sensor "vector:KEY" (E, A, ...), rewards (E, A), flags (E, 2), actions
+        self.shared: dict = {}
 
     def _share_buffers(self) -> None:
         """Answer every worker's first images with shared blocks sized by them (all envs alike)."""
         shapes = [tuple(remote.recv()) for remote in self.remotes]
         if len(set(shapes)) != 1:
-            raise ValueError(f"vector env: the envs' cars, camera images or LIDARs differ: {shapes}")
-        images, lidar, dtype = shapes[0]
+            raise ValueError(f"vector env: the envs' cars, camera images or sensors differ: {shapes}")
+        images, vectors, dtype = shapes[0]
         cars = images[0]
         E = self.num_envs
         self.shared = {"images": _SharedArray((E,) + images, dtype),
                        "rewards": _SharedArray((E, cars), np.float32), "flags": _SharedArray((E, 2), bool)}
-        if lidar is not None:
-            self.shared["lidar"] = _SharedArray((E, cars) + tuple(lidar), np.float32)
+        for key, shape in vectors:
+            self.shared[VECTOR_PREFIX + key] = _SharedArray((E, cars) + tuple(shape), np.float32)
         specs = {name: array.spec for name, array in self.shared.items()}
         for k, remote in enumerate(self.remotes):
             remote.send((k, specs))
@@ -243,11 +246,12 @@ class SubprocVectorEnv:
         return self._observations(), infos
 
     def _observations(self):
-        """Images (E, A, H, W, C), or with a LIDAR {"camera": images, "lidar": ranges (E, A, R)}."""
+        """Images (E, A, H, W, C), or with vector sensors {"camera": images, KEY: values (E, A, ...)}
+        (KEY: "lidar", "speed", ...)."""
         images = self.shared["images"].array.copy()
-        if "lidar" not in self.shared:
-            return images
-        return {"camera": images, "lidar": self.shared["lidar"].array.copy()}
+        vectors = {name[len(VECTOR_PREFIX):]: array.array.copy() for name, array in self.shared.items()
+                   if name.startswith(VECTOR_PREFIX)}
+        return {"camera": images, **vectors} if vectors else images
 
     def step(self, actions):
         """Step every env with `actions[e][car]` (integers for discrete actions, (E, A, D) floats otherwise).
