@@ -377,9 +377,9 @@ def _add_imitate_parser(sub) -> None:
                          help="dataset cap; beyond it new samples replace random old ones (default 40000; "
                               "each 120x160 sample is 19 kB)")
     imitate.add_argument("--sensor", nargs="+", default=None, metavar="NAME",
-                         help="DeepRacer's sensor list the agent reads: FRONT_FACING_CAMERA (default) or "
-                              "STEREO_CAMERAS, and optionally LIDAR or SECTOR_LIDAR "
-                              "(e.g. --sensor FRONT_FACING_CAMERA SECTOR_LIDAR)")
+                         help="the sensor list the agent reads: FRONT_FACING_CAMERA (default) or "
+                              "STEREO_CAMERAS, and optionally LIDAR or SECTOR_LIDAR (DeepRacer's) and SPEED "
+                              "(multirace's; not on DeepRacer's cars) (e.g. --sensor FRONT_FACING_CAMERA SECTOR_LIDAR)")
     imitate.add_argument("--traffic-share", type=SHARE, default=1.0, metavar="F",
                          help="share of the envs that hold the --traffic bots (default 1; the rest drive alone)")
     imitate.add_argument("--lidar", action="store_true",
