@@ -9,12 +9,15 @@ record, the step's contacts and events.
 from __future__ import annotations
 
 import dataclasses
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..sim.car import CarSpec
-from ..sim.tracks import Track
 from .rules import CarRace, RaceRules
+
+if TYPE_CHECKING:
+    from ..sim.tracks import Track
 
 
 @dataclasses.dataclass(frozen=True, slots=True)

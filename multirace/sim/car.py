@@ -11,6 +11,8 @@ from __future__ import annotations
 import dataclasses
 import math
 
+GRAVITY = 9.81  # m/s^2
+
 
 @dataclasses.dataclass(frozen=True)
 class CarSpec:

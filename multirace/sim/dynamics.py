@@ -32,7 +32,8 @@ import math
 import numba
 import numpy as np
 
-GRAVITY = 9.81
+from .car import GRAVITY
+
 
 
 @dataclasses.dataclass(frozen=True)

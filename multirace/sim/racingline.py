@@ -20,18 +20,20 @@ from __future__ import annotations
 import dataclasses
 import math
 import weakref
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .car import CarSpec
-from .dynamics import GRAVITY
-from .tracks import Track
+from .car import GRAVITY, CarSpec
+
+if TYPE_CHECKING:
+    from .tracks import Track
 
 SPACING = 0.1  # m between the line's points
 MARGIN = 0.15  # m from the road edge to the car's centre line: the car's half width and 5 cm to spare
 SMOOTHING = 0.3  # m, the Gaussian that takes the kinks out of the waypoints' polygon
 GRIP_USE = 0.95  # share of the tyres' grip the speed profile plans to use
-_CACHE: "weakref.WeakKeyDictionary[Track, dict]" = weakref.WeakKeyDictionary()
+_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 @dataclasses.dataclass(frozen=True)

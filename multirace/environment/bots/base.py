@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar
 
 from ...sim.car import CarSpec
-from ...sim.tracks import Projection, Track
 from ..drivers import Driver, car_pose
 from ..race_state import RaceState
+
+if TYPE_CHECKING:
+    from ...sim.tracks import Projection, Track
 
 SPEED_RANGE = (0.1, 4.0)  # m/s a bot may be asked to drive
 

@@ -5,10 +5,13 @@ The expert that teaches imitation agents to pass (`multirace imitate --traffic`)
 from __future__ import annotations
 
 import dataclasses
+from typing import TYPE_CHECKING
 
 from ...sim.car import CarSpec
-from ...sim.tracks import Track
 from .base import FOLLOW_DISTANCE, STOP_DISTANCE, Bot
+
+if TYPE_CHECKING:
+    from ...sim.tracks import Track
 
 PASS_AHEAD = 4.0  # m; a slower car closer than this ahead is overtaken
 PASS_BEHIND = 0.5  # m; a car being passed keeps steering the pass until this far behind

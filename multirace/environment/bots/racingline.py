@@ -7,12 +7,15 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import TYPE_CHECKING
 
 from ...sim.car import CarSpec
 from ...sim.racingline import plan_racing_line
-from ...sim.tracks import Track
 from .base import Bot, Situation, pursuit_steer, speed_in_traffic
 from .passing import PASS_BEHIND, PASS_GAP, ROAD_MARGIN
+
+if TYPE_CHECKING:
+    from ...sim.tracks import Track
 
 LINE_LOOKAHEAD = 0.3  # m, plus LINE_LOOKAHEAD_TIME seconds of travel: where a racing-line driver aims
 LINE_LOOKAHEAD_TIME = 0.15
