@@ -126,16 +126,13 @@ def cast_ground(images, flat_texels, rows, columns, eyes, rotations, ppm, x0, y0
     world (x0 + u / ppm, y0 - v / ppm); rotations (n, 3, 3) have rows right, down, forward. The ray of pixel
     (x, y) has the direction right (x - cx) / f + down (y - cy) / f + forward and meets the ground at
     eye - eye_z / dir_z dir. Without roll (right_z = 0) dir_z, hence the depth, is the same along a row and
-    the texel walks a straight line in equal steps (single precision, vectorised: a texel is 1 cm, the
-    walk's rounding far below it; clamped into the texture's border before the conversion); a rolled camera
-    takes a division per pixel. Pixels are written element by element: a view per row costs more than it
-    saves at this size.
+    the texel walks a straight line in equal steps; a rolled camera takes a division per pixel. The sky is
+    filled a slice per channel and the ground's pixels written element by element: a view per row costs
+    more than it saves at this size.
     """
     n, height, width, channels = images.shape
     inv_f = 1.0 / focal
     index = np.empty(width, np.int32)
-    stride = np.int32(columns + 2)
-    zero, last_u, last_v = np.float32(0.0), np.float32(columns + 1), np.float32(rows + 1)
     for k in range(n):
         r = rotations[k]
         ez = eyes[k, 2]
@@ -150,19 +147,10 @@ def cast_ground(images, flat_texels, rows, columns, eyes, rotations, ppm, x0, y0
             bx = r[2, 0] + r[1, 0] * down - ax * cx  # the direction at x = 0
             by = r[2, 1] + r[1, 1] * down - ay * cx
             bz = r[2, 2] + r[1, 2] * down - az * cx
-            if az != 0.0:
+            if az == 0.0:
+                _walk_row(index, bz, ez, east, south, bx, by, ax, ay, ppm, rows, columns)
+            else:
                 _divide_row(index, bz, az, ez, east, south, bx, by, ax, ay, ppm, rows, columns)
-            elif bz >= 0.0:  # the row looks at or above the horizon: no ground, floor colour (the border)
-                index[:] = 0
-            else:  # the walk: + 0.5 and truncation pick the nearest texel, + 1 the border's offset
-                scale = -ez / bz * ppm  # texels per unit of the ray's direction, on the ground
-                u0, du = np.float32(east * ppm + scale * bx + 1.5), np.float32(scale * ax)
-                v0, dv = np.float32(south * ppm - scale * by + 1.5), np.float32(-scale * ay)
-                for x in range(width):
-                    step = np.float32(x)
-                    u = np.int32(min(max(u0 + du * step, zero), last_u))
-                    v = np.int32(min(max(v0 + dv * step, zero), last_v))
-                    index[x] = v * stride + u
             if channels == 1:
                 for x in range(width):
                     images[k, y, x, 0] = flat_texels[index[x]]
@@ -170,6 +158,29 @@ def cast_ground(images, flat_texels, rows, columns, eyes, rotations, ppm, x0, y0
                 for x in range(width):
                     for c in range(channels):
                         images[k, y, x, c] = flat_texels[index[x] * channels + c]
+
+
+@numba.njit(cache=True, fastmath=True)
+def _walk_row(index, bz, ez, east, south, bx, by, ax, ay, ppm, rows, columns):
+    """The texels of one image row of a camera without roll: a straight walk through the texture in equal
+    steps. In single precision (vectorised; a texel is 1 cm, the walk's rounding far below it) and within
+    the bordered texture: the walk's coordinates are clamped into the border before the conversion."""
+    width = index.shape[0]
+    if bz >= 0.0:  # the row looks at or above the horizon: no ground, floor colour
+        for x in range(width):
+            index[x] = 0
+        return
+    scale = -ez / bz * ppm  # texels per unit of the ray's direction, on the ground
+    # + 0.5, then truncation: the nearest texel; + 1: the border's offset
+    u0, du = np.float32(east * ppm + scale * bx + 1.5), np.float32(scale * ax)
+    v0, dv = np.float32(south * ppm - scale * by + 1.5), np.float32(-scale * ay)
+    zero, last_u, last_v = np.float32(0.0), np.float32(columns + 1), np.float32(rows + 1)
+    stride = np.int32(columns + 2)
+    for x in range(width):
+        step = np.float32(x)
+        u = np.int32(min(max(u0 + du * step, zero), last_u))
+        v = np.int32(min(max(v0 + dv * step, zero), last_v))
+        index[x] = v * stride + u
 
 
 @numba.njit(cache=True)
