@@ -11,8 +11,8 @@ from rich.table import Table
 
 from .atomic import OutputError, write_text
 from .environment.formats import FORMATS
-from .options import (COUNT, NON_NEGATIVE, POSITIVE, POSITIVE_INT, SEED, SHARE, Parser, input_file, number,
-                      output_file)
+from .options import (COUNT, NON_NEGATIVE, POSITIVE, POSITIVE_INT, SEED, SHARE, HelpLater, Parser, input_file,
+                      number, output_file)
 from .text import display_name, laps_text
 from .resources import agent_argument, list_agents, list_tracks
 
@@ -275,16 +275,18 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def _entrants_help() -> str:
+    from .environment.bots import bot_kinds_help
+
+    return f"agent files, shipped agents by name ({', '.join(list_agents())}) or bot:KIND@SPEED ({bot_kinds_help()})"
+
+
 def _add_race_parser(sub) -> None:
     """The `race` subcommand."""
     race = sub.add_parser("race", help="race agent files and bots against each other",
                           description="Race agent files (.pt) and scripted bots (bot:follow@1.5, "
                                       "bot:lanes@1.0, bot:racingline) and print the result.")
-    from .environment.bots import bot_kinds_help
-
-    race.add_argument("entrants", nargs="+",
-                      help=f"agent files, shipped agents by name ({', '.join(list_agents())}) or bot:KIND@SPEED "
-                           f"({bot_kinds_help()})")
+    race.add_argument("entrants", nargs="+", help=HelpLater(_entrants_help))
     race.add_argument("--track", default="reinvent_base",
                       help=f"bundled track name or .npy path (bundled: {', '.join(list_tracks())})")
     race.add_argument("--reverse", action="store_true", help="race the track in the other direction")

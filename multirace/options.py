@@ -22,6 +22,20 @@ class Parser(argparse.ArgumentParser):
         sys.exit(2)
 
 
+class HelpLater:
+    """An argument's help text built only when help is shown, for text whose parts import heavy modules (the bot
+    registry's kinds): building the parser stays light. Gives argparse what it uses of a help string."""
+
+    def __init__(self, build):
+        self._build = build
+
+    def strip(self) -> str:
+        return "(help)"  # argparse only asks whether the text is empty
+
+    def __mod__(self, params) -> str:
+        return self._build() % params
+
+
 def _number(text: str, kind):
     try:
         value = kind(text)

@@ -10,19 +10,11 @@ imported DeepRacer models, bots: `racing.entrant.Controller`), DAgger's
 experts and the training scenarios' scripted cars are all drivers.
 
 A driver maps its own actions to a command, once: the race env takes its
-cars' commands through `CommandSpace`, whose actions are those commands.
+cars' commands through `actions.CommandSpace`, whose actions are those commands.
 """
 from __future__ import annotations
 
-import math
-
-from .actions import ActionSpace
 from .race_state import CarState, RaceState
-
-COMMAND_METADATA = {  # any DeepRacer command: what a driver may return
-    "action_space": {"steering_angle": {"low": -30.0, "high": 30.0}, "speed": {"low": 0.1, "high": 4.0}},
-    "action_space_type": "continuous",
-}
 
 
 class Driver:
@@ -38,23 +30,3 @@ class Driver:
 def car_pose(car: CarState) -> tuple[float, float, float]:
     """The car's body-centre pose (x, y, yaw), as scripted drivers steer from it."""
     return car.x, car.y, car.yaw
-
-
-class CommandSpace(ActionSpace):
-    """The action space of cars whose drivers give commands: an action is (steering degrees, speed m/s).
-
-    A driver's command (a pair of finite floats inside DeepRacer's command range) is taken as it is; anything
-    else is read, checked and clipped as a continuous action space's action.
-    """
-
-    def __init__(self):
-        super().__init__(COMMAND_METADATA, "<driver commands>")
-
-    def command(self, action) -> tuple[float, float]:
-        """The command itself for a driver's command; a continuous space's reading of anything else."""
-        if type(action) is tuple and len(action) == 2 and all(type(value) is float for value in action):
-            steer, speed = action
-            if math.isfinite(steer) and math.isfinite(speed) and self.low[0] <= steer <= self.high[0] \
-                    and self.low[1] <= speed <= self.high[1]:
-                return action
-        return super().command(action)

@@ -14,7 +14,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..environment.bots import parse_bot
-from ..environment.drivers import CommandSpace, Driver
+from ..environment.actions import CommandSpace
+from ..environment.drivers import Driver
 from ..sensors.suite import SensorSuite
 
 if TYPE_CHECKING:
