@@ -115,6 +115,12 @@ class ActionSpace:
         return (min(max(float(steer), self.low[0]), self.high[0]),
                 min(max(float(speed), self.low[1]), self.high[1]))
 
+    def greedy(self, output):
+        """The greedy action for a policy net's output row: the argmax index, or the [steer, speed] mean."""
+        if self.discrete:
+            return int(np.argmax(output))
+        return output[:2]
+
     def nearest(self, steer_deg: float, speed: float):
         """The action closest to a wanted command (how scripted drivers drive any space)."""
         if not self.discrete:

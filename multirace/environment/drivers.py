@@ -10,7 +10,9 @@ imported DeepRacer models, bots: `racing.entrant.Controller`), DAgger's
 experts and the training scenarios' scripted cars are all drivers.
 
 A driver maps its own actions to a command, once: the race env takes its
-cars' commands through `CommandSpace`, whose actions are those commands.
+cars' commands through `CommandSpace`, whose actions are those commands, and
+takes a `Command` as the car's command whatever its action space (how
+self-play's pool opponents drive beside a learner of another action space).
 """
 from __future__ import annotations
 
@@ -40,11 +42,18 @@ def car_pose(car: CarState) -> tuple[float, float, float]:
     return car.x, car.y, car.yaw
 
 
+class Command(tuple):
+    """A driver's command given as a car's action: ``Command((steering degrees, speed m/s))``. A race env takes
+    it as that car's command (read through `CommandSpace`) whatever the env's action space."""
+
+    __slots__ = ()
+
+
 class CommandSpace(ActionSpace):
     """The action space of cars whose drivers give commands: an action is (steering degrees, speed m/s).
 
-    A driver's command (a pair of finite floats inside DeepRacer's command range) is taken as it is; anything
-    else is read, checked and clipped as a continuous action space's action.
+    A driver's command (a pair of finite floats inside DeepRacer's command range, a tuple or a `Command`) is
+    taken as it is; anything else is read, checked and clipped as a continuous action space's action.
     """
 
     def __init__(self):
@@ -52,9 +61,12 @@ class CommandSpace(ActionSpace):
 
     def command(self, action) -> tuple[float, float]:
         """The command itself for a driver's command; a continuous space's reading of anything else."""
-        if type(action) is tuple and len(action) == 2 and all(type(value) is float for value in action):
+        if type(action) in (tuple, Command) and len(action) == 2 and all(type(value) is float for value in action):
             steer, speed = action
             if math.isfinite(steer) and math.isfinite(speed) and self.low[0] <= steer <= self.high[0] \
                     and self.low[1] <= speed <= self.high[1]:
                 return action
         return super().command(action)
+
+
+DRIVER_COMMANDS = CommandSpace()  # how a race env reads a `Command`, whatever its own action space
