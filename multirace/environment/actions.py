@@ -115,6 +115,12 @@ class ActionSpace:
         return (min(max(float(steer), self.low[0]), self.high[0]),
                 min(max(float(speed), self.low[1]), self.high[1]))
 
+    def greedy(self, output):
+        """The greedy action for a policy net's output row: the argmax index, or the [steer, speed] mean."""
+        if self.discrete:
+            return int(np.argmax(output))
+        return output[:2]
+
     def nearest(self, steer_deg: float, speed: float):
         """The action closest to a wanted command (how scripted drivers drive any space)."""
         if not self.discrete:
@@ -184,11 +190,18 @@ COMMAND_METADATA = {  # any DeepRacer command: what a driver may return
 }
 
 
+class Command(tuple):
+    """A driver's command given as a car's action: ``Command((steering degrees, speed m/s))``. A race env takes
+    it as that car's command (read through `CommandSpace`) whatever the env's action space."""
+
+    __slots__ = ()
+
+
 class CommandSpace(ActionSpace):
     """The action space of cars whose drivers give commands: an action is (steering degrees, speed m/s).
 
-    A driver's command (a pair of finite floats inside DeepRacer's command range) is taken as it is; anything
-    else is read, checked and clipped as a continuous action space's action.
+    A driver's command (a pair of finite floats inside DeepRacer's command range, a tuple or a `Command`) is
+    taken as it is; anything else is read, checked and clipped as a continuous action space's action.
     """
 
     def __init__(self):
@@ -196,9 +209,12 @@ class CommandSpace(ActionSpace):
 
     def command(self, action) -> tuple[float, float]:
         """The command itself for a driver's command; a continuous space's reading of anything else."""
-        if type(action) is tuple and len(action) == 2 and all(type(value) is float for value in action):
+        if type(action) in (tuple, Command) and len(action) == 2 and all(type(value) is float for value in action):
             steer, speed = action
             if math.isfinite(steer) and math.isfinite(speed) and self.low[0] <= steer <= self.high[0] \
                     and self.low[1] <= speed <= self.high[1]:
                 return action
         return super().command(action)
+
+
+DRIVER_COMMANDS = CommandSpace()  # how a race env reads a `Command`, whatever its own action space

@@ -10,7 +10,10 @@ imported DeepRacer models, bots: `racing.entrant.Controller`), DAgger's
 experts and the training scenarios' scripted cars are all drivers.
 
 A driver maps its own actions to a command, once: the race env takes its
-cars' commands through `actions.CommandSpace`, whose actions are those commands.
+cars' commands through `actions.CommandSpace`, whose actions are those
+commands, and takes an `actions.Command` as the car's command whatever its
+action space (how self-play's pool opponents drive beside a learner of
+another action space).
 """
 from __future__ import annotations
 

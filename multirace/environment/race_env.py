@@ -23,9 +23,9 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 from pettingzoo.utils import OrderEnforcingWrapper, parallel_to_aec
 
-from .actions import load_action_space
 from .kernels import announce_compile
 from .bots import parse_bot
+from .actions import DRIVER_COMMANDS, Command, load_action_space
 from ..sensors.camera import CameraSpec
 from ..sensors.renderers import make_renderer
 from ..sim.car import CarSpec
@@ -291,15 +291,18 @@ class RaceEnv(ParallelEnv):
         return observations, rewards, terminations, truncations, infos
 
     def _commands_for(self, actions: dict) -> list[tuple[float, float]]:
-        """Every car's (steer rad, speed m/s) this step: the racing learners' actions with DeepRacer's noise (or
-        the episode's randomised dynamics), the bots' own commands; a car without one keeps its last command."""
+        """Every car's (steer rad, speed m/s) this step: the racing learners' actions (a `Command`: that command,
+        whatever the action space) with DeepRacer's noise (or the episode's randomised dynamics), the bots' own
+        commands; a car without one keeps its last command."""
         spec, races = self.car_spec, self.core.races
         commands = list(self.core.commands)
         noise = self._rng.standard_normal((self.num_cars, 2)).tolist()  # DeepRacer's action noise
         for i, agent in enumerate(self.possible_agents):
             if races[i].racing and agent in actions:
+                action = actions[agent]
+                space = DRIVER_COMMANDS if type(action) is Command else self.actions
                 try:
-                    steer, speed = self.actions.command(actions[agent])
+                    steer, speed = space.command(action)
                 except ValueError as exc:
                     raise ValueError(f"step {self.steps + 1}, {agent}: {exc}") from None
                 if self._draw is not None and self.randomization.dynamics_enabled:

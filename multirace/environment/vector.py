@@ -5,7 +5,10 @@ and resets it automatically when its episode ends. Everything per step that
 has a fixed shape lives in shared memory, one block per kind with a slot per
 worker: the actions the learner writes, and the camera images (and the vector
 sensors' values: LIDAR ranges, SPEED; or the state vectors of state envs),
-rewards and done flags the workers write. A
+rewards and done flags the workers write. Cars driven by commands rather
+than actions (self-play's pool opponents) get them in a block of their own,
+(steering degrees, speed m/s) per car, NaN for the cars that take actions;
+their env takes each as a `drivers.Command`, whatever its action space. A
 step is then one command byte down each pipe and one byte back (or, when info
 keys were asked for, a small pickled list of those infos): the pipe round
 trip is the largest cost of a worker step after the env itself. The
@@ -21,6 +24,7 @@ next yield.
 """
 from __future__ import annotations
 
+import math
 import multiprocessing as mp
 import os
 import select
@@ -30,10 +34,11 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from .actions import Command
 from .rewards import RewardFunctionError
 
 DEFAULT_INFO_KEYS = ("progress", "laps_completed", "lap_times", "resets", "status", "collisions")
-RESET, ACTIONS, STEP, CLOSE, DONE = b"r", b"a", b"s", b"c", b"d"  # one-byte commands and the bare reply
+RESET, ACTIONS, COMMANDS, STEP, CLOSE, DONE = b"r", b"a", b"m", b"s", b"c", b"d"  # one-byte commands, the bare reply
 FAILED = b"f"  # the reply of a worker whose env's reward function failed; its message follows
 SPIN_WAIT = 0.0005  # seconds a worker polls for its next command before it sleeps in a blocking read
 VECTOR_PREFIX = "vector:"  # shared-array names of the vector sensors (LIDAR, SPEED, ...): "vector:lidar"
@@ -86,7 +91,7 @@ class _Worker:
 
     def serve(self) -> None:
         """Answer the learner's commands (step, reset, new action arrays) until it closes or goes away."""
-        handlers = {STEP: self.step, RESET: self.reset, ACTIONS: self.attach_actions}
+        handlers = {STEP: self.step, RESET: self.reset, ACTIONS: self.attach_actions, COMMANDS: self.attach_commands}
         try:
             while True:
                 command = self.next_command()
@@ -114,9 +119,7 @@ class _Worker:
     def step(self) -> None:
         """Step the env with the actions in this worker's row (a new episode when it ends) and publish the result."""
         agents, shared = self.agents, self.shared
-        row = shared["actions"].array[self.slot]
-        actions = row[:, 0].astype(int).tolist() if self.integer_actions else row.tolist()
-        obs, rewards, terms, truncs, infos = self.env.step(dict(zip(agents, actions)))
+        obs, rewards, terms, truncs, infos = self.env.step(dict(zip(agents, self.actions())))
         truncated = all(truncs.values())
         done = all(terms.values()) or truncated
         shared["rewards"].array[self.slot] = [rewards[a] for a in agents]
@@ -131,6 +134,17 @@ class _Worker:
         else:
             os.write(self.fd, DONE)
 
+    def actions(self) -> list:
+        """Each car's action from this worker's row: the learner's action, or a `Command` where the car is driven
+        by commands (its row of the commands block is not NaN)."""
+        row = self.shared["actions"].array[self.slot]
+        actions = row[:, 0].astype(int).tolist() if self.integer_actions else row.tolist()
+        if "commands" in self.shared:
+            for k, (steer, speed) in enumerate(self.shared["commands"].array[self.slot].tolist()):
+                if not math.isnan(steer):
+                    actions[k] = Command((steer, speed))
+        return actions
+
     def reset(self) -> None:
         """Start an episode with the seed the learner sends; publish its first observations."""
         self.episode_seed = self.remote.recv()
@@ -144,6 +158,10 @@ class _Worker:
         if "actions" in self.shared:
             self.shared["actions"].close()
         self.shared["actions"] = _SharedArray.attach(spec)
+
+    def attach_commands(self) -> None:
+        """Attach the commands block the learner sends."""
+        self.shared["commands"] = _SharedArray.attach(self.remote.recv())
 
     def small_infos(self, infos) -> list[dict]:
         return [{key: infos[a][key] for key in self.info_keys if key in infos[a]} for a in self.agents]
@@ -234,6 +252,17 @@ class SubprocVectorEnv:
                 remote.send((self.shared["actions"].spec, integer))
         self.shared["actions"].array[:] = rows
 
+    def _send_commands(self, commands) -> None:
+        """Write the commands block (made and sent to the workers on first use); None: every car takes actions."""
+        if commands is None and "commands" not in self.shared:
+            return
+        if "commands" not in self.shared:
+            self.shared["commands"] = _SharedArray(self.shared["rewards"].shape + (2,), np.float64)
+            for remote in self.remotes:
+                os.write(remote.fileno(), COMMANDS)
+                remote.send(self.shared["commands"].spec)
+        self.shared["commands"].array[:] = np.nan if commands is None else commands
+
     def reset(self, seeds: Sequence[int | None] | None = None):
         """Reset every env; returns observations (see `_observations`) and per-env lists of small infos."""
         seeds = list(seeds) if seeds is not None else [None] * self.num_envs
@@ -253,13 +282,16 @@ class SubprocVectorEnv:
                    if name.startswith(VECTOR_PREFIX)}
         return {"camera": images, **vectors} if vectors else images
 
-    def step(self, actions):
-        """Step every env with `actions[e][car]` (integers for discrete actions, (E, A, D) floats otherwise).
+    def step(self, actions, commands=None):
+        """Step every env with `actions[e][car]` (integers for discrete actions, (E, A, D) floats otherwise);
+        `commands` (E, A, 2), if given: (steering degrees, speed m/s) for the cars driven by commands, NaN for
+        the cars that take their action.
 
         Returns observations (after auto-reset), rewards (E, A), dones (E,), truncated (E,), and the
         small infos of the step that was taken (before any reset).
         """
         self._send_actions(actions)
+        self._send_commands(commands)
         for remote in self.remotes:
             os.write(remote.fileno(), STEP)
         if self.info_keys:

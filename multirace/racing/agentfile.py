@@ -490,10 +490,8 @@ class Agent:
         return out.numpy()
 
     def decide(self, output: np.ndarray):
-        """The greedy action for an output row: argmax index, or the [steer, speed] mean."""
-        if self.action_space.discrete:
-            return int(np.argmax(output))
-        return output[:2]
+        """The greedy action for an output row: argmax index, or the [steer, speed] mean (`ActionSpace.greedy`)."""
+        return self.action_space.greedy(output)
 
 
 def load_agent(path, step_budget: float | None = DEFAULT_STEP_BUDGET, smoke_runs: int = 5) -> Agent:

@@ -14,14 +14,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..environment.bots import parse_bot
-from ..environment.actions import CommandSpace
+from ..environment.actions import DRIVER_COMMANDS
 from ..environment.drivers import Driver
 from ..sensors.suite import SensorSuite
 
 if TYPE_CHECKING:
     from ..environment.race_env import RaceEnv
 
-COMMAND_SPACE = CommandSpace()  # what the race env accepts: any DeepRacer command, as its entrant gives it
+COMMAND_SPACE = DRIVER_COMMANDS  # what the race env accepts: any DeepRacer command, as its entrant gives it
 
 
 class Forfeit(Exception):

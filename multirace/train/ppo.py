@@ -201,9 +201,10 @@ def collect_rollout(vec, net, policy: Policy, rollout: Rollout, robust: RobustKn
             action = dist.sample()
             rollout.logp[t] = policy.log_prob(dist, action)
         rollout.act[t], rollout.val[t], rollout.expert[t] = action, value, rollout.next_expert
-        actions = robust.override(action.numpy().reshape(E, A, *rollout.act_shape), rollout.next_obs, learner_mask)
+        actions = action.numpy().reshape(E, A, *rollout.act_shape)
+        commands = robust.opponent_commands(rollout.next_obs, learner_mask)  # the pool's cars: their own commands
         rollout.learn[t] = learner_mask.reshape(N)
-        rollout.next_obs, reward, env_done, _, infos = vec.step(actions)
+        rollout.next_obs, reward, env_done, _, infos = vec.step(actions, commands)
         if deepracer is not None:
             deepracer.write_step(infos, actions, reward, learner_mask)
         if config.expert_coef:

@@ -61,9 +61,9 @@ class RobustKnobs:
             self.shared["nature"][:] = self.nature.weights().tolist()
         return self.pool.assign(envs, cars) if self.pool is not None else np.ones((envs, cars), bool)
 
-    def override(self, actions, obs, learner_mask):
-        """The actions, with the pool's opponents driving their cars."""
-        return self.pool.override(actions, obs, learner_mask) if self.pool is not None else actions
+    def opponent_commands(self, obs, learner_mask):
+        """The pool's opponents' commands for their cars (`OpponentPool.commands`), None without a pool."""
+        return self.pool.commands(obs, learner_mask) if self.pool is not None else None
 
     def after_step(self, infos, rewards, env_done) -> None:
         """Let the pool score its opponents."""

@@ -10,6 +10,12 @@ the oldest dropped beyond `max_snapshots`) and the shipped agents in
 rate against that opponent (a win: the learner cars gained more reward per
 car than the opponent cars over the iteration), so opponents the learner
 loses to are met more often.
+
+An opponent is a `Driver`: `drive` gives one car's command from its
+observation (in any race), `drive_batch` many cars' commands in one net pass
+(training: one pass per env), both through the opponent's own action space.
+In training its cars' commands reach the env as commands
+(`SubprocVectorEnv.step`'s `commands`), whatever the learner's action space.
 """
 from __future__ import annotations
 
@@ -20,13 +26,39 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..environment.drivers import Driver
 from .config import SHIPPED_AGENTS as SHIPPED_DIR
 
 
-class Opponent:
+class Opponent(Driver):
+    """A pool member: a policy net and its action space (`kind`: "snapshot" or "shipped"), and its record
+    against the learner."""
+
     def __init__(self, name, net, space, kind):
         self.name, self.net, self.space, self.kind = name, net, space, kind
         self.wins, self.games = 1.0, 2.0  # prior: p_win 0.5
+
+    def drive(self, state, car, observation=None) -> tuple[float, float]:
+        """The opponent's greedy command for its car's observation: an image, or {"camera": image, key: values}
+        with the sensors beside the camera its net reads."""
+        if isinstance(observation, dict):
+            batch = {key: np.asarray(value)[None] for key, value in observation.items()}
+        else:
+            batch = np.asarray(observation)[None]
+        steer, speed = self.drive_batch(batch)[0]
+        return float(steer), float(speed)
+
+    def drive_batch(self, observations) -> np.ndarray:
+        """Commands (N, 2) (steering degrees, speed m/s) for N cars' observations in one net pass: images
+        (N, ...), or {"camera": images, key: values (N, n), ...}; each the greedy action of the opponent's space."""
+        images = observations["camera"] if isinstance(observations, dict) else observations
+        x = torch.from_numpy(np.ascontiguousarray(images))
+        if self.net.vector_inputs:
+            x = {"camera": x, **{key: torch.from_numpy(np.ascontiguousarray(observations[key]))
+                                 for key in self.net.vector_inputs}}
+        with torch.no_grad():
+            out = self.net(x).numpy()
+        return np.array([self.space.command(self.space.greedy(row)) for row in out], np.float64).reshape(-1, 2)
 
     @property
     def p_win(self) -> float:
@@ -95,30 +127,21 @@ class OpponentPool:
         self.scores = np.zeros((envs, cars))
         return mask
 
-    def override(self, actions: np.ndarray, obs, mask: np.ndarray) -> np.ndarray:
-        """Replace the opponent cars' actions by their opponent's greedy actions.
+    def commands(self, obs, mask: np.ndarray) -> np.ndarray | None:
+        """The opponent cars' commands (E, A, 2), (steering degrees, speed m/s), NaN for the learner's cars;
+        one `Opponent.drive_batch` per env with an opponent (None if no env has one).
 
         `obs`: images (E, A, H, W, C), or {"camera": images, key: values (E, A, n), ...}.
         """
-        actions = actions.copy()
-        images = obs["camera"] if isinstance(obs, dict) else obs
+        if all(opponent is None for opponent in self.assigned):
+            return None
+        commands = np.full(mask.shape + (2,), np.nan)
         for e, opponent in enumerate(self.assigned):
-            if opponent is None:
-                continue
-            cars = np.nonzero(~mask[e])[0]
-            x = torch.from_numpy(np.ascontiguousarray(images[e, cars]))
-            if opponent.net.vector_inputs:
-                x = {"camera": x, **{key: torch.from_numpy(np.ascontiguousarray(obs[key][e, cars]))
-                                     for key in opponent.net.vector_inputs}}
-            with torch.no_grad():
-                out = opponent.net(x).numpy()
-            for row, a in zip(out, cars):
-                if opponent.space.discrete:
-                    command = opponent.space.command(int(np.argmax(row)))
-                else:
-                    command = opponent.space.command(row[:2])
-                actions[e, a] = self.space.nearest(*command)
-        return actions
+            if opponent is not None:
+                cars = np.nonzero(~mask[e])[0]
+                batch = {key: value[e, cars] for key, value in obs.items()} if isinstance(obs, dict) else obs[e, cars]
+                commands[e, cars] = opponent.drive_batch(batch)
+        return commands
 
     def observe(self, e: int, a: int, info: dict, reward: float = 0.0) -> None:
         if self.scores is not None:
