@@ -52,6 +52,7 @@ from ..racing.agentfile import make_metadata, save_agent
 from ..environment.bots import Bot, parse_bot
 from ..environment.drivers import Driver
 from ..environment.race_env import parallel_env
+from ..environment.rewards import NO_REWARD
 from ..racing.nets import DEFAULT_NETWORK, build_net
 from ..sensors.camera import image_shape_of
 from .experts import TEACHER_PREFIX, expert_command
@@ -241,7 +242,7 @@ class DaggerEnvs:
                                   action_space=space, camera=tuple(config.camera), sensor=config.sensor,
                                   lidar=config.lidar, max_steps=config.episode_steps,
                                   bots=self.bots if with_traffic(k, config.traffic_share) else (),
-                                  randomize=config.randomize)
+                                  randomize=config.randomize, reward_function=NO_REWARD)  # DAgger reads no reward
                      for k, (t, r) in enumerate(imitation_runs(config))]
         self.episodes = [0] * len(self.envs)
         self.observations = [self.reset(k) for k in range(len(self.envs))]

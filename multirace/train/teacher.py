@@ -33,9 +33,10 @@ def evaluate_teacher(net: StatePolicyNet, space, track: str, laps: int = 3, seed
     """A greedy time trial of the teacher under the race rules (`multirace race`'s, with DeepRacer's action
     noise); a result row like a race's: laps, resets, total_time, best_lap, status."""
     from ..environment.race_env import RaceEnv
+    from ..environment.rewards import NO_REWARD
 
     env = RaceEnv(track=track, reverse=reverse, num_cars=1, race="time_trial", laps=laps, action_space=space,
-                  observation="state")
+                  observation="state", reward_function=NO_REWARD)  # a time trial's result: no reward read
     try:
         obs, _ = env.reset(seed=seed)
         while env.agents:
