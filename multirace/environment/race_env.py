@@ -336,6 +336,7 @@ class RaceEnv(ParallelEnv):
     def forfeit(self, i: int, reason: str) -> None:
         """End car i's run now (its agent failed); the race goes on for the others."""
         self.core.forfeit(i, reason)
+
     # ----------------------------------------------------------- outputs
     def _observe(self) -> dict:
         if self.observation == "state":
