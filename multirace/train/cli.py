@@ -190,7 +190,8 @@ def report_privileged(config, args, command) -> int:
             print(f"{name}: not evaluated")
             continue
         lap = f"{evaluation['best_lap']:.2f} s" if evaluation.get("best_lap") else "none"
-        print(f"{name}: {evaluation['laps']}/{config.eval_laps} laps, {evaluation['resets']} off-track resets, best "
+        target = evaluation.get("target", config.eval_laps)
+        print(f"{name}: {evaluation['laps']}/{target} laps, {evaluation['resets']} off-track resets, best "
               f"lap {lap}" + (f" ({ratio}x the racing line's {summary['racing_line_lap']:.2f} s)" if ratio else ""))
     for name, stage in (("teacher", teacher), ("student", student)):
         reached = ", ".join(f"{key.replace('_', ' ')} at {m['seconds']:.0f} s ({m['agent_steps']} agent-steps)"

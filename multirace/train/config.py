@@ -29,6 +29,7 @@ from ..environment.rewards import RewardWeights
 from ..racing.nets import SHALLOW, TINY
 from ..resources import agents_dir
 from ..sensors.suite import SensorSuite, declared_sensors
+from .track_sampling import TRACK_SAMPLINGS
 
 SHIPPED_AGENTS = agents_dir()
 
@@ -41,6 +42,7 @@ class TrainConfig(RewardWeights):
     # ---- what to train on
     tracks: tuple = ("reinvent_base",)  # bundled track names or .npy paths; several = multi-track training
     reverse: str = "no"  # "no", "yes" or "both": the direction(s) each track is raced in
+    track_sampling: str = "uniform"  # how each env episode picks its run (track, direction): "uniform", or "failures" (runs with more off-tracks per lap raced more often, train/track_sampling.py)
     procedural_tracks: int = 0  # seeded generated tracks (multirace.sim.trackgen) added to the track list
     action_space: object = None  # model_metadata.json path or dict; None = DeepRacer's 10 discrete actions
     reward: str = "progress"  # a named reward (NAMED_REWARDS: "progress", built-in shaped; "centre", DeepRacer default) or a reward .py file
@@ -102,6 +104,7 @@ class TrainConfig(RewardWeights):
     checkpoint_every: float = 60.0  # seconds between checkpoints (and evaluations, see eval_every)
     eval_every: float = 30.0  # seconds between greedy time-trial evaluations (0 = never; one costs about 1 s)
     eval_track: str | None = None  # track of the evaluation (default: the first training track)
+    eval_tracks: tuple = ()  # further tracks each evaluation races, in each of `reverse`'s directions (laps, off-tracks and time summed: the kept policy is the one clean on most of them)
     eval_laps: int = 3  # laps of the evaluation time trial
     eval_bots: tuple = ()  # bots to race in the evaluation (head-to-head, collisions caused count like off-tracks)
     keep_best: bool = True  # write the best-evaluated policy (laps, then off-tracks, then time) as the agent file
@@ -119,6 +122,9 @@ class TrainConfig(RewardWeights):
 
     def __post_init__(self):
         self.sensors()  # an unknown sensor list is refused before anything starts
+        if self.track_sampling not in TRACK_SAMPLINGS:
+            raise ValueError(f"--set track_sampling: expected one of {', '.join(TRACK_SAMPLINGS)}, "
+                             f"got {self.track_sampling!r}")
 
     def to_dict(self) -> dict:
         return json.loads(json.dumps(dataclasses.asdict(self), default=str))

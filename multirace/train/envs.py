@@ -5,7 +5,9 @@ PettingZoo ParallelEnv to the worker (reset/step/possible_agents/close) and
 adds what training needs on top of the race env:
 
 - several tracks and directions: each env episode (reset) picks one of the
-  `runs` at random; one `RaceEnv` per run is built lazily and kept;
+  `runs` at random (uniformly, or more often where its cars left the track
+  more often: `track_sampling.RunSampler`); one `RaceEnv` per run is built
+  lazily and kept;
 - a named training reward (`rewards.NAMED_REWARDS`): the built-in
   ``"progress"`` (`rewards.progress_reward`: metres gained along the centre
   line per step in units of 1 m/s, plus a small centre-line bonus, minus a
@@ -51,6 +53,7 @@ import numpy as np
 from ..environment.rewards import NAMED_REWARDS, RewardWeights
 from ..recording.simtrace import closest_waypoint
 from .experts import expert_command, make_expert
+from .track_sampling import RunSampler
 
 BOT_SPACING = 2.0  # metres between bots started ahead of the learning cars (bots_ahead)
 INFO_KEYS = ("train_done", "time_limit", "ep_return", "ep_length", "ep_laps", "ep_caused", "off_track", "collisions",
@@ -75,7 +78,8 @@ def env_settings(config) -> dict:
             "terminate_off_track": bool(config.terminate_off_track), "randomize": config.randomize,
             "terminate_collision": config.terminate_collision, **dataclasses.asdict(RewardWeights.of(config)),
             "bots_ahead": config.bots_ahead, "bots_ahead_spread": config.bots_ahead_spread,
-            "expert_labels": config.expert_coef > 0, "expert": config.expert, "deepracer_log": config.deepracer_log}
+            "expert_labels": config.expert_coef > 0, "expert": config.expert, "deepracer_log": config.deepracer_log,
+            "track_sampling": config.track_sampling}
 
 
 class TrainEnv:
@@ -85,8 +89,9 @@ class TrainEnv:
     def __init__(self, runs, num_cars=4, bots=(), action_space=None, reward="progress", camera=(120, 160),
                  sensor=None, episode_steps=1500, terminate_off_track=True, randomize=None, shared=None, worker=0,
                  terminate_collision=False, bots_ahead=0.0, bots_ahead_spread=0.0, expert_labels=False, expert="",
-                 deepracer_log=False, observation="camera", pool=1, **weights):
+                 deepracer_log=False, observation="camera", pool=1, track_sampling="uniform", **weights):
         self.runs = list(runs)  # [(track name/path or Track rows, reverse)]
+        self.sampler = RunSampler(len(self.runs), track_sampling)  # which run each episode races on
         self.num_cars = int(num_cars)
         self.bots = tuple(bots)
         self.action_space = action_space
@@ -114,6 +119,8 @@ class TrainEnv:
         self._envs: dict = {}
         self._reward = None  # the loaded reward file, shared by the envs
         self.env = None
+        self._run = None  # the index of the run being raced, with its off-tracks and metres so far (all cars)
+        self._run_off_tracks, self._run_metres = 0, 0.0
         self._rng = np.random.default_rng([worker, 7])
         self.perturbation = -1
 
@@ -165,7 +172,10 @@ class TrainEnv:
     def reset(self, seed=None, options=None):
         if seed is not None:
             self._rng = np.random.default_rng([int(seed), self.worker, 7])
-        k = int(self._rng.integers(len(self.runs)))
+        if self._run is not None:
+            self.sampler.record(self._run, self._run_off_tracks, self._run_metres / self.track_length)
+        k = self.sampler.pick(self._rng)
+        self._run, self._run_off_tracks, self._run_metres = k, 0, 0.0
         self.env = self.env_for(k)
         self.env.randomization = self._episode_randomization()
         obs, infos = self.env.reset(seed=None if seed is None else int(seed))
@@ -269,6 +279,8 @@ class TrainEnv:
             self._ep_return[i] += r
             self._ep_length[i] += 1
             self._ep_dist[i] += ds
+            self._run_off_tracks += off
+            self._run_metres += ds
             terminal = (off and self.terminate_off_track) or bool(caused and self.terminate_collision)
             done = terminal or truncated
             episode = None

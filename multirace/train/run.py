@@ -173,23 +173,20 @@ class TrainingRun:
         if not config.eval_every or time.perf_counter() - self.last_eval < config.eval_every:
             return False
         latest = self.snapshot_agent(self.ckpt_dir / "latest.pt", net, space, image_shape)
-        car = evaluate_time_trial(latest, config.eval_track or str(config.tracks[0]), config.eval_laps,
-                                  bots=config.eval_bots)
+        car = evaluate_agent(latest, config)
         self.evals.append({"iteration": self.iteration, "agent_steps": self.agent_steps,
-                           "elapsed": round(self.spent + self.elapsed(), 1), "laps": car["laps"],
-                           "target": config.eval_laps, "resets": car["resets"], "total_time": car["total_time"],
-                           "best_lap": car["best_lap"], "status": car["status"], "reason": car["reason"]})
+                           "elapsed": round(self.spent + self.elapsed(), 1), **car})
         score = eval_score(self.evals[-1])
         if self.best is None or score > self.best[0]:
             self.best = (score, {k: v.detach().clone() for k, v in net.state_dict().items()}, self.evals[-1])
-        if car["laps"] >= config.eval_laps and self.first_success is None:
+        if car["laps"] >= car["target"] and self.first_success is None:
             self.first_success = self.evals[-1]["elapsed"]
             self.snapshot_agent(self.ckpt_dir / "first_success.pt", net, space, image_shape)
-        if car["laps"] >= config.eval_laps and car["resets"] == 0 and self.first_clean is None:
+        if car["laps"] >= car["target"] and car["resets"] == 0 and self.first_clean is None:
             self.first_clean = self.evals[-1]["elapsed"]
             self.snapshot_agent(self.ckpt_dir / "first_clean.pt", net, space, image_shape)
         if self.log and not self.progress:
-            self.log(f"eval: {car['laps']}/{config.eval_laps} laps, {car['resets']} resets")
+            self.log(f"eval: {car['laps']}/{car['target']} laps, {car['resets']} resets")
         self.last_eval = time.perf_counter()
         return bool(config.stop_on_success and self.first_clean is not None)
 
@@ -216,11 +213,7 @@ class TrainingRun:
         if self.best is not None and config.keep_best:
             # the final weights get one last evaluation; the best evaluated policy is what we ship
             final = self.snapshot_agent(self.ckpt_dir / "final.pt", net, space, image_shape)
-            car = evaluate_time_trial(final, config.eval_track or str(config.tracks[0]), config.eval_laps,
-                                      bots=config.eval_bots)
-            final_eval = {"laps": car["laps"], "target": config.eval_laps, "resets": car["resets"],
-                          "total_time": car["total_time"], "best_lap": car["best_lap"], "iteration": self.iteration,
-                          "final": True}
+            final_eval = {**evaluate_agent(final, config), "iteration": self.iteration, "final": True}
             if self.best[0] > eval_score(final_eval):
                 net.load_state_dict(self.best[1])
                 note["selected"] = f"best evaluation (iteration {self.best[2]['iteration']})"
@@ -269,6 +262,31 @@ class DeepRacerFolder:
 
     def close(self) -> None:
         self.log.close()
+
+
+def evaluation_runs(config: TrainConfig) -> list[tuple[str, bool]]:
+    """The (track, reverse) runs of each evaluation: the evaluation track forward, then every `eval_tracks`
+    entry in each of the run's directions."""
+    first = (config.eval_track or str(config.tracks[0]), False)
+    return [first] + [(str(t), r) for t in config.eval_tracks for r in config.directions() if (str(t), r) != first]
+
+
+def combined_evaluation(rows: list[dict], laps: int) -> dict:
+    """One evaluation row from the rows of `evaluation_runs`: laps, off-tracks and time summed (so the best
+    policy is the one that completes and stays on the road most), the best lap and status of the first."""
+    times = [r["total_time"] for r in rows]
+    return {"laps": sum(r["laps"] for r in rows), "target": laps * len(rows),
+            "resets": sum(r["resets"] for r in rows),
+            "total_time": None if None in times else round(sum(times), 3), "best_lap": rows[0]["best_lap"],
+            "status": rows[0]["status"], "reason": rows[0].get("reason"), "runs": len(rows)}
+
+
+def evaluate_agent(agent_path, config: TrainConfig) -> dict:
+    """The combined evaluation row of an agent file over `evaluation_runs` (time trials, or races against
+    `eval_bots`)."""
+    return combined_evaluation([evaluate_time_trial(agent_path, track, config.eval_laps, reverse=reverse,
+                                                    bots=config.eval_bots)
+                                for track, reverse in evaluation_runs(config)], config.eval_laps)
 
 
 def evaluate_time_trial(agent_path, track: str, laps: int = 3, seed: int = 0, reverse: bool = False,

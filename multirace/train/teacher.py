@@ -109,11 +109,11 @@ def train_teacher(config: TrainConfig, out, seconds: float, log=print) -> dict:
 
 def _evaluate_and_keep(net, space, config: TrainConfig, started: float, summary: dict, best, log):
     """Evaluate the teacher now, record it, and return the best (score, weights, evaluation) so far."""
-    from .run import eval_score
+    from .run import combined_evaluation, eval_score, evaluation_runs
 
-    row = evaluate_teacher(net.eval(), space, config.eval_track or str(config.tracks[0]), config.eval_laps)
-    row.update(elapsed=round(time.perf_counter() - started, 1), agent_steps=summary["agent_steps"],
-               target=config.eval_laps)
+    row = combined_evaluation([evaluate_teacher(net.eval(), space, track, config.eval_laps, reverse=reverse)
+                               for track, reverse in evaluation_runs(config)], config.eval_laps)
+    row.update(elapsed=round(time.perf_counter() - started, 1), agent_steps=summary["agent_steps"])
     summary["evals"].append(row)
     if log:
         lap = f"{row['best_lap']:.2f} s" if row["best_lap"] else "-"
