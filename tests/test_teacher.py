@@ -134,3 +134,29 @@ def test_milestones_read_the_first_clean_and_fast_evaluations():
     assert found["clean"] == {"seconds": 120, "agent_steps": 200}
     assert found["within_1.25x"] == found["within_1.15x"] == {"seconds": 130, "agent_steps": 300}
     assert "within_1.15x" not in milestones(evals, reference=4.5)
+
+
+def test_a_teacher_expert_can_ask_for_a_share_of_its_speed(teacher):
+    """``teacher:PATH@0.9`` (the student's `distill_speed_scale`): the same steering, 0.9x the speed (never below
+    the action space's lowest); a scale outside (0, 1] is refused naming the expert."""
+    from multirace.environment.race_env import RaceEnv
+    from multirace.train.experts import expert_command, make_expert, teacher_spec
+
+    out, _ = teacher
+    assert teacher_spec(f"teacher:{out}@0.9") == (str(out), 0.9)
+    assert teacher_spec("teacher:/runs/a@b/t.teacher.pt") == ("/runs/a@b/t.teacher.pt", 1.0)
+    full, slower = make_expert(f"teacher:{out}", 1.0), make_expert(f"teacher:{out}@0.9", 1.0)
+    env = RaceEnv(track="reinvent_base", num_cars=1, action_space=SPACE, observation="state")
+    try:
+        env.reset(seed=0)
+        for _ in range(20):
+            env.step({"car_0": [0.0, 2.0]})
+        steer, speed = expert_command(full, env)
+        steer_slow, speed_slow = expert_command(slower, env)
+        assert steer_slow == steer and speed_slow == pytest.approx(max(0.5, 0.9 * speed), rel=1e-6)
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match="speed scale"):
+        make_expert(f"teacher:{out}@1.5", 1.0)
+    with pytest.raises(ValueError, match="distill_speed_scale"):
+        make_config("fast", distill_speed_scale=0.0)

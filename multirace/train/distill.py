@@ -42,7 +42,9 @@ def student_config(config: TrainConfig, teacher_path, seconds: float, init=None)
     """The camera student's settings: the run's own, with the teacher as the labelling expert and the rest of
     the budget; with `init` (an agent file), that file's network, camera image, action space and sensors."""
     student = dataclasses.replace(config, privileged=False, network=config.student_network, minutes=seconds / 60.0,
-                                  expert=f"{TEACHER_PREFIX}{teacher_path}", expert_coef=1.0)
+                                  expert=f"{TEACHER_PREFIX}{teacher_path}" + (
+                                      f"@{config.distill_speed_scale:g}" if config.distill_speed_scale != 1.0 else ""),
+                                  expert_coef=1.0)
     if init:
         settings = init_settings(init)
         if load_action_space(settings["action_space"]).discrete:

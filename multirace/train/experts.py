@@ -16,25 +16,44 @@ TEACHER_PREFIX = "teacher:"  # an expert spec naming a teacher file (`teacher.py
 
 
 class TeacherDriver(Driver):
-    """An RL teacher's state policy (`teacher_net.StatePolicyNet`), driving from its car's privileged state."""
+    """An RL teacher's state policy (`teacher_net.StatePolicyNet`), driving from its car's privileged state;
+    `speed_scale` < 1 asks for that share of the teacher's speed (a margin for a student that sees less)."""
 
-    def __init__(self, path):
+    def __init__(self, path, speed_scale: float = 1.0):
         from .teacher_net import load_teacher
 
+        if not 0.0 < speed_scale <= 1.0:
+            raise ValueError(f"expert {TEACHER_PREFIX}{path}@{speed_scale:g}: the speed scale must be in (0, 1]")
         self.net = load_teacher(path)
-        self.name = f"{TEACHER_PREFIX}{Path(path).name}"
+        self.speed_scale = float(speed_scale)
+        self.low_speed = float(self.net.space.low[1])
+        self.name = f"{TEACHER_PREFIX}{Path(path).name}" + (f"@{speed_scale:g}" if speed_scale != 1.0 else "")
 
     def drive(self, state, car, observation=None) -> tuple[float, float]:
         """The teacher's command from `observation`, its car's privileged state vector."""
         steer, speed = self.net.command(observation[None])[0]
-        return float(steer), float(speed)
+        return float(steer), max(self.low_speed, float(speed) * self.speed_scale)
 
 
 def make_expert(spec: str | None, default_speed: float) -> Driver:
-    """The expert `spec` names: ``teacher:PATH``, a bot spec, or (None or "") the pass bot at `default_speed`."""
+    """The expert `spec` names: ``teacher:PATH`` (``teacher:PATH@SCALE``: at that share of its speed), a bot
+    spec, or (None or "") the pass bot at `default_speed`."""
     if spec and spec.startswith(TEACHER_PREFIX):
-        return TeacherDriver(spec[len(TEACHER_PREFIX):])
+        path, scale = teacher_spec(spec)
+        return TeacherDriver(path, scale)
     return parse_bot(spec) if spec else PassBot(speed=float(default_speed))
+
+
+def teacher_spec(spec: str) -> tuple[str, float]:
+    """(path, speed scale) of ``teacher:PATH`` or ``teacher:PATH@SCALE``."""
+    path = spec[len(TEACHER_PREFIX):]
+    head, at, tail = path.rpartition("@")
+    if at:
+        try:
+            return head, float(tail)
+        except ValueError:
+            pass  # an "@" inside the file's path
+    return path, 1.0
 
 
 def expert_command(expert: Driver, env, car: int = 0) -> tuple[float, float]:
