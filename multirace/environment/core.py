@@ -240,6 +240,8 @@ class RaceCore:
 
     def standings(self) -> list[int]:
         """Every car's position with penalties counted while it races (`RaceRules.standings`)."""
+        if not self.rules.projects_standings and self.state is not None:  # the ranking the step published
+            return [car.rank for car in self.state.cars]
         return _positions(self.rules.standings(self.races, self.track.length, self.sim_time))
 
     def publish(self, touched: list[set], events: list) -> RaceState:

@@ -48,6 +48,7 @@ from ..atomic import AtomicOutput
 from ..sim.world import CAR_COLOURS, OBSTACLE_SIZE
 
 APPLICATION_ID = "multirace"
+ENCODE_BATCH = 32  # camera images handed to the encoder thread at once
 DEFAULT_IMAGE_EVERY = 5  # 3 Hz camera frames: keeps recording under 30 % of race speed
 SCALARS = ("speed", "progress", "reward", "rank", "standing")
 END_TEXT = {
@@ -125,7 +126,7 @@ class ReplayRecorder:
 
     def step(self, env, observations, rewards, infos) -> None:
         self._record_step(env, observations, rewards, infos)
-        if len(self._buf_steps) >= self.flush_every:
+        if self._rows >= self.flush_every:
             self._flush()
             self._drain(flush=False)
 
@@ -211,32 +212,35 @@ class ReplayRecorder:
         )
 
     def _buffer_reset(self) -> None:
-        """Per buffered step: its step and time, which cars are recorded, their poses and scalars."""
-        self._buf_steps, self._buf_times, self._buf_active, self._buf_pose = [], [], [], []
-        self._buf_scalar = {k: [] for k in SCALARS}  # per step, one value per car (NaN: none)
-        self._buf_img = []  # (row index, cars, one job encoding all their camera images)
+        """Blocks of `flush_every` rows, one per buffered step: its step and time, which cars are recorded,
+        their poses and scalars (NaN: none)."""
+        rows, n = self.flush_every, self.n
+        self._rows = 0
+        self._steps, self._times = np.empty(rows, np.int64), np.empty(rows, np.float64)
+        self._active, self._pose = np.empty((rows, n), bool), np.empty((rows, n, 3), np.float64)
+        self._scalars = np.empty((rows, len(SCALARS), n), np.float64)  # SCALARS' order
+        self._pending = []  # (row, car, image) not yet handed to the encoder
+        self._encoding = []  # jobs encoding batches of them
 
     def _record_step(self, env, observations, rewards, infos) -> None:
-        row = len(self._buf_steps)
+        row = self._rows
+        self._rows += 1
         state = env.race_state
-        step = state.step
-        self._buf_steps.append(step)
-        self._buf_times.append(state.time)
-        races, n = [car.race for car in state.cars], self.n
+        step, cars, n = state.step, state.cars, self.n
+        self._steps[row], self._times[row] = step, state.time
+        races = [car.race for car in cars]
         # a car is recorded while it races, on the step its run ends, and on the grid at step 0
-        active = [race.racing or not ended or step == 0 for race, ended in zip(races, self._ended)]
-        self._buf_active.append(active)
-        self._buf_pose.append(np.array([(car.x, car.y, car.yaw) for car in state.cars], np.float64))
-        self._buf_scalar["speed"].append(np.array([car.speed for car in state.cars], np.float64))
-        agents = self._agents
+        self._active[row] = [race.racing or not ended or step == 0 for race, ended in zip(races, self._ended)]
+        self._pose[row] = [(car.x, car.y, car.yaw) for car in cars]
+        agents, nan = self._agents, math.nan
         infos, rewards = infos or {}, rewards or {}
-        for name in ("progress", "rank"):
-            self._buf_scalar[name].append([float(infos[a][name]) if a in infos else math.nan for a in agents])
-        self._buf_scalar["reward"].append([float(rewards[a]) if a in rewards else math.nan for a in agents])
-        self._buf_scalar["standing"].append([float(p) for p in env.standings()[:n]])
+        self._scalars[row] = ([car.speed for car in cars],
+                              [infos[a]["progress"] if a in infos else nan for a in agents],
+                              [rewards[a] if a in rewards else nan for a in agents],
+                              [infos[a]["rank"] if a in infos else nan for a in agents],
+                              env.standings()[:n])
         take_image = bool(self.image_every) and observations is not None and step % self.image_every == 0
         self._time_set = False
-        cameras = []  # (car, image) to encode this step
         for i, race in enumerate(races):
             if self._ended[i]:  # its run ended on an earlier step
                 continue
@@ -252,7 +256,7 @@ class ReplayRecorder:
                     image = image[..., 0]
                 elif image.ndim == 3:  # colour (grey images are (H, W))
                     image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
-                cameras.append((i, image))
+                self._pending.append((row, i, image.copy()))  # encoded later: the agent may reuse the array
             if infos:
                 prev = self._prev[i]
                 if (race.laps != prev["laps"] or race.resets != prev["resets"] or race.penalties != prev["penalties"]
@@ -261,9 +265,15 @@ class ReplayRecorder:
                     self._log_events(env, state.cars[i], infos)
             if not race.racing:
                 self._ended[i] = True
-        if cameras:  # JPEG encoding (OpenCV releases the GIL) runs on the other core meanwhile, one job a step
-            cars, images = zip(*cameras)
-            self._buf_img.append((row, cars, self._encoder.submit(self._encode_all, images)))
+        if len(self._pending) >= ENCODE_BATCH:
+            self._submit_pending()
+
+    def _submit_pending(self) -> None:
+        """Hand the images waiting to be encoded to the encoder thread as one job (JPEG encoding releases the
+        GIL, so it runs on another core meanwhile; one job per batch, not per step, wakes that thread rarely)."""
+        if self._pending:
+            self._encoding.append(self._encoder.submit(self._encode_all, self._pending))
+            self._pending = []
 
     def _set_step_time(self, state) -> None:
         """Point the recording's time lines at this step (once per step) before a direct `log`."""
@@ -281,7 +291,8 @@ class ReplayRecorder:
                                                                   radii=[0.015]))
 
     def _encode_all(self, images) -> list:
-        return [self._encode(image) for image in images]
+        """[(row, car, image)] -> [(row, car, JPEG bytes or None)]."""
+        return [(row, car, self._encode(image)) for row, car, image in images]
 
     def _encode(self, image: np.ndarray) -> bytes | None:
         ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
@@ -326,22 +337,22 @@ class ReplayRecorder:
         self._prev[i] = now
 
     def _flush(self) -> None:
-        if not self._buf_steps:
+        rows = self._rows
+        if not rows:
             return
         rr, rec = _rr(), self.rec
-        steps = np.asarray(self._buf_steps, dtype=np.int64)
-        times = np.asarray(self._buf_times, dtype=np.float64)
+        steps, times = self._steps[:rows], self._times[:rows]
 
         def index(rows):
             rows = np.asarray(rows, dtype=np.int64)
             return [rr.TimeColumn("step", sequence=steps[rows]), rr.TimeColumn("race_time", duration=times[rows])]
 
-        active = np.asarray(self._buf_active, dtype=bool)
-        poses = np.asarray(self._buf_pose, dtype=np.float64)
-        scalars = {name: np.asarray(values, dtype=np.float64) for name, values in self._buf_scalar.items()}
+        active, poses = self._active[:rows], self._pose[:rows]
+        scalars = {name: self._scalars[:rows, k] for k, name in enumerate(SCALARS)}
+        self._submit_pending()
         camera_frames = [[] for _ in self.ids]  # per car: (row, jpeg)
-        for row, cars, job in self._buf_img:
-            for car, jpeg in zip(cars, job.result()):
+        for job in self._encoding:
+            for row, car, jpeg in job.result():
                 camera_frames[car].append((row, jpeg))
         for i, cid in enumerate(self.ids):
             rows = np.flatnonzero(active[:, i])
