@@ -23,3 +23,16 @@ def test_the_compile_notice_is_printed_once_and_only_while_a_kernel_is_uncached(
     assert kernels.announce_compile() is True
     assert kernels.announce_compile() is False  # once per process
     assert capsys.readouterr().err.count("compiling the physics and renderer kernels") == 1
+
+
+def test_a_race_without_a_lidar_does_not_load_the_lidar_kernels():
+    """Kernels of a module a race loads but never calls are never cached, so they would bring the notice back on
+    every run: a camera race does not load the LIDAR's beam kernels."""
+    import subprocess
+
+    code = ("import sys, multirace\nenv = multirace.parallel_env(num_cars=1)\nenv.reset(seed=0)\n"
+            "env.step({car: env.action_space(car).sample() for car in env.agents})\n"
+            "print('multirace.sensors.beams' in sys.modules)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "False"

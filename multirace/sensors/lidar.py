@@ -22,7 +22,6 @@ import dataclasses
 import numpy as np
 
 from ..sim.car import CarSpec
-from .beams import beam_fractions, scene_boxes
 
 SENSOR_NAME = "LIDAR"
 SECTORS = 8  # DeepRacer's SECTOR_LIDAR: the 64 beams in 8 sectors of 8 ...
@@ -72,6 +71,8 @@ class Lidar:
         centres = poses[:, None, :2]
         starts = centres + directions * self.start[None, :, None]
         ends = centres + directions * spec.max_range
+        from .beams import beam_fractions, scene_boxes  # here: a race without a LIDAR never loads (or compiles) them
+
         fractions = beam_fractions(starts.reshape(-1, 2), ends.reshape(-1, 2), scene_boxes(world))
         fractions = fractions.reshape(len(poses), spec.samples)
         ranges = self.start + fractions * (spec.max_range - self.start)
