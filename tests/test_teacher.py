@@ -160,3 +160,25 @@ def test_a_teacher_expert_can_ask_for_a_share_of_its_speed(teacher):
         make_expert(f"teacher:{out}@1.5", 1.0)
     with pytest.raises(ValueError, match="distill_speed_scale"):
         make_config("fast", distill_speed_scale=0.0)
+
+
+def test_a_teacher_is_timed_on_a_track_split(teacher, tmp_path, capsys):
+    """`python -m multirace.tools.teacher_eval`: both directions of each track, laps, off-tracks and the pace
+    against the racing line; a file that is not a teacher is one error naming it."""
+    import json
+
+    from multirace.tools.teacher_eval import evaluate_split, main
+
+    out, _ = teacher
+    rows = evaluate_split(out, ["reinvent_base"], laps=1, log=None)
+    assert [(r["track"], r["reverse"]) for r in rows] == [("reinvent_base", False), ("reinvent_base", True)]
+    forward = rows[0]
+    assert forward["laps"] == 1 and forward["clean"] == (forward["resets"] == 0)
+    assert forward["ratio"] == pytest.approx(forward["best_lap"] / forward["racing_line"], abs=1e-3)
+    bad = tmp_path / "not.teacher.pt"
+    bad.write_bytes(b"not a teacher")
+    with pytest.raises(SystemExit) as stop:
+        main([str(bad), "--json", str(tmp_path / "rows.json")])
+    assert stop.value.code == 2 and str(bad) in capsys.readouterr().err
+    assert not (tmp_path / "rows.json").exists()
+    json.dumps(rows)  # the rows --json writes
