@@ -36,6 +36,8 @@ def assert_refused(done, *words):
     (["train", "--set", "epochs=0", "--out", "{tmp}/a.pt"], ["--set epochs"]),
     (["train", "--set", "anneal_lr=yes", "--out", "{tmp}/a.pt"], ["--set anneal_lr"]),
     (["train", "--set", "no_such=1", "--out", "{tmp}/a.pt"], ["--set no_such"]),
+    (["train", "--set", 'eval_tracks=["Nowhere_track"]', "--out", "{tmp}/a.pt"], ["--set eval_tracks", "Nowhere_track"]),
+    (["train", "--set", 'track_sampling="hardest"', "--out", "{tmp}/a.pt"], ["--set track_sampling"]),
     (["train", "--track", "nowhere", "--out", "{tmp}/a.pt"], ["--track", "nowhere"]),
     (["train", "--network", "NOPE", "--out", "{tmp}/a.pt"], ["--network", "NOPE"]),
     (["train", "--action-space", "{tmp}/missing.json", "--out", "{tmp}/a.pt"], ["--action-space", "missing.json"]),

@@ -127,6 +127,7 @@ def check_inputs(config) -> None:
     if config.network not in NETWORKS:
         raise ValueError(f"--network: unknown network {config.network!r}; choose from {', '.join(NETWORKS)}")
     check_tracks(config.tracks, "--track")
+    check_tracks(config.eval_tracks, "--set eval_tracks")
     if config.reward not in NAMED_REWARDS and not Path(config.reward).is_file():
         raise ValueError(f"--reward: {config.reward}: no such file (give {', '.join(NAMED_REWARDS)} or a reward "
                          f".py file)")
