@@ -117,3 +117,47 @@ def test_recentre_moves_the_clip_to_the_current_policy_and_weights_samples_by_th
     assert torch.allclose(batch["logp"], current, atol=1e-6)
     assert torch.allclose(batch["weight"], (current - behaviour).exp().clamp(max=BEHAVIOUR_WEIGHT_CAP), atol=1e-6)
     assert batch["weight"].max() <= BEHAVIOUR_WEIGHT_CAP and batch["weight"].min() < 1.0
+
+
+def _update_once(precision: str) -> tuple[dict, torch.Tensor, torch.Tensor]:
+    """One `ppo_update` of a fresh seeded net on a fixed synthetic batch: (stats, the parameters' change,
+    the parameters' dtypes as one tensor of itemsizes)."""
+    from multirace.environment.actions import load_action_space
+    from multirace.train.ppo import ppo_update
+
+    torch.manual_seed(2)
+    space = load_action_space(None)
+    policy, net = Policy(space), build_net(TINY, (120, 160, 1), None, value_head=True)
+    before = torch.cat([p.detach().flatten().clone() for p in net.parameters()])
+    generator = torch.Generator().manual_seed(5)
+    obs = torch.randint(0, 4081, (256, 30, 40), dtype=torch.int16, generator=generator)
+    act = torch.randint(0, 10, (256,), generator=generator)
+    with torch.no_grad():
+        logp = policy.log_prob(policy.dist(net.forward_all(obs, pooled=True)[0]), act)
+    batch = {"obs": obs, "act": act, "logp": logp, "adv": torch.randn(256, generator=generator),
+             "val": torch.zeros(256), "ret": torch.rand(256, generator=generator) * 5}
+    config = make_config("fast", minibatch_size=128, epochs=2, update_precision=precision)
+    stats = ppo_update(net, policy, torch.optim.Adam(net.parameters(), lr=1e-3), batch, config, space,
+                       value_only=False, pooled=True, generator=torch.Generator().manual_seed(7))
+    after = torch.cat([p.detach().flatten() for p in net.parameters()])
+    return stats, after - before, torch.tensor([p.dtype.itemsize for p in net.parameters()])
+
+
+def test_a_bfloat16_update_moves_the_weights_as_the_float32_one_and_keeps_them_float32():
+    stats16, step16, sizes16 = _update_once("bfloat16")
+    stats32, step32, _ = _update_once("float32")
+    assert all(math.isfinite(v) for v in stats16.values())
+    assert (sizes16 == 4).all()  # mixed precision: the weights (and the agent file) stay float32
+    assert not torch.equal(step16, step32)  # the setting took effect
+    cosine = torch.nn.functional.cosine_similarity(step16, step32, dim=0)
+    assert cosine > 0.9, f"bfloat16 update direction differs from float32's: cosine {cosine:.3f}"
+    assert abs(stats16["value_loss"] - stats32["value_loss"]) < 0.05 * stats32["value_loss"]
+
+
+def test_update_precision_auto_follows_the_cpu_and_a_bad_value_is_refused():
+    from multirace.train.threads import update_in_bfloat16
+
+    assert update_in_bfloat16("auto") == bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    assert update_in_bfloat16("bfloat16") and not update_in_bfloat16("float32")
+    with pytest.raises(ValueError, match="update_precision.*float16"):
+        make_config("fast", update_precision="float16")

@@ -68,6 +68,11 @@ def add_train_parser(sub) -> None:
     p.set_defaults(func=cmd_train)
 
 
+FLAG_OF_FIELD = {"tracks": "--track", "reverse": "--reverse", "minutes": "--minutes", "seed": "--seed",
+                 "action_space": "--action-space", "reward": "--reward", "network": "--network", "num_envs": "--envs",
+                 "cars_per_env": "--cars", "stop_on_success": "--stop-on-success", "progress": "--no-progress"}
+
+
 def config_from_args(args):
     from .config import make_config
 
@@ -85,12 +90,16 @@ def config_from_args(args):
         overrides.setdefault("robust", True)
     if args.privileged or args.teacher:
         overrides.setdefault("privileged", True)
-    config = make_config(args.config, tracks=tracks, reverse=args.reverse, minutes=args.minutes, seed=args.seed,
-                         action_space=args.action_space,
-                         reward=shipped_or_given(args.reward, ".py"), network=args.network,
-                         num_envs=args.envs, cars_per_env=args.cars,
-                         stop_on_success=True if args.stop_on_success else None,
-                         progress=False if args.no_progress else None, **overrides)
+    flags = {"tracks": tracks, "reverse": args.reverse, "minutes": args.minutes, "seed": args.seed,
+             "action_space": args.action_space, "reward": shipped_or_given(args.reward, ".py"),
+             "network": args.network, "num_envs": args.envs, "cars_per_env": args.cars,
+             "stop_on_success": True if args.stop_on_success else None,
+             "progress": False if args.no_progress else None}
+    for key in overrides:
+        if flags.get(key) is not None:
+            raise ValueError(f"--set {key}: {FLAG_OF_FIELD[key]} sets it too; give it once")
+    config = make_config(args.config, **{key: value for key, value in flags.items() if key not in overrides},
+                         **overrides)
     for key in ("camera", "tracks", "bots"):
         setattr(config, key, tuple(getattr(config, key)))
     if config.robust:

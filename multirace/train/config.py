@@ -29,6 +29,7 @@ from ..environment.rewards import RewardWeights
 from ..racing.nets import SHALLOW, TINY
 from ..resources import agents_dir
 from ..sensors.suite import SensorSuite, declared_sensors
+from .threads import PRECISIONS
 from .track_sampling import TRACK_SAMPLINGS
 
 SHIPPED_AGENTS = agents_dir()
@@ -101,6 +102,7 @@ class TrainConfig(RewardWeights):
     overlap_update: bool = False  # True: the PPO update of a rollout runs on a thread while the workers sample the next one, with the policy from before that update (one iteration stale, decoupled PPO); False: the workers wait for each update (learnt faster per agent-step and per minute on the busy machine, see the train README's Throughput)
     worker_spin_wait: float | None = None  # seconds an env worker polls for its next step before it sleeps; None: 0 with overlap_update (the update thread wants the core), else `vector.SPIN_WAIT`
     pool_inputs: bool = True  # workers send camera images pooled as the net's first layer pools them (block sums): the same outputs, less to copy and compute (not with the opponent pool, whose agents read full images)
+    update_precision: str = "auto"  # the PPO update's forward and backward passes: "bfloat16" (mixed precision: weights, optimiser and inference stay float32), "float32", or "auto": bfloat16 where the CPU computes it natively (train/threads.py)
     update_threads: int = 2  # torch threads of the PPO update (the workers wait then; 2 is ~1.25x faster here)
     checkpoint_every: float = 60.0  # seconds between checkpoints (and evaluations, see eval_every)
     eval_every: float = 30.0  # seconds between greedy time-trial evaluations (0 = never; one costs about 1 s)
@@ -123,6 +125,9 @@ class TrainConfig(RewardWeights):
 
     def __post_init__(self):
         self.sensors()  # an unknown sensor list is refused before anything starts
+        if self.update_precision not in PRECISIONS:
+            raise ValueError(f"--set update_precision: expected one of {', '.join(PRECISIONS)}, "
+                             f"got {self.update_precision!r}")
         if self.track_sampling not in TRACK_SAMPLINGS:
             raise ValueError(f"--set track_sampling: expected one of {', '.join(TRACK_SAMPLINGS)}, "
                              f"got {self.track_sampling!r}")

@@ -6,7 +6,8 @@ samples train it (parameter sharing / self-play). Envs run in worker processes
 as the net's first layer pools them (`pool_inputs`: the same outputs, a
 sixteenth of the pixels for the tiny net); the learner runs inference on the
 whole batch of cars at once on one torch thread, then does the PPO updates on
-`update_threads` (the workers wait meanwhile, so their cores are free); or,
+`update_threads` (the workers wait meanwhile, so their cores are free), in
+bfloat16 where the CPU computes it natively (`update_precision`); or,
 with `overlap_update`, the update of a rollout runs on a thread while the
 workers sample the next one (`Updater`; decoupled PPO corrects for the
 one-iteration-old policy that sampled it).
@@ -39,7 +40,7 @@ from .envs import INFO_KEYS, TrainEnv, env_settings
 from .robust import RobustKnobs
 from .rollout import Rollout, batch_input, expert_actions, finished_episodes, vector_sizes
 from .run import TrainingRun
-from .threads import update_threads
+from .threads import update_in_bfloat16, update_threads
 from .warmstart import init_lineage, init_settings, load_init_agent
 
 
@@ -53,8 +54,8 @@ class Policy:
 
     def dist(self, out: torch.Tensor):
         if self.discrete:
-            return Categorical(logits=out)
-        return Normal(out[:, :2], torch.exp(torch.clamp(out[:, 2:], -5.0, 2.0)))
+            return Categorical(logits=out, validate_args=False)
+        return Normal(out[:, :2], torch.exp(torch.clamp(out[:, 2:], -5.0, 2.0)), validate_args=False)
 
     def log_prob(self, dist, actions):
         lp = dist.log_prob(actions)
@@ -169,9 +170,14 @@ def input_pooling(config: TrainConfig) -> int:
     return k
 
 
-def forward(net, x, pooled: bool):
-    """The net's (outputs, value) for input `x`, images pooled by the workers if `pooled`."""
-    return net.forward_all(x, pooled=True) if pooled else net.forward_all(x)
+def forward(net, x, pooled: bool, bfloat16: bool = False):
+    """The net's (outputs, value) for input `x`, images pooled by the workers if `pooled`; with `bfloat16`
+    computed in bfloat16 (torch's CPU autocast) and returned as float32."""
+    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bfloat16):
+        out, value = net.forward_all(x, pooled=True) if pooled else net.forward_all(x)
+    if bfloat16:
+        out, value = out.float(), None if value is None else value.float()
+    return out, value
 
 
 def cpu_seconds(vec) -> float | None:
@@ -244,12 +250,13 @@ def ppo_update(net, policy: Policy, optimiser, batch: dict, config: TrainConfig,
     net.train()
     size = len(batch["obs"])
     mb = min(config.minibatch_size, size)
+    bfloat16 = update_in_bfloat16(config.update_precision)
     clip_fracs, approx_kl, pg_loss, v_loss, entropy, expert_loss = [], 0.0, 0.0, 0.0, 0.0, 0.0
     for epoch in range(config.epochs):
         order = torch.randperm(size, generator=generator)
         for start in range(0, size - mb + 1, mb):
             idx = order[start:start + mb]
-            out, value = forward(net, batch_input(net, batch, idx), pooled)
+            out, value = forward(net, batch_input(net, batch, idx), pooled, bfloat16)
             dist = policy.dist(out)
             logp = policy.log_prob(dist, batch["act"][idx])
             log_ratio = logp - batch["logp"][idx]
