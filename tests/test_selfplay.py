@@ -62,7 +62,7 @@ def test_in_training_a_continuous_opponents_commands_reach_the_env_unquantised(r
     shutil.copy(SHIPPED_AGENTS / "racer.pt", shipped)
     config = make_config("tiny", tracks=("Oval_track",), action_space=str(space_file), opponent_pool=True,
                          deepracer_log=True, seed=2)
-    vec = make_vector_env(config)  # TrainEnvs in a worker process; with deepracer_log each car's params come back
+    vec = make_vector_env(config)  # TrainEnvs in a worker process; with deepracer_log each car's sim-trace row comes back
     try:
         obs, _ = vec.reset(seeds=[5])
         _, image_shape, vectors = observation_shapes(obs, 1)
@@ -77,10 +77,12 @@ def test_in_training_a_continuous_opponents_commands_reach_the_env_unquantised(r
             steer, speed = commands[0, 3]
             assert abs(steer - 30.0) > 2 * STEER_TOLERANCE  # far from the learner's one action
             obs, _, _, _, infos = vec.step(np.zeros(mask.shape, np.int64), commands)
-            opponent_car, learner_car = infos[0][3]["deepracer"], infos[0][0]["deepracer"]
-            assert abs(opponent_car["steering_angle"] - steer) < STEER_TOLERANCE
-            assert abs(opponent_car["speed"] - speed) < SPEED_TOLERANCE
-            assert abs(learner_car["steering_angle"] - 30.0) < STEER_TOLERANCE
+            # the sim-trace rows: the opponent's steer and throttle as executed, the learner's as commanded
+            (opponent_steer, opponent_speed), (learner_steer, _) = (
+                (float(v) for v in infos[0][car]["deepracer"].text.split(",")[4:6]) for car in (3, 0))
+            assert abs(opponent_steer - steer) < STEER_TOLERANCE
+            assert abs(opponent_speed - speed) < SPEED_TOLERANCE
+            assert abs(learner_steer - 30.0) < STEER_TOLERANCE
     finally:
         vec.close()
 

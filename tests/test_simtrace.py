@@ -210,3 +210,52 @@ def test_evaluation_metrics_json_as_deepracer_writes_it(tmp_path):
     assert all(t["episode_status"] == "Lap complete" and t["completion_percentage"] == 100 for t in trials)
     np.testing.assert_allclose([t["elapsed_time_in_milliseconds"] / 1000 for t in trials], lap_times, atol=1 / 15)
     assert trials[1]["start_time"] == trials[0]["metric_time"]
+
+
+@pytest.mark.parametrize("action_space", [None, "agents/action_space_racer.json"])
+def test_rows_formatted_in_a_training_worker_write_the_same_files_as_the_learners_own(tmp_path, action_space):
+    """A TrainEnv with `deepracer_log` formats each car's row (`CarSimTrace`); `TrainingLog.write_text` of those
+    rows gives byte for byte the sim-trace that `write_step` gives from the full infos, and the same metrics,
+    across off-tracks (episodes that end and restart) and penalties, for a discrete and a continuous space."""
+    from multirace.train.envs import TrainEnv
+
+    space_file = None if action_space is None else str(Path(multirace.__file__).parent / "data" / action_space)
+    env = TrainEnv([("reinvent_base", False)], num_cars=3, action_space=space_file, deepracer_log=True,
+                   episode_steps=60)
+    space = env.env_for(0).actions
+    rng = np.random.default_rng(1)
+    logs = [TrainingLog(tmp_path / name, space.to_metadata(), {}) for name in ("full", "worker")]
+    episodes, next_episode, ends = list(range(3)), 3, 0
+    try:
+        env.reset(seed=5)
+        full_infos = []
+        inner_step = env.env.step
+        env.env.step = lambda actions: full_infos.append(inner_step(actions)) or full_infos[-1]
+        for log in logs:
+            log.start_iteration(0)
+        for _ in range(120):
+            actions = {a: (int(rng.integers(space.space.n)) if space.discrete else
+                           [float(rng.uniform(-30, 30)), float(rng.uniform(0.5, 4.0))]) for a in env.possible_agents}
+            _, rewards, _, _, infos = env.step(actions)
+            full = full_infos[-1][4]
+            for i, agent in enumerate(env.possible_agents):
+                reward, done = float(np.float32(rewards[agent])), infos[agent]["train_done"]
+                logs[0].write_step(full[agent], reward=reward, episode=episodes[i], action=actions[agent], done=done)
+                logs[1].write_text(infos[agent]["deepracer"], reward=reward, episode=episodes[i], done=done)
+                if done:
+                    episodes[i], next_episode, ends = next_episode, next_episode + 1, ends + 1
+            if not env.agents:
+                env.reset()
+                env.env.step = lambda actions: full_infos.append(inner_step(actions)) or full_infos[-1]
+    finally:
+        for log in logs:
+            log.close()
+        env.close()
+    assert ends >= 6  # off-tracks and the step limit ended episodes along the way
+    full, worker = ((tmp_path / name / "training-simtrace" / "0-iteration.csv").read_bytes() for name in ("full", "worker"))
+    assert full == worker and full.count(b"\n") == 1 + 360
+    rows = read_simtrace(tmp_path / "full" / "training-simtrace" / "0-iteration.csv")
+    assert max(float(row["pause_duration"]) for row in rows) > 0  # off-track penalties were logged
+    wall = ("start_time", "metric_time")
+    metrics = [[{k: v for k, v in m.items() if k not in wall} for m in log.metrics] for log in logs]
+    assert metrics[0] == metrics[1] and len(metrics[0]) == ends

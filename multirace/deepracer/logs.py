@@ -21,7 +21,7 @@ from pathlib import Path
 
 from ..atomic import write_text
 from ..environment.actions import ActionSpace
-from ..recording.simtrace import SimTraceWriter, read_simtrace, simtrace_row
+from ..recording.simtrace import SimTraceStep, SimTraceWriter, episode_status, read_simtrace, simtrace_row
 
 STATUS_LABELS = {  # sim-trace episode_status -> the label in DeepRacer's metrics files
     "prepare": "Prepare", "in_progress": "In progress", "off_track": "Off track", "crashed": "Crashed",
@@ -145,23 +145,38 @@ class TrainingLog:
 
     def write_step(self, info: dict, *, reward: float, episode: int, action, done: bool | None = None) -> None:
         """Log one step of one car (see the class docstring)."""
-        if self.writer is None:
-            raise RuntimeError("TrainingLog.write_step before start_iteration")
+        self._check_started()
         command = self.space.command(action)
         index = int(action) if self.space.discrete else None
         if done is None:
             done = info.get("status", "racing") != "racing"
         self.writer.write_step(info, reward=reward, episode=episode, action=index, done=done, command=command)
-        state = self._episodes.setdefault(episode, [0.0, float(info["sim_time"]) - 1.0 / 15, time.time() * 1000])
-        state[0] += float(reward)
+        self._count(episode, float(info["sim_time"]), reward)
         if done:
-            self._episode_ended(episode, info)
+            self._episode_ended(episode, float(info["sim_time"]), episode_status(info), float(info["progress"]))
 
-    def _episode_ended(self, episode: int, info: dict) -> None:
+    def write_text(self, step: SimTraceStep, *, reward: float, episode: int, done: bool) -> None:
+        """Log one step of one car whose row was formatted where it ran (`recording.simtrace.CarSimTrace`): the
+        same file as `write_step` gives, with less work here."""
+        self._check_started()
+        self.writer.write_text(episode, step.text)
+        self._count(episode, step.sim_time, reward)
+        if done:
+            self._episode_ended(episode, step.sim_time, step.status, step.progress)
+
+    def _check_started(self) -> None:
+        if self.writer is None:
+            raise RuntimeError("TrainingLog.write_step before start_iteration")
+
+    def _count(self, episode: int, sim_time: float, reward: float) -> None:
+        """Add a step's reward to its episode (started at this step's time if it is the episode's first)."""
+        state = self._episodes.setdefault(episode, [0.0, sim_time - 1.0 / 15, time.time() * 1000])
+        state[0] += float(reward)
+
+    def _episode_ended(self, episode: int, sim_time: float, status: str, progress: float) -> None:
         total, first, wall = self._episodes.pop(episode)
-        status = simtrace_row(info, episode=episode, reward=0.0)[15]
         self._trials += 1
-        elapsed = int(round((float(info["sim_time"]) - first) * 1000))
+        elapsed = int(round((sim_time - first) * 1000))
         self.metrics.append({
             "reward_score": int(round(total)),
             "metric_time": int(round(wall)) + elapsed,
@@ -170,7 +185,7 @@ class TrainingLog:
             "episode": len(self.metrics) + 1,
             "trial": self._trials,
             "phase": "training",
-            "completion_percentage": 100 if status == "lap_complete" else int(float(info["progress"])),
+            "completion_percentage": 100 if status == "lap_complete" else int(progress),
             "episode_status": STATUS_LABELS.get(status, "In progress"),
         })
 

@@ -42,6 +42,7 @@ are loaded into it as plain tensors.
 from __future__ import annotations
 
 import functools
+import itertools
 
 import numpy as np
 import torch
@@ -118,16 +119,12 @@ def input_pool(network: str) -> int:
 def pool_image(image: np.ndarray, k: int) -> np.ndarray:
     """One uint8 image (H, W) or (H, W, C) as int16 sums of its k x k pixel blocks, (H/k, W/k[, C]): what
     `CameraNet.features(..., pooled=True)` reads for a net whose `input_pool` is k."""
-    h, w = image.shape[:2]
-    rows = image.astype(np.int16).reshape(h // k, k, w, *image.shape[2:])
-    summed = rows[:, 0].copy()
-    for i in range(1, k):  # k slice additions: several times faster than numpy's sum over the block axes
-        summed += rows[:, i]
-    cols = summed.reshape(h // k, w // k, k, *image.shape[2:])
-    out = cols[:, :, 0].copy()
-    for i in range(1, k):
-        out += cols[:, :, i]
-    return out
+    from .pooling import block_sums
+
+    height, width = image.shape[:2]
+    channels = image.shape[2] if image.ndim == 3 else 1
+    sums = block_sums(np.ascontiguousarray(image).reshape(height, width * channels), k, channels)
+    return sums.reshape(height // k, width // k, *image.shape[2:])
 
 
 def channels_first(images, image_shape) -> torch.Tensor:
@@ -205,8 +202,9 @@ class CameraNet(nn.Module):
         if pooled:
             k = input_pool(self.network)
             height, width, channels = self.image_shape
-            sums = channels_first(obs, (height // k, width // k, channels)).float()
-            x = self.conv[1:](sums.mul_(1.0 / (255 * k * k)))
+            x = channels_first(obs, (height // k, width // k, channels)).float().mul_(1.0 / (255 * k * k))
+            for layer in itertools.islice(self.conv, 1, None):  # the trunk after its pool (no slice: a new module)
+                x = layer(x)
         else:
             x = self.conv(channels_first(obs, self.image_shape).float().div_(255.0))
         if vectors:

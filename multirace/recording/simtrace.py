@@ -35,8 +35,10 @@ from __future__ import annotations
 
 import array
 import csv
+import io
 import math
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -106,6 +108,39 @@ def simtrace_row(info: dict, *, episode: int, reward: float, action=None, done: 
             round(float(info["sim_time"]), 6), status, float(pause_duration)]
 
 
+class SimTraceStep(NamedTuple):
+    """One car's sim-trace row formatted where the car runs (a training worker, `CarSimTrace`): the row's CSV
+    text after its episode column, and what a training log's metrics need (`TrainingLog.write_text`)."""
+
+    text: str
+    sim_time: float
+    status: str  # the row's episode_status
+    progress: float  # the info's progress, 0-100
+
+
+class CarSimTrace:
+    """Formats one car's sim-trace rows, episode after episode, as `SimTraceWriter.write_step` would write them
+    (the pause of each row is the penalty added since the car's last row of the episode; a row with `done`
+    ends the episode). A training worker formats its cars' rows so the learner only writes them."""
+
+    def __init__(self):
+        self._penalty = 0.0  # penalty seconds seen so far in the car's episode
+        self._buffer = io.StringIO()
+        self._csv = csv.writer(self._buffer)
+
+    def step(self, info: dict, *, reward: float, done: bool, action=None, command=None) -> SimTraceStep:
+        """This step's row (arguments as `simtrace_row`'s)."""
+        penalty = float(info.get("penalty_time", 0.0))
+        pause = max(penalty - self._penalty, 0.0)
+        self._penalty = 0.0 if done else penalty
+        row = simtrace_row(info, episode=0, reward=reward, action=action, done=done, pause_duration=round(pause, 6),
+                           command=command)
+        self._buffer.seek(0)
+        self._buffer.truncate()
+        self._csv.writerow(row[1:])
+        return SimTraceStep(self._buffer.getvalue(), float(info["sim_time"]), row[15], float(info["progress"]))
+
+
 class SimTraceWriter:
     """Writes a sim-trace CSV row by row (usable from training loops).
 
@@ -135,6 +170,12 @@ class SimTraceWriter:
                            pause_duration=round(pause, 6), command=command)
         with self._output.guard():
             self._csv.writerow(row)
+        self.rows += 1
+
+    def write_text(self, episode: int, text: str) -> None:
+        """Log a row formatted elsewhere (`CarSimTrace`): its text after the episode column."""
+        with self._output.guard():
+            self._file.write(f"{int(episode)},{text}")
         self.rows += 1
 
     def new_episode(self, episode: int) -> None:

@@ -35,8 +35,9 @@ adds what training needs on top of the race env:
   (``expert="teacher:PATH"``, `teacher.py`);
 - per-car episode statistics in the infos (return, length, laps driven,
   collisions caused);
-- optionally (`deepracer_log`), the few DeepRacer params of each car's
-  sim-trace row, for the learner's DeepRacer-for-Cloud training folder;
+- optionally (`deepracer_log`), each car's sim-trace row, formatted here (in
+  parallel, in the workers) for the learner's DeepRacer-for-Cloud training
+  folder, which only writes it;
 - optionally (`pool`), camera images pooled in the worker as the net's first
   layer would pool them (16x fewer bytes to copy, and the learner skips that
   layer);
@@ -50,26 +51,15 @@ import math
 
 import numpy as np
 
+from ..environment.actions import Command
 from ..environment.rewards import NAMED_REWARDS, RewardWeights
-from ..recording.simtrace import closest_waypoint
+from ..recording.simtrace import CarSimTrace
 from .experts import expert_command, make_expert
 from .track_sampling import RunSampler
 
 BOT_SPACING = 2.0  # metres between bots started ahead of the learning cars (bots_ahead)
 INFO_KEYS = ("train_done", "time_limit", "ep_return", "ep_length", "ep_laps", "ep_caused", "off_track", "collisions",
              "caused", "perturbation", "expert_action", "deepracer")
-# the reward params (and race keys) of a sim-trace row (`recording.simtrace.simtrace_row`)
-SIMTRACE_KEYS = ("steps", "x", "y", "heading", "steering_angle", "speed", "all_wheels_on_track", "progress",
-                 "track_length", "sim_time", "status", "events", "penalty_time")
-
-
-def simtrace_params(info: dict) -> dict:
-    """The few params of a car's info that its sim-trace row needs, small enough to send every step."""
-    params = {key: info[key] for key in SIMTRACE_KEYS if key in info}
-    params["closest_waypoint"] = closest_waypoint(info)  # so the row needs no waypoint list
-    return params
-
-
 def env_settings(config) -> dict:
     """The `TrainEnv` keyword arguments a `TrainConfig` sets (everything but the runs, shared state and worker)."""
     return {"num_cars": config.cars_per_env, "bots": tuple(config.bots), "action_space": config.action_space,
@@ -108,7 +98,8 @@ class TrainEnv:
         self.expert_labels = bool(expert_labels)
         self.expert = str(expert or "")  # the labelling driver: a bot spec or "teacher:PATH"; "" = bot:pass at top speed
         self._expert = None  # that driver (built on first use)
-        self.deepracer_log = bool(deepracer_log)  # each step's info carries the car's sim-trace params
+        self.deepracer_log = bool(deepracer_log)  # each step's info carries the car's sim-trace row, formatted here
+        self._sim_traces: list[CarSimTrace] = []  # each car's sim-trace rows (new at every reset)
         self.observation = observation  # "camera" (the sensors) or "state" (privileged vectors, for RL teachers)
         self.pool = int(pool)  # > 1: camera images go out as int16 sums of pool x pool pixel blocks (`nets.pool_image`)
         self.randomize = randomize
@@ -192,6 +183,7 @@ class TrainEnv:
         self._ep_dist = [0.0] * self.num_cars
         self._ep_caused = [0] * self.num_cars
         self._collisions_seen = [0] * self.num_cars
+        self._sim_traces = [CarSimTrace() for _ in range(self.num_cars)]
         self.agents = list(self.possible_agents)
         small = {a: self._small(infos[a], False, None) for a in self.possible_agents}
         if self.expert_labels:
@@ -293,10 +285,20 @@ class TrainEnv:
             if self.expert_labels:
                 out_infos[agent]["expert_action"] = self._expert_action(i, known=not truncated)
             if self.deepracer_log:
-                out_infos[agent]["deepracer"] = simtrace_params(info)
+                out_infos[agent]["deepracer"] = self._simtrace_step(i, info, float(np.float32(r)), done, actions[agent])
         if truncated:
             self.agents = []
         return self._pooled(obs), out_rewards, terms, truncs, out_infos
+
+    def _simtrace_step(self, i: int, info: dict, reward: float, done: bool, action):
+        """Car i's sim-trace row of this step (`recording.simtrace.CarSimTrace`), with the reward as the learner
+        reads it (float32) and the commanded action; a car driven by commands (a pool opponent) logs what it
+        executed."""
+        if type(action) is Command:
+            return self._sim_traces[i].step(info, reward=reward, done=done)
+        space = self.env.actions
+        index = int(action) if space.discrete else None
+        return self._sim_traces[i].step(info, reward=reward, done=done, action=index, command=space.command(action))
 
     def _pooled(self, obs: dict) -> dict:
         """The observations with their camera images pooled by `pool` (as they are if it is 1)."""

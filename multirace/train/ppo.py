@@ -212,7 +212,7 @@ def collect_rollout(vec, net, policy: Policy, rollout: Rollout, robust: RobustKn
         rollout.learn[t] = learner_mask.reshape(N)
         rollout.next_obs, reward, env_done, _, infos = vec.step(actions, commands)
         if deepracer is not None:
-            deepracer.write_step(infos, actions, reward, learner_mask)
+            deepracer.write_step(infos, reward, learner_mask)
         if config.expert_coef:
             rollout.next_expert = expert_actions(infos, policy.discrete)
         done = np.array([[infos[e][a]["train_done"] for a in range(A)] for e in range(E)]).reshape(N)

@@ -249,14 +249,14 @@ class DeepRacerFolder:
     def start_iteration(self, iteration: int) -> None:
         self.log.start_iteration(iteration)
 
-    def write_step(self, infos, actions, rewards, learner_mask) -> None:
-        """One step of every env: a row per learning car (`infos` from `TrainEnv` with `deepracer_log`)."""
+    def write_step(self, infos, rewards, learner_mask) -> None:
+        """One step of every env: a row per learning car (`infos` from `TrainEnv` with `deepracer_log`, whose
+        workers format the rows)."""
         for e, env_infos in enumerate(infos):
             for a, info in enumerate(env_infos):
                 if learner_mask[e, a]:
-                    self.log.write_step(info["deepracer"], reward=float(rewards[e, a]),
-                                        episode=int(self.episodes[e, a]), action=actions[e, a],
-                                        done=bool(info["train_done"]))
+                    self.log.write_text(info["deepracer"], reward=float(rewards[e, a]),
+                                        episode=int(self.episodes[e, a]), done=bool(info["train_done"]))
                 if info["train_done"]:
                     self.episodes[e, a], self.next_episode = self.next_episode, self.next_episode + 1
 
