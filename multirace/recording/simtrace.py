@@ -74,10 +74,7 @@ def episode_status(info: dict) -> str:
 
 
 def closest_waypoint(info: dict) -> int:
-    """The nearer of the two waypoints around the car (DeepRacer's sim-trace `closest_waypoint`), or the
-    info's own `closest_waypoint` where the env worked it out already (a training env's small info)."""
-    if "closest_waypoint" in info:
-        return int(info["closest_waypoint"])
+    """The nearer of the two waypoints around the car (DeepRacer's sim-trace `closest_waypoint`)."""
     prev_i, next_i = (int(v) for v in info["closest_waypoints"])
     waypoints = info["waypoints"]
     x, y = info["x"], info["y"]

@@ -60,6 +60,8 @@ from .track_sampling import RunSampler
 BOT_SPACING = 2.0  # metres between bots started ahead of the learning cars (bots_ahead)
 INFO_KEYS = ("train_done", "time_limit", "ep_return", "ep_length", "ep_laps", "ep_caused", "off_track", "collisions",
              "caused", "perturbation", "expert_action", "deepracer")
+
+
 def env_settings(config) -> dict:
     """The `TrainEnv` keyword arguments a `TrainConfig` sets (everything but the runs, shared state and worker)."""
     return {"num_cars": config.cars_per_env, "bots": tuple(config.bots), "action_space": config.action_space,
