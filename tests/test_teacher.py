@@ -5,6 +5,7 @@ Iteration counts, not time budgets: the same learning on an idle and on a busy m
 """
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from multirace.racing.agentfile import AgentController, load_agent
@@ -160,6 +161,27 @@ def test_a_teacher_expert_can_ask_for_a_share_of_its_speed(teacher):
         make_expert(f"teacher:{out}@1.5", 1.0)
     with pytest.raises(ValueError, match="distill_speed_scale"):
         make_config("fast", distill_speed_scale=0.0)
+
+
+def test_a_teacher_labels_every_car_of_an_env_in_one_pass_as_it_labels_each_alone(teacher):
+    """`expert_commands` runs the teacher's net once for all the cars (a worker labels every image it sends): the
+    commands are each car's own, as `expert_command` gives them one car at a time."""
+    from multirace.environment.race_env import RaceEnv
+    from multirace.train.experts import expert_command, expert_commands, make_expert
+
+    out, _ = teacher
+    expert = make_expert(f"teacher:{out}@0.8", 1.0)
+    env = RaceEnv(track="reinvent_base", num_cars=4, action_space=SPACE, observation="state")
+    try:
+        env.reset(seed=1)
+        for step in range(15):
+            env.step({f"car_{i}": [10.0 * (i - 1.5), 1.0 + 0.2 * i + 0.05 * step] for i in range(4)})
+        together = expert_commands(expert, env, range(4))
+        alone = [expert_command(expert, env, i) for i in range(4)]
+        assert len({command for command in alone}) == 4  # four different places, four different commands
+        assert np.abs(np.array(together) - np.array(alone)).max() < 1e-5
+    finally:
+        env.close()
 
 
 def test_a_teacher_is_timed_on_a_track_split(teacher, tmp_path, capsys):

@@ -212,9 +212,10 @@ class CameraNet(nn.Module):
                                 for key, values in vectors.items())], dim=1)
         return self.fc(x)
 
-    def forward(self, obs) -> torch.Tensor:
-        """Action logits (discrete) or [mean steer, mean speed, log-std steer, log-std speed]."""
-        return self.head(self.features(obs))
+    def forward(self, obs, pooled: bool = False) -> torch.Tensor:
+        """Action logits (discrete) or [mean steer, mean speed, log-std steer, log-std speed] (`pooled`: see
+        `features`)."""
+        return self.head(self.features(obs, pooled))
 
     def value(self, obs) -> torch.Tensor:
         """State value estimate, shape (B,)."""

@@ -25,11 +25,10 @@ import torch
 
 from ..environment.actions import load_action_space
 from ..racing.nets import build_net
-from ..sensors.camera import image_shape_of
 from .config import TrainConfig
 from .experts import TEACHER_PREFIX
 from .imitate import Dataset, fit_labels, greedy_actions, imitation_loss
-from .ppo import init_continuous_head, make_vector_env
+from .ppo import init_continuous_head, input_pooling, make_vector_env, observation_shapes
 from .rollout import Rollout, expert_actions, finished_episodes, vector_sizes
 from .run import TrainingRun
 from .teacher import train_teacher
@@ -67,13 +66,13 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
     space = load_action_space(config.action_space)
-    vec = make_vector_env(config)
+    pool = input_pooling(config)  # the workers pool the images as the net's first layer would
+    vec = make_vector_env(config, pool=pool)
     E, A, T = config.num_envs, config.cars_per_env, config.rollout_steps
     try:
         obs, infos = vec.reset(seeds=[config.seed * 100_000 + e for e in range(E)])
-        obs_shape = (obs["camera"] if isinstance(obs, dict) else obs).shape[2:]
-        vectors = vector_sizes(obs)  # the sensors beside the camera, {key: size}
-        image_shape = image_shape_of(obs_shape)
+        obs_shape, image_shape, vectors = observation_shapes(obs, pool)
+        obs_dtype = np.int16 if pool > 1 else np.uint8
         net = build_net(config.network, image_shape, space, vector_inputs=vectors)
         if init:
             load_init_agent(init, net)
@@ -82,8 +81,8 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
         optimiser = torch.optim.Adam(net.parameters(), lr=config.distill_lr)
         loss_fn = imitation_loss(space)
         label_shape, label_dtype = ((), np.int64) if space.discrete else ((2,), np.float32)
-        data = Dataset(config.distill_samples, obs_shape, label_shape, label_dtype, rng, vectors)
-        view = Rollout(1, E * A, obs_shape, vectors, space)  # only for its net_input(): (E, A, ...) -> (N, ...)
+        data = Dataset(config.distill_samples, obs_shape, label_shape, label_dtype, rng, vectors, obs_dtype)
+        view = Rollout(1, E * A, obs_shape, vectors, space, obs_dtype)  # only its net_input(): (E, A, ...) -> (N, ...)
         labels = expert_actions(infos, space.discrete).numpy()
         while run.keep_going(0):
             t0 = time.perf_counter()
@@ -96,7 +95,7 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
                 for k in np.flatnonzero(known):
                     data.add({key: x[key][k] for key in x} if vectors else x[k], labels[k])
                 with torch.no_grad():
-                    mine = np.asarray(greedy_actions(space, net(x)))
+                    mine = np.asarray(greedy_actions(space, net(x, pooled=pool > 1)))
                 teacher_drives = (rng.random(E * A) < beta) & known
                 actions = np.where(teacher_drives.reshape(-1, *([1] * (mine.ndim - 1))), labels, mine)
                 obs, _, _, _, infos = vec.step(actions.reshape(E, A, *actions.shape[1:]))
@@ -105,7 +104,7 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
             run.agent_steps += T * E * A
             run.sample_time += time.perf_counter() - t0
             t1 = time.perf_counter()
-            loss = _fit(net, optimiser, loss_fn, data, config)
+            loss = _fit(net, optimiser, loss_fn, data, config, pool > 1)
             run.update_time += time.perf_counter() - t1
             run.iteration += 1
             run.record(episodes, {"expert_loss": round(loss, 4), "beta": round(beta, 4)}, 0.0, T * E * A,
@@ -118,10 +117,10 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
     return run.finish(net, optimiser, None, space, image_shape)
 
 
-def _fit(net, optimiser, loss_fn, data: Dataset, config: TrainConfig) -> float:
+def _fit(net, optimiser, loss_fn, data: Dataset, config: TrainConfig, pooled: bool) -> float:
     """`distill_steps` gradient steps on the aggregated labels (one torch thread on a busy machine); the mean loss."""
     torch.set_num_threads(update_threads(config.update_threads))
-    loss = fit_labels(net, optimiser, loss_fn, data, config.distill_steps, config.distill_batch)
+    loss = fit_labels(net, optimiser, loss_fn, data, config.distill_steps, config.distill_batch, pooled=pooled)
     torch.set_num_threads(int(config.threads))
     return loss
 

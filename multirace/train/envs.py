@@ -54,7 +54,7 @@ import numpy as np
 from ..environment.actions import Command
 from ..environment.rewards import NAMED_REWARDS, RewardWeights
 from ..recording.simtrace import CarSimTrace
-from .experts import expert_command, make_expert
+from .experts import expert_commands, make_expert
 from .track_sampling import RunSampler
 
 BOT_SPACING = 2.0  # metres between bots started ahead of the learning cars (bots_ahead)
@@ -189,24 +189,25 @@ class TrainEnv:
         self.agents = list(self.possible_agents)
         small = {a: self._small(infos[a], False, None) for a in self.possible_agents}
         if self.expert_labels:
-            for i, a in enumerate(self.possible_agents):
-                small[a]["expert_action"] = self._expert_action(i)
+            for a, label in zip(self.possible_agents, self._expert_actions()):
+                small[a]["expert_action"] = label
         return obs, small
 
-    def _expert_action(self, i: int, known: bool = True):
-        """The expert's action for car i where it stands (`expert`, else the pass driver at the space's top speed).
+    def _expert_actions(self, known: bool = True) -> list:
+        """The expert's action for each car where it stands (`expert`, else the pass driver at the space's top
+        speed).
 
-        With `known` False (the worker resets the env after this step, so the label would not match
-        the next observation) the label is marked missing: -1, or NaNs for a continuous space.
+        With `known` False (the worker resets the env after this step, so the labels would not match
+        the next observations) the labels are marked missing: -1, or NaNs for a continuous space.
         """
         env, space = self.env, self.env.actions
         if not known:
-            return -1 if space.discrete else [math.nan, math.nan]
+            return [-1 if space.discrete else [math.nan, math.nan]] * self.num_cars
         if self._expert is None:  # every run shares the action space, so one driver serves all
             top = max(a[1] for a in space.actions) if space.discrete else float(space.high[1])
             self._expert = make_expert(self.expert, top)
-        label = space.nearest(*expert_command(self._expert, env, i))
-        return label if space.discrete else [float(v) for v in label]
+        labels = [space.nearest(*command) for command in expert_commands(self._expert, env, range(self.num_cars))]
+        return labels if space.discrete else [[float(v) for v in label] for label in labels]
 
     def _small(self, info, done, episode, caused=0, time_limit=False):
         small = {"train_done": done, "time_limit": time_limit, "off_track": bool(info.get("off_track", False)),
@@ -258,6 +259,7 @@ class TrainEnv:
         out_rewards, out_infos = {}, {}
         truncated = all(truncs.values()) or all(terms.values())
         trainer = self.named_reward.trainer if self.named_reward is not None else None  # None: the env's reward
+        labels = self._expert_actions(known=not truncated) if self.expert_labels else None
         for i, agent in enumerate(self.possible_agents):
             info = infos[agent]
             off = bool(info["off_track"])
@@ -285,7 +287,7 @@ class TrainEnv:
             out_rewards[agent] = r
             out_infos[agent] = self._small(info, done, episode, caused, time_limit=truncated and not terminal)
             if self.expert_labels:
-                out_infos[agent]["expert_action"] = self._expert_action(i, known=not truncated)
+                out_infos[agent]["expert_action"] = labels[i]
             if self.deepracer_log:
                 out_infos[agent]["deepracer"] = self._simtrace_step(i, info, float(np.float32(r)), done, actions[agent])
         if truncated:

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from ..environment.bots import PassBot, parse_bot
 from ..environment.drivers import Driver
 
@@ -31,8 +33,12 @@ class TeacherDriver(Driver):
 
     def drive(self, state, car, observation=None) -> tuple[float, float]:
         """The teacher's command from `observation`, its car's privileged state vector."""
-        steer, speed = self.net.command(observation[None])[0]
-        return float(steer), max(self.low_speed, float(speed) * self.speed_scale)
+        return self.drive_many(observation[None])[0]
+
+    def drive_many(self, observations: np.ndarray) -> list[tuple[float, float]]:
+        """The teacher's commands for several cars' state vectors (N, features), in one pass of its net."""
+        return [(steer, max(self.low_speed, speed * self.speed_scale))
+                for steer, speed in self.net.command(observations).tolist()]
 
 
 def make_expert(spec: str | None, default_speed: float) -> Driver:
@@ -58,5 +64,11 @@ def teacher_spec(spec: str) -> tuple[str, float]:
 
 def expert_command(expert: Driver, env, car: int = 0) -> tuple[float, float]:
     """(steering degrees, speed m/s) the expert commands for the env's car `car` where it stands now."""
-    observation = env.car_state(car) if isinstance(expert, TeacherDriver) else None
-    return expert.drive(env.race_state, car, observation)
+    return expert_commands(expert, env, [car])[0]
+
+
+def expert_commands(expert: Driver, env, cars) -> list[tuple[float, float]]:
+    """`expert_command` for each of the env's `cars`; a teacher's net runs once for all of them."""
+    if isinstance(expert, TeacherDriver):
+        return expert.drive_many(np.stack([env.car_state(car) for car in cars]))
+    return [expert.drive(env.race_state, car, None) for car in cars]

@@ -106,8 +106,8 @@ class Dataset:
     """
 
     def __init__(self, capacity: int, obs_shape, label_shape, label_dtype, rng: np.random.Generator,
-                 vector_inputs: dict | None = None):
-        self.images = np.zeros((capacity, *obs_shape), np.uint8)
+                 vector_inputs: dict | None = None, obs_dtype=np.uint8):
+        self.images = np.zeros((capacity, *obs_shape), obs_dtype)  # uint8 images, or int16 pooled ones
         self.vectors = {key: np.zeros((capacity, size), np.float32) for key, size in (vector_inputs or {}).items()}
         self.labels = np.zeros((capacity, *label_shape), label_dtype)
         self.size, self.capacity, self.seen, self.rng = 0, capacity, 0, rng
@@ -157,16 +157,17 @@ def imitation_loss(space):
     return nll
 
 
-def fit_labels(net, optimiser, loss_fn, data: Dataset, steps: int, batch: int, stop=lambda: False) -> float:
+def fit_labels(net, optimiser, loss_fn, data: Dataset, steps: int, batch: int, stop=lambda: False,
+               pooled: bool = False) -> float:
     """Up to `steps` gradient steps on random batches of the aggregated labels (after the first, `stop()` may end
-    them early); the mean loss."""
+    them early; `pooled`: the images are pooled, `nets.pool_image`); the mean loss."""
     net.train()
     losses = []
     for step in range(steps):
         if step and stop():
             break
         inputs, labels = data.batch(batch)
-        loss = loss_fn(net(inputs), labels)
+        loss = loss_fn(net(inputs, pooled=pooled), labels)
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()
