@@ -92,7 +92,7 @@ class TrainConfig(RewardWeights):
     distill_lr: float = 1e-3  # with privileged: the student's Adam learning rate
     distill_batch: int = 128  # with privileged: labelled images per gradient step of the student
     distill_steps: int = 40  # with privileged: gradient steps after each rollout (of rollout_steps x cars)
-    distill_speed_scale: float = 1.0  # with privileged: the student's labels ask for this share of the teacher's speed (a margin for a camera that sees less than the teacher's state)
+    distill_speed_scale: float = 0.8  # with privileged: the student's labels ask for this share of the teacher's speed (a margin for a camera that sees less than the teacher's state; at 1.0 and 0.9 students left the road at one corner a lap, train README)
     distill_samples: int = 60000  # with privileged: labelled images kept (beyond: new ones replace random old ones)
     # ---- budget, logging, outputs
     minutes: float = 10.0  # wall-clock budget, including evaluations and checkpoints
