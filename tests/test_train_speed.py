@@ -161,3 +161,11 @@ def test_update_precision_auto_follows_the_cpu_and_a_bad_value_is_refused():
     assert update_in_bfloat16("bfloat16") and not update_in_bfloat16("float32")
     with pytest.raises(ValueError, match="update_precision.*float16"):
         make_config("fast", update_precision="float16")
+
+
+def test_the_throughput_preset_keeps_fasts_batch_and_overlaps_the_update():
+    fast, throughput = make_config("fast"), make_config("throughput")
+    assert throughput.overlap_update and not fast.overlap_update
+    assert (throughput.cars_per_env, throughput.rollout_steps) == (8, 128)
+    assert throughput.batch_size == fast.batch_size == 2048
+    assert input_pooling(throughput) == input_pooling(fast) == 4

@@ -238,12 +238,13 @@ def run_bench(seconds: float = 3.0, replay_seconds: float = 240.0, progress=prin
     if training_seconds:  # the full PPO loop (sampling + updates) on 2 worker processes
         from ..train.throughput import training_throughput
 
-        figures["training"] = training_throughput(seconds=training_seconds)
-        training = figures["training"]
-        progress(f"training (PPO, sampling + updates, 2 workers): {training['agent_steps_per_s']:.0f} agent-steps/s "
-                 f"({100 * training['sampling_share']:.0f} % of the time sampling, "
-                 f"{100 * training['update_share']:.0f} % updating; "
-                 f"{training['cpu_us_per_agent_step']} CPU us per agent-step)")
+        for key, preset in (("training", "fast"), ("training_throughput", "throughput")):
+            figures[key] = training = training_throughput(seconds=training_seconds, preset=preset)
+            progress(f"training (PPO, sampling + updates, 2 workers, --config {preset}): "
+                     f"{training['agent_steps_per_s']:.0f} agent-steps/s "
+                     f"({100 * training['sampling_share']:.0f} % of the time sampling, "
+                     f"{100 * training['update_share']:.0f} % updating; "
+                     f"{training['cpu_us_per_agent_step']} CPU us per agent-step)")
     figures["cli_help_s"] = cli_start_seconds()
     progress(f"`multirace --help`, whole process: {figures['cli_help_s']['median']} s (median)")
     figures["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
@@ -307,11 +308,12 @@ def format_table(figures: dict) -> list[tuple[str, str]]:
         ("peak RSS of the bench process (MB)", f"{figures['peak_rss_mb']}"),
         ("`multirace --help`, whole process (s, median)", f"{figures['cli_help_s']['median']}"),
     ]
-    if "training" in figures:
-        training = figures["training"]
-        rows.append(("PPO loop, 2 workers (agent-steps/s; CPU us per agent-step)",
-                     f"{training['agent_steps_per_s']:,.0f}; {training['cpu_us_per_agent_step']} (sampling "
-                     f"{100 * training['sampling_share']:.0f} %, updates {100 * training['update_share']:.0f} %)"))
+    for key, label in (("training", "PPO loop, 2 workers"), ("training_throughput", "PPO loop, --config throughput")):
+        if key in figures:
+            training = figures[key]
+            rows.append((f"{label} (agent-steps/s; CPU us per agent-step)",
+                         f"{training['agent_steps_per_s']:,.0f}; {training['cpu_us_per_agent_step']} (sampling "
+                         f"{100 * training['sampling_share']:.0f} %, updates {100 * training['update_share']:.0f} %)"))
     if "replay" in figures:
         replay = figures["replay"]
         rows.append((f"replay, 4 cars, {replay['steps'] / 15:g} s race", f"{replay['replay_mb']} MB, "
