@@ -8,11 +8,14 @@ texture in equal steps (the "mode 7" walk), nearest-texel like PyBullet's
 TinyRenderer (the texture has 1 cm texels). Above the horizon the sky is
 filled in. The same map as a 3x3 homography (`ground_homography`, for
 `cv2.warpPerspective`) is kept for tools; the cast and the warp pick the same
-texel but where a pixel falls on a texel boundary to within rounding. Other cars and the obstacles are
+texel but where a pixel falls on a texel boundary to within rounding. A grey
+row's texels are looked up 16 at a time (`gather.gather_bytes`, one vector
+gather where the CPU has one). Other cars and the obstacles are
 flat-coloured boxes, as in the PyBullet reference: a box's silhouette is the
 convex hull of its corners (clipped at the near plane), filled far to near so
-nearer boxes hide farther ones, all in one compiled call
-(`box_raster.draw_boxes`). The camera's own car is never drawn.
+nearer boxes hide farther ones (`box_raster.draw_boxes`). Ground and boxes of
+all cameras are drawn in one compiled call (`render_scene`) into one
+(n, H, W, C) array. The camera's own car is never drawn.
 """
 from __future__ import annotations
 
@@ -24,6 +27,7 @@ import numpy as np
 
 from .box_raster import draw_boxes
 from .camera import NEAR_PLANE, CameraPose, CameraSpec, Renderer
+from .gather import GATHER_PAD, LANES, gather_bytes
 from ..sim.texture import TrackTexture
 from ..sim.world import CAR_COLOURS, OBSTACLE_COLOUR, OBSTACLE_SIZE
 
@@ -62,6 +66,11 @@ class FastRenderer(Renderer):
         self._texture_size = self._ground.shape[:2]
         self._texels = bordered_texels(self._ground.reshape(*self._texture_size, -1), self._floor_value)
         self._car_size: np.ndarray | None = None
+        self._image_shape = (spec.height, spec.width, spec.channels)
+        x0, y0 = texture.origin
+        self._scene = (self._texels, *self._texture_size, float(texture.ppm), float(x0), float(y0), self._focal,
+                       self._cx, self._cy, self._sky_value, self._floor_value, self._car_colours,
+                       self._obstacle_size, self._obstacle_colour, NEAR_PLANE)
 
     # ------------------------------------------------------------- ground
     def ground_homography(self, pose: CameraPose, first_row: int = 0) -> np.ndarray:
@@ -89,33 +98,35 @@ class FastRenderer(Renderer):
     def render(self, world, car: int, pose: CameraPose) -> np.ndarray:
         return self.render_many(world, [car], pose.eye[None], pose.rotation[None])[0]
 
-    def render_many(self, world, cars: list[int], eyes: np.ndarray, rotations: np.ndarray) -> list[np.ndarray]:
-        """Images of several cameras at once: the ground of all of them in one compiled call, then all boxes in
-        another."""
-        spec = self.spec
-        images = np.empty((len(cars), spec.height, spec.width, spec.channels), np.uint8)
-        x0, y0 = self.texture.origin
-        cast_ground(images, self._texels, *self._texture_size, eyes, rotations, float(self.texture.ppm), float(x0),
-                    float(y0), self._focal, self._cx, self._cy, self._sky_value, self._floor_value)
+    def render_many(self, world, cars, eyes: np.ndarray, rotations: np.ndarray) -> np.ndarray:
+        """Images (n, H, W, C) of several cameras at once, ground and boxes in one compiled call."""
         if self._car_size is None:
             car = world.spec
             self._car_size = np.array((car.length, car.width, car.height))
-        draw_boxes(images, eyes, rotations,
-                   np.asarray(cars, dtype=np.int64), world.poses, world.parked,
-                   self._car_size, self._car_colours,
-                   world.obstacle_poses, self._obstacle_size, self._obstacle_colour,
-                   self._focal, self._cx, self._cy, NEAR_PLANE)
-        return list(images)
+        images = np.empty((len(cars), *self._image_shape), np.uint8)
+        render_scene(images, eyes, rotations, np.asarray(cars, dtype=np.int64), world.poses, world.parked,
+                     world.obstacle_poses, self._car_size, *self._scene)
+        return images
+
+
+@numba.njit(cache=True)
+def render_scene(images, eyes, rotations, cars, car_poses, parked, obstacle_poses, car_size, flat_texels, rows,
+                 columns, ppm, x0, y0, focal, cx, cy, sky, floor, car_colours, obstacle_size, obstacle_colour, near):
+    """`cast_ground`, then `draw_boxes`: one call from Python per batch of cameras."""
+    cast_ground(images, flat_texels, rows, columns, eyes, rotations, ppm, x0, y0, focal, cx, cy, sky, floor)
+    draw_boxes(images, eyes, rotations, cars, car_poses, parked, car_size, car_colours, obstacle_poses,
+               obstacle_size, obstacle_colour, focal, cx, cy, near)
 
 
 def bordered_texels(texels: np.ndarray, floor: np.ndarray) -> np.ndarray:
     """The texture (rows, columns, C) with a one-texel border of the floor colour, flattened: the cast clamps
-    every texel index into this border, so ground beyond the texture is floor without a test per pixel."""
+    every texel index into this border, so ground beyond the texture is floor without a test per pixel. Padded
+    with `GATHER_PAD` bytes for `gather_bytes`."""
     rows, columns, channels = texels.shape
     bordered = np.empty((rows + 2, columns + 2, channels), np.uint8)
     bordered[:] = floor
     bordered[1:-1, 1:-1] = texels
-    return bordered.ravel()
+    return np.concatenate([bordered.ravel(), np.zeros(GATHER_PAD, np.uint8)])
 
 
 @numba.njit(cache=True)
@@ -127,12 +138,13 @@ def cast_ground(images, flat_texels, rows, columns, eyes, rotations, ppm, x0, y0
     (x, y) has the direction right (x - cx) / f + down (y - cy) / f + forward and meets the ground at
     eye - eye_z / dir_z dir. Without roll (right_z = 0) dir_z, hence the depth, is the same along a row and
     the texel walks a straight line in equal steps; a rolled camera takes a division per pixel. The sky is
-    filled a slice per channel and the ground's pixels written element by element: a view per row costs
-    more than it saves at this size.
+    filled a slice per channel; a grey row's texels are gathered 16 at a time, colour ones element by element
+    (a view per row costs more than it saves at this size).
     """
     n, height, width, channels = images.shape
     inv_f = 1.0 / focal
     index = np.empty(width, np.int32)
+    steps = np.arange(width).astype(np.float32)
     for k in range(n):
         r = rotations[k]
         ez = eyes[k, 2]
@@ -148,11 +160,14 @@ def cast_ground(images, flat_texels, rows, columns, eyes, rotations, ppm, x0, y0
             by = r[2, 1] + r[1, 1] * down - ay * cx
             bz = r[2, 2] + r[1, 2] * down - az * cx
             if az == 0.0:
-                _walk_row(index, bz, ez, east, south, bx, by, ax, ay, ppm, rows, columns)
+                _walk_row(index, steps, bz, ez, east, south, bx, by, ax, ay, ppm, rows, columns)
             else:
                 _divide_row(index, bz, az, ez, east, south, bx, by, ax, ay, ppm, rows, columns)
             if channels == 1:
-                for x in range(width):
+                first_pixel = (k * height + y) * width
+                for x in range(0, width - LANES + 1, LANES):
+                    gather_bytes(flat_texels, index, x, images, first_pixel + x)
+                for x in range(width - width % LANES, width):
                     images[k, y, x, 0] = flat_texels[index[x]]
             else:
                 for x in range(width):
@@ -161,7 +176,7 @@ def cast_ground(images, flat_texels, rows, columns, eyes, rotations, ppm, x0, y0
 
 
 @numba.njit(cache=True, fastmath=True)
-def _walk_row(index, bz, ez, east, south, bx, by, ax, ay, ppm, rows, columns):
+def _walk_row(index, steps, bz, ez, east, south, bx, by, ax, ay, ppm, rows, columns):
     """The texels of one image row of a camera without roll: a straight walk through the texture in equal
     steps. In single precision (vectorised; a texel is 1 cm, the walk's rounding far below it) and within
     the bordered texture: the walk's coordinates are clamped into the border before the conversion."""
@@ -177,7 +192,7 @@ def _walk_row(index, bz, ez, east, south, bx, by, ax, ay, ppm, rows, columns):
     zero, last_u, last_v = np.float32(0.0), np.float32(columns + 1), np.float32(rows + 1)
     stride = np.int32(columns + 2)
     for x in range(width):
-        step = np.float32(x)
+        step = steps[x]
         u = np.int32(min(max(u0 + du * step, zero), last_u))
         v = np.int32(min(max(v0 + dv * step, zero), last_v))
         index[x] = v * stride + u
