@@ -38,7 +38,7 @@ def _gray(rgb) -> int:
 
 
 class FastRenderer(Renderer):
-    """Camera images from one texture warp per frame and a few filled polygons."""
+    """Camera images from a row-by-row cast of the track's texture and a few filled polygons."""
 
     def __init__(self, spec: CameraSpec, texture: TrackTexture):
         super().__init__(spec)
@@ -51,26 +51,24 @@ class FastRenderer(Renderer):
             self._ground = texture.gray
             self._floor = _gray(palette.floor)
             self._sky = _gray(palette.sky)
-            self._car_colours = np.array([[_gray(c)] for c in CAR_COLOURS], np.uint8)
-            self._obstacle_colour = np.array([_gray(OBSTACLE_COLOUR)], np.uint8)
+            car_colours = np.array([[_gray(c)] for c in CAR_COLOURS], np.uint8)
+            obstacle_colour = np.array([_gray(OBSTACLE_COLOUR)], np.uint8)
         else:
             self._ground = texture.rgb
             self._floor = tuple(int(c) for c in palette.floor)
             self._sky = tuple(int(c) for c in palette.sky)
-            self._car_colours = np.array(CAR_COLOURS, np.uint8)
-            self._obstacle_colour = np.array(OBSTACLE_COLOUR, np.uint8)
-        self._obstacle_size = np.array(OBSTACLE_SIZE, dtype=float)
-        # the sky and floor as one value per channel and the bordered texture, for the cast
-        self._sky_value = np.array(np.atleast_1d(self._sky), np.uint8)
-        self._floor_value = np.array(np.atleast_1d(self._floor), np.uint8)
+            car_colours = np.array(CAR_COLOURS, np.uint8)
+            obstacle_colour = np.array(OBSTACLE_COLOUR, np.uint8)
+        # render_scene's inputs, its constants packed in few arrays (each argument costs time in every call):
+        # the bordered texture, (ppm, x0, y0, focal, cx, cy, near plane) and the colours, one value per channel
+        sky, floor = np.array(np.atleast_1d(self._sky), np.uint8), np.array(np.atleast_1d(self._floor), np.uint8)
         self._texture_size = self._ground.shape[:2]
-        self._texels = bordered_texels(self._ground.reshape(*self._texture_size, -1), self._floor_value)
-        self._car_size: np.ndarray | None = None
+        self._texels = bordered_texels(self._ground.reshape(*self._texture_size, -1), floor)
         self._image_shape = (spec.height, spec.width, spec.channels)
         x0, y0 = texture.origin
-        self._scene = (self._texels, *self._texture_size, float(texture.ppm), float(x0), float(y0), self._focal,
-                       self._cx, self._cy, self._sky_value, self._floor_value, self._car_colours,
-                       self._obstacle_size, self._obstacle_colour, NEAR_PLANE)
+        self._view = np.array((texture.ppm, x0, y0, self._focal, self._cx, self._cy, NEAR_PLANE), float)
+        self._colours = np.concatenate([sky[None], floor[None], obstacle_colour[None], car_colours])
+        self._sizes: np.ndarray | None = None  # car and obstacle (length, width, height): the car's from the world
 
     # ------------------------------------------------------------- ground
     def ground_homography(self, pose: CameraPose, first_row: int = 0) -> np.ndarray:
@@ -100,22 +98,26 @@ class FastRenderer(Renderer):
 
     def render_many(self, world, cars, eyes: np.ndarray, rotations: np.ndarray) -> np.ndarray:
         """Images (n, H, W, C) of several cameras at once, ground and boxes in one compiled call."""
-        if self._car_size is None:
+        if self._sizes is None:
             car = world.spec
-            self._car_size = np.array((car.length, car.width, car.height))
+            self._sizes = np.array(((car.length, car.width, car.height), OBSTACLE_SIZE), float)
         images = np.empty((len(cars), *self._image_shape), np.uint8)
         render_scene(images, eyes, rotations, np.asarray(cars, dtype=np.int64), world.poses, world.parked,
-                     world.obstacle_poses, self._car_size, *self._scene)
+                     world.obstacle_poses, self._texels, *self._texture_size, self._view, self._sizes, self._colours)
         return images
 
 
 @numba.njit(cache=True)
-def render_scene(images, eyes, rotations, cars, car_poses, parked, obstacle_poses, car_size, flat_texels, rows,
-                 columns, ppm, x0, y0, focal, cx, cy, sky, floor, car_colours, obstacle_size, obstacle_colour, near):
-    """`cast_ground`, then `draw_boxes`: one call from Python per batch of cameras."""
-    cast_ground(images, flat_texels, rows, columns, eyes, rotations, ppm, x0, y0, focal, cx, cy, sky, floor)
-    draw_boxes(images, eyes, rotations, cars, car_poses, parked, car_size, car_colours, obstacle_poses,
-               obstacle_size, obstacle_colour, focal, cx, cy, near)
+def render_scene(images, eyes, rotations, cars, car_poses, parked, obstacle_poses, flat_texels, rows, columns, view,
+                 sizes, colours):
+    """`cast_ground`, then `draw_boxes`: one call from Python per batch of cameras. view is (ppm, x0, y0, focal,
+    cx, cy, near plane); sizes (2, 3) the car's and the obstacles' (length, width, height); colours (3 + K, C)
+    the sky, the floor, the obstacles and the K car colours."""
+    ppm, x0, y0, focal, cx, cy, near = view[0], view[1], view[2], view[3], view[4], view[5], view[6]
+    cast_ground(images, flat_texels, rows, columns, eyes, rotations, ppm, x0, y0, focal, cx, cy, colours[0],
+                colours[1])
+    draw_boxes(images, eyes, rotations, cars, car_poses, parked, sizes[0], colours[3:], obstacle_poses, sizes[1],
+               colours[2], focal, cx, cy, near)
 
 
 def bordered_texels(texels: np.ndarray, floor: np.ndarray) -> np.ndarray:
@@ -179,7 +181,8 @@ def cast_ground(images, flat_texels, rows, columns, eyes, rotations, ppm, x0, y0
 def _walk_row(index, steps, bz, ez, east, south, bx, by, ax, ay, ppm, rows, columns):
     """The texels of one image row of a camera without roll: a straight walk through the texture in equal
     steps. In single precision (vectorised; a texel is 1 cm, the walk's rounding far below it) and within
-    the bordered texture: the walk's coordinates are clamped into the border before the conversion."""
+    the bordered texture: the walk's coordinates are clamped into the border before the conversion, unless
+    both ends of the row lie inside it (the walk is monotonic, so then all of it does)."""
     width = index.shape[0]
     if bz >= 0.0:  # the row looks at or above the horizon: no ground, floor colour
         for x in range(width):
@@ -191,6 +194,14 @@ def _walk_row(index, steps, bz, ez, east, south, bx, by, ax, ay, ppm, rows, colu
     v0, dv = np.float32(south * ppm - scale * by + 1.5), np.float32(-scale * ay)
     zero, last_u, last_v = np.float32(0.0), np.float32(columns + 1), np.float32(rows + 1)
     stride = np.int32(columns + 2)
+    first, last = steps[0], steps[width - 1]
+    u_first, u_last, v_first, v_last = u0 + du * first, u0 + du * last, v0 + dv * first, v0 + dv * last
+    if (zero <= min(u_first, u_last) and max(u_first, u_last) <= last_u
+            and zero <= min(v_first, v_last) and max(v_first, v_last) <= last_v):
+        for x in range(width):
+            step = steps[x]
+            index[x] = np.int32(v0 + dv * step) * stride + np.int32(u0 + du * step)
+        return
     for x in range(width):
         step = steps[x]
         u = np.int32(min(max(u0 + du * step, zero), last_u))
