@@ -116,6 +116,19 @@ def _warped(renderer, pose):
     return image
 
 
+def _jittered_pose(spec, car_pose, rng, rolled):
+    """The camera of a car at (x, y, yaw) turned by a random yaw and jittered; `rolled`: also rolled about its
+    forward axis (a division per pixel in the cast)."""
+    x, y, yaw = car_pose
+    pose = camera_pose(spec, (x, y, yaw + rng.normal(0, 0.3)), rng.normal(0, [0.05, 0.05, 0.01]))
+    if rolled:
+        angle = rng.normal(0, 0.1)
+        right, down = pose.rotation[0].copy(), pose.rotation[1].copy()
+        pose.rotation[0] = math.cos(angle) * right + math.sin(angle) * down
+        pose.rotation[1] = -math.sin(angle) * right + math.cos(angle) * down
+    return pose
+
+
 @pytest.mark.parametrize("grayscale", [True, False])
 def test_the_ground_cast_picks_the_texels_of_the_homography_warp(grayscale):
     """The row-by-row cast and the exact homography differ only where a pixel falls on a texel boundary to
@@ -132,12 +145,7 @@ def test_the_ground_cast_picks_the_texels_of_the_homography_warp(grayscale):
     for k in range(40):
         s = rng.uniform(0, env.track.length)
         x, y, yaw = env.track.point_at(s, rng.uniform(-0.4, 0.4))
-        pose = camera_pose(spec, (x, y, yaw + rng.normal(0, 0.3)), rng.normal(0, [0.05, 0.05, 0.01]))
-        if k % 4 == 3:  # roll the camera about its forward axis
-            angle = rng.normal(0, 0.1)
-            right, down = pose.rotation[0].copy(), pose.rotation[1].copy()
-            pose.rotation[0] = math.cos(angle) * right + math.sin(angle) * down
-            pose.rotation[1] = -math.sin(angle) * right + math.cos(angle) * down
+        pose = _jittered_pose(spec, (x, y, yaw), rng, rolled=k % 4 == 3)
         cast, warped = renderer.render(world, 0, pose), _warped(renderer, pose)
         shares.append(np.any(cast != warped, axis=2).mean())
     assert max(shares) <= 0.005 and np.mean(shares) <= 0.001, (max(shares), np.mean(shares))
@@ -167,12 +175,7 @@ def _recorded_views():
                     world.place_obstacle(0, *track.point_at(s + rng.uniform(0.4, 2.0), rng.uniform(-0.3, 0.3)))
                 if k == 7:
                     x, y = x + 2.0, y - 1.5  # off the track
-                pose = camera_pose(spec, (x, y, yaw + rng.normal(0, 0.3)), rng.normal(0, [0.05, 0.05, 0.01]))
-                if k % 4 == 3:  # roll the camera about its forward axis
-                    angle = rng.normal(0, 0.1)
-                    right, down = pose.rotation[0].copy(), pose.rotation[1].copy()
-                    pose.rotation[0] = math.cos(angle) * right + math.sin(angle) * down
-                    pose.rotation[1] = -math.sin(angle) * right + math.cos(angle) * down
+                pose = _jittered_pose(spec, (x, y, yaw), rng, rolled=k % 4 == 3)
                 views[f"{track_name} {'grey' if grayscale else 'colour'} {k}"] = renderer.render(world, 0, pose)
         env.close()
     return views
