@@ -162,7 +162,10 @@ def cast_ground(images, flat_texels, rows, columns, eyes, rotations, ppm, x0, y0
             by = r[2, 1] + r[1, 1] * down - ay * cx
             bz = r[2, 2] + r[1, 2] * down - az * cx
             if az == 0.0:
-                _walk_row(index, steps, bz, ez, east, south, bx, by, ax, ay, ppm, rows, columns)
+                if _walk_row(index, steps, bz, ez, east, south, bx, by, ax, ay, ppm, rows, columns):
+                    for c in range(channels):  # the whole row beyond the texture
+                        images[k, y, :, c] = floor[c]
+                    continue
             else:
                 _divide_row(index, bz, az, ez, east, south, bx, by, ax, ay, ppm, rows, columns)
             if channels == 1:
@@ -182,12 +185,11 @@ def _walk_row(index, steps, bz, ez, east, south, bx, by, ax, ay, ppm, rows, colu
     """The texels of one image row of a camera without roll: a straight walk through the texture in equal
     steps. In single precision (vectorised; a texel is 1 cm, the walk's rounding far below it) and within
     the bordered texture: the walk's coordinates are clamped into the border before the conversion, unless
-    both ends of the row lie inside it (the walk is monotonic, so then all of it does)."""
+    both ends of the row lie inside it (the walk is monotonic, so then all of it does). Returns whether the
+    whole row lies in the border (floor colour), leaving `index` as it was."""
     width = index.shape[0]
     if bz >= 0.0:  # the row looks at or above the horizon: no ground, floor colour
-        for x in range(width):
-            index[x] = 0
-        return
+        return True
     scale = -ez / bz * ppm  # texels per unit of the ray's direction, on the ground
     # + 0.5, then truncation: the nearest texel; + 1: the border's offset
     u0, du = np.float32(east * ppm + scale * bx + 1.5), np.float32(scale * ax)
@@ -196,17 +198,21 @@ def _walk_row(index, steps, bz, ez, east, south, bx, by, ax, ay, ppm, rows, colu
     stride = np.int32(columns + 2)
     first, last = steps[0], steps[width - 1]
     u_first, u_last, v_first, v_last = u0 + du * first, u0 + du * last, v0 + dv * first, v0 + dv * last
-    if (zero <= min(u_first, u_last) and max(u_first, u_last) <= last_u
-            and zero <= min(v_first, v_last) and max(v_first, v_last) <= last_v):
+    u_low, u_high = min(u_first, u_last), max(u_first, u_last)
+    v_low, v_high = min(v_first, v_last), max(v_first, v_last)
+    if u_high < 1 or u_low >= last_u or v_high < 1 or v_low >= last_v:  # every texel in the border
+        return True
+    if zero <= u_low and u_high <= last_u and zero <= v_low and v_high <= last_v:
         for x in range(width):
             step = steps[x]
             index[x] = np.int32(v0 + dv * step) * stride + np.int32(u0 + du * step)
-        return
+        return False
     for x in range(width):
         step = steps[x]
         u = np.int32(min(max(u0 + du * step, zero), last_u))
         v = np.int32(min(max(v0 + dv * step, zero), last_v))
         index[x] = v * stride + u
+    return False
 
 
 @numba.njit(cache=True)
