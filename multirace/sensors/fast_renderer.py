@@ -8,9 +8,7 @@ texture in equal steps (the "mode 7" walk), nearest-texel like PyBullet's
 TinyRenderer (the texture has 1 cm texels). Above the horizon the sky is
 filled in. The same map as a 3x3 homography (`ground_homography`, for
 `cv2.warpPerspective`) is kept for tools; the cast and the warp pick the same
-texel but where a pixel falls on a texel boundary to within rounding. A grey
-row's texels are looked up 16 at a time (`gather.gather_bytes`, one vector
-gather where the CPU has one). Other cars and the obstacles are
+texel but where a pixel falls on a texel boundary to within rounding. Other cars and the obstacles are
 flat-coloured boxes, as in the PyBullet reference: a box's silhouette is the
 convex hull of its corners (clipped at the near plane), filled far to near so
 nearer boxes hide farther ones (`box_raster.draw_boxes`). Ground and boxes of
@@ -27,7 +25,6 @@ import numpy as np
 
 from .box_raster import draw_boxes
 from .camera import NEAR_PLANE, CameraPose, CameraSpec, Renderer
-from .gather import GATHER_PAD, LANES, gather_bytes
 from ..sim.texture import TrackTexture
 from ..sim.world import CAR_COLOURS, OBSTACLE_COLOUR, OBSTACLE_SIZE
 
@@ -122,13 +119,12 @@ def render_scene(images, eyes, rotations, cars, car_poses, parked, obstacle_pose
 
 def bordered_texels(texels: np.ndarray, floor: np.ndarray) -> np.ndarray:
     """The texture (rows, columns, C) with a one-texel border of the floor colour, flattened: the cast clamps
-    every texel index into this border, so ground beyond the texture is floor without a test per pixel. Padded
-    with `GATHER_PAD` bytes for `gather_bytes`."""
+    every texel index into this border, so ground beyond the texture is floor without a test per pixel."""
     rows, columns, channels = texels.shape
     bordered = np.empty((rows + 2, columns + 2, channels), np.uint8)
     bordered[:] = floor
     bordered[1:-1, 1:-1] = texels
-    return np.concatenate([bordered.ravel(), np.zeros(GATHER_PAD, np.uint8)])
+    return bordered.ravel()
 
 
 @numba.njit(cache=True)
@@ -140,12 +136,12 @@ def cast_ground(images, flat_texels, rows, columns, eyes, rotations, ppm, x0, y0
     (x, y) has the direction right (x - cx) / f + down (y - cy) / f + forward and meets the ground at
     eye - eye_z / dir_z dir. Without roll (right_z = 0) dir_z, hence the depth, is the same along a row and
     the texel walks a straight line in equal steps; a rolled camera takes a division per pixel. The sky is
-    filled a slice per channel; a grey row's texels are gathered 16 at a time, colour ones element by element
-    (a view per row costs more than it saves at this size).
+    filled a slice per channel and the ground's pixels written element by element (a view per row costs more
+    than it saves at this size), their texel indices unsigned (no test for a negative index per lookup).
     """
     n, height, width, channels = images.shape
     inv_f = 1.0 / focal
-    index = np.empty(width, np.int32)
+    index = np.empty(width, np.uint32)  # unsigned: a lookup without a test for negative indices
     steps = np.arange(width).astype(np.float32)
     for k in range(n):
         r = rotations[k]
@@ -169,10 +165,7 @@ def cast_ground(images, flat_texels, rows, columns, eyes, rotations, ppm, x0, y0
             else:
                 _divide_row(index, bz, az, ez, east, south, bx, by, ax, ay, ppm, rows, columns)
             if channels == 1:
-                first_pixel = (k * height + y) * width
-                for x in range(0, width - LANES + 1, LANES):
-                    gather_bytes(flat_texels, index, x, images, first_pixel + x)
-                for x in range(width - width % LANES, width):
+                for x in range(width):
                     images[k, y, x, 0] = flat_texels[index[x]]
             else:
                 for x in range(width):
