@@ -28,6 +28,8 @@ from .camera import NEAR_PLANE, CameraPose, CameraSpec, Renderer
 from ..sim.texture import TrackTexture
 from ..sim.world import CAR_COLOURS, OBSTACLE_COLOUR, OBSTACLE_SIZE
 
+_UINT8 = np.dtype(np.uint8)  # a dtype object: np.empty takes it faster than np.uint8
+
 
 def _gray(rgb) -> int:
     r, g, b = rgb
@@ -98,7 +100,7 @@ class FastRenderer(Renderer):
         if self._sizes is None:
             car = world.spec
             self._sizes = np.array(((car.length, car.width, car.height), OBSTACLE_SIZE), float)
-        images = np.empty((len(cars), *self._image_shape), np.uint8)
+        images = np.empty((len(cars),) + self._image_shape, _UINT8)
         render_scene(images, eyes, rotations, np.asarray(cars, dtype=np.int64), world.poses, world.parked,
                      world.obstacle_poses, self._texels, *self._texture_size, self._view, self._sizes, self._colours)
         return images
