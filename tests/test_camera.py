@@ -1,5 +1,7 @@
 """Camera images: the road where it should be, and the fast renderer agreeing with PyBullet's."""
 import math
+import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -114,6 +116,19 @@ def _warped(renderer, pose):
     return image
 
 
+def _jittered_pose(spec, car_pose, rng, rolled):
+    """The camera of a car at (x, y, yaw) turned by a random yaw and jittered; `rolled`: also rolled about its
+    forward axis (a division per pixel in the cast)."""
+    x, y, yaw = car_pose
+    pose = camera_pose(spec, (x, y, yaw + rng.normal(0, 0.3)), rng.normal(0, [0.05, 0.05, 0.01]))
+    if rolled:
+        angle = rng.normal(0, 0.1)
+        right, down = pose.rotation[0].copy(), pose.rotation[1].copy()
+        pose.rotation[0] = math.cos(angle) * right + math.sin(angle) * down
+        pose.rotation[1] = -math.sin(angle) * right + math.cos(angle) * down
+    return pose
+
+
 @pytest.mark.parametrize("grayscale", [True, False])
 def test_the_ground_cast_picks_the_texels_of_the_homography_warp(grayscale):
     """The row-by-row cast and the exact homography differ only where a pixel falls on a texel boundary to
@@ -130,12 +145,58 @@ def test_the_ground_cast_picks_the_texels_of_the_homography_warp(grayscale):
     for k in range(40):
         s = rng.uniform(0, env.track.length)
         x, y, yaw = env.track.point_at(s, rng.uniform(-0.4, 0.4))
-        pose = camera_pose(spec, (x, y, yaw + rng.normal(0, 0.3)), rng.normal(0, [0.05, 0.05, 0.01]))
-        if k % 4 == 3:  # roll the camera about its forward axis
-            angle = rng.normal(0, 0.1)
-            right, down = pose.rotation[0].copy(), pose.rotation[1].copy()
-            pose.rotation[0] = math.cos(angle) * right + math.sin(angle) * down
-            pose.rotation[1] = -math.sin(angle) * right + math.cos(angle) * down
+        pose = _jittered_pose(spec, (x, y, yaw), rng, rolled=k % 4 == 3)
         cast, warped = renderer.render(world, 0, pose), _warped(renderer, pose)
         shares.append(np.any(cast != warped, axis=2).mean())
     assert max(shares) <= 0.005 and np.mean(shares) <= 0.001, (max(shares), np.mean(shares))
+
+
+RECORDED_IMAGES = Path(__file__).parent / "recorded" / "camera_images.npz"
+
+
+def _recorded_views():
+    """{name: image} of the fast renderer on fixed scenes: three tracks, grey and colour, other cars and
+    obstacles in view, cameras jittered, rolled and off the track."""
+    views = {}
+    for t, track_name in enumerate(("reinvent_base", "Monaco", "2022_summit_speedway")):
+        env = multirace.parallel_env(track=track_name, num_cars=4, obstacles=2)
+        env.reset(seed=0)
+        world, track = env.world, env.track
+        rng = np.random.default_rng(t)
+        for grayscale in (True, False):
+            spec = CameraSpec(grayscale=grayscale)
+            renderer = FastRenderer(spec, env.texture)
+            for k in range(8 if grayscale else 3):
+                s = rng.uniform(0, track.length)
+                x, y, yaw = track.point_at(s, rng.uniform(-0.4, 0.4))
+                if k >= 2:  # cars and a box ahead, near and far
+                    for car in (1, 2, 3):
+                        world.place_car(car, *track.point_at(s + 0.3 * car * k / 2, rng.uniform(-0.3, 0.3)))
+                    world.place_obstacle(0, *track.point_at(s + rng.uniform(0.4, 2.0), rng.uniform(-0.3, 0.3)))
+                if k == 7:
+                    x, y = x + 2.0, y - 1.5  # off the track
+                pose = _jittered_pose(spec, (x, y, yaw), rng, rolled=k % 4 == 3)
+                views[f"{track_name} {'grey' if grayscale else 'colour'} {k}"] = renderer.render(world, 0, pose)
+        env.close()
+    return views
+
+
+def test_the_fast_renderer_draws_the_recorded_images_bit_for_bit():
+    """A change to the renderer's speed must not change its images: the pixels are compared with images recorded
+    from the renderer (tests/recorded/camera_images.npz), tolerance none. Races and trained agents depend on the
+    exact pixels (a rounding change in the walk once changed a race's winner). The walk rounds in single
+    precision with fused multiply-adds, so a CPU without FMA may draw a few pixels otherwise. Re-record (only
+    for a change meant to change images, saying why and by how much in the commit):
+    ``MULTIRACE_RECORD=1 python -m pytest tests/test_camera.py -k recorded``."""
+    views = _recorded_views()
+    if os.environ.get("MULTIRACE_RECORD"):
+        np.savez_compressed(RECORDED_IMAGES, **views)
+    recorded = np.load(RECORDED_IMAGES)
+    assert sorted(recorded.files) == sorted(views)
+    changed = {}
+    for name, image in views.items():
+        differ = np.any(image != recorded[name], axis=2)
+        if differ.any():
+            most = np.abs(image.astype(int) - recorded[name]).max()
+            changed[name] = f"{differ.sum()} pixels differ, by up to {most}"
+    assert not changed, changed

@@ -155,8 +155,9 @@ def _fill_convex(image, polygon, count, colour):
     for row in range(max(int(math.ceil(top)), 0), min(int(math.floor(bottom)), height - 1) + 1):
         left, right = math.inf, -math.inf
         for i in range(count):
+            j = i + 1 if i + 1 < count else 0  # not (i + 1) % count: an integer division per edge and row
             x0, y0 = polygon[i, 0], polygon[i, 1]
-            x1, y1 = polygon[(i + 1) % count, 0], polygon[(i + 1) % count, 1]
+            x1, y1 = polygon[j, 0], polygon[j, 1]
             if (y0 <= row <= y1 or y1 <= row <= y0) and y0 != y1:
                 x = x0 + (row - y0) * (x1 - x0) / (y1 - y0)
                 left, right = min(left, x), max(right, x)

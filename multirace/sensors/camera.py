@@ -127,8 +127,9 @@ class Renderer:
         """uint8 image (H, W, C) seen from `pose` by car `car` (which is not drawn)."""
         raise NotImplementedError
 
-    def render_many(self, world, cars: list[int], eyes: np.ndarray, rotations: np.ndarray) -> list[np.ndarray]:
-        """Images of several cars' cameras, posed as `camera_poses` returns (renderers may batch this)."""
+    def render_many(self, world, cars: list[int], eyes: np.ndarray, rotations: np.ndarray):
+        """Images of several cars' cameras, posed as `camera_poses` returns: a list of (H, W, C) images or one
+        (n, H, W, C) array (renderers may batch this)."""
         return [self.render(world, car, CameraPose(eye=eye, rotation=rotation))
                 for car, eye, rotation in zip(cars, eyes, rotations)]
 

@@ -11,8 +11,9 @@ filled in. The same map as a 3x3 homography (`ground_homography`, for
 texel but where a pixel falls on a texel boundary to within rounding. Other cars and the obstacles are
 flat-coloured boxes, as in the PyBullet reference: a box's silhouette is the
 convex hull of its corners (clipped at the near plane), filled far to near so
-nearer boxes hide farther ones, all in one compiled call
-(`box_raster.draw_boxes`). The camera's own car is never drawn.
+nearer boxes hide farther ones (`box_raster.draw_boxes`). Ground and boxes of
+all cameras are drawn in one compiled call (`render_scene`) into one
+(n, H, W, C) array. The camera's own car is never drawn.
 """
 from __future__ import annotations
 
@@ -27,6 +28,8 @@ from .camera import NEAR_PLANE, CameraPose, CameraSpec, Renderer
 from ..sim.texture import TrackTexture
 from ..sim.world import CAR_COLOURS, OBSTACLE_COLOUR, OBSTACLE_SIZE
 
+_UINT8 = np.dtype(np.uint8)  # a dtype object: np.empty takes it faster than np.uint8
+
 
 def _gray(rgb) -> int:
     r, g, b = rgb
@@ -34,7 +37,7 @@ def _gray(rgb) -> int:
 
 
 class FastRenderer(Renderer):
-    """Camera images from one texture warp per frame and a few filled polygons."""
+    """Camera images from a row-by-row cast of the track's texture and a few filled polygons."""
 
     def __init__(self, spec: CameraSpec, texture: TrackTexture):
         super().__init__(spec)
@@ -47,21 +50,24 @@ class FastRenderer(Renderer):
             self._ground = texture.gray
             self._floor = _gray(palette.floor)
             self._sky = _gray(palette.sky)
-            self._car_colours = np.array([[_gray(c)] for c in CAR_COLOURS], np.uint8)
-            self._obstacle_colour = np.array([_gray(OBSTACLE_COLOUR)], np.uint8)
+            car_colours = np.array([[_gray(c)] for c in CAR_COLOURS], np.uint8)
+            obstacle_colour = np.array([_gray(OBSTACLE_COLOUR)], np.uint8)
         else:
             self._ground = texture.rgb
             self._floor = tuple(int(c) for c in palette.floor)
             self._sky = tuple(int(c) for c in palette.sky)
-            self._car_colours = np.array(CAR_COLOURS, np.uint8)
-            self._obstacle_colour = np.array(OBSTACLE_COLOUR, np.uint8)
-        self._obstacle_size = np.array(OBSTACLE_SIZE, dtype=float)
-        # the sky and floor as one value per channel and the bordered texture, for the cast
-        self._sky_value = np.array(np.atleast_1d(self._sky), np.uint8)
-        self._floor_value = np.array(np.atleast_1d(self._floor), np.uint8)
+            car_colours = np.array(CAR_COLOURS, np.uint8)
+            obstacle_colour = np.array(OBSTACLE_COLOUR, np.uint8)
+        # render_scene's inputs, its constants packed in few arrays (each argument costs time in every call):
+        # the bordered texture, (ppm, x0, y0, focal, cx, cy, near plane) and the colours, one value per channel
+        sky, floor = np.array(np.atleast_1d(self._sky), np.uint8), np.array(np.atleast_1d(self._floor), np.uint8)
         self._texture_size = self._ground.shape[:2]
-        self._texels = bordered_texels(self._ground.reshape(*self._texture_size, -1), self._floor_value)
-        self._car_size: np.ndarray | None = None
+        self._texels = bordered_texels(self._ground.reshape(*self._texture_size, -1), floor)
+        self._image_shape = (spec.height, spec.width, spec.channels)
+        x0, y0 = texture.origin
+        self._view = np.array((texture.ppm, x0, y0, self._focal, self._cx, self._cy, NEAR_PLANE), float)
+        self._colours = np.concatenate([sky[None], floor[None], obstacle_colour[None], car_colours])
+        self._sizes: np.ndarray | None = None  # car and obstacle (length, width, height): the car's from the world
 
     # ------------------------------------------------------------- ground
     def ground_homography(self, pose: CameraPose, first_row: int = 0) -> np.ndarray:
@@ -89,23 +95,28 @@ class FastRenderer(Renderer):
     def render(self, world, car: int, pose: CameraPose) -> np.ndarray:
         return self.render_many(world, [car], pose.eye[None], pose.rotation[None])[0]
 
-    def render_many(self, world, cars: list[int], eyes: np.ndarray, rotations: np.ndarray) -> list[np.ndarray]:
-        """Images of several cameras at once: the ground of all of them in one compiled call, then all boxes in
-        another."""
-        spec = self.spec
-        images = np.empty((len(cars), spec.height, spec.width, spec.channels), np.uint8)
-        x0, y0 = self.texture.origin
-        cast_ground(images, self._texels, *self._texture_size, eyes, rotations, float(self.texture.ppm), float(x0),
-                    float(y0), self._focal, self._cx, self._cy, self._sky_value, self._floor_value)
-        if self._car_size is None:
+    def render_many(self, world, cars, eyes: np.ndarray, rotations: np.ndarray) -> np.ndarray:
+        """Images (n, H, W, C) of several cameras at once, ground and boxes in one compiled call."""
+        if self._sizes is None:
             car = world.spec
-            self._car_size = np.array((car.length, car.width, car.height))
-        draw_boxes(images, eyes, rotations,
-                   np.asarray(cars, dtype=np.int64), world.poses, world.parked,
-                   self._car_size, self._car_colours,
-                   world.obstacle_poses, self._obstacle_size, self._obstacle_colour,
-                   self._focal, self._cx, self._cy, NEAR_PLANE)
-        return list(images)
+            self._sizes = np.array(((car.length, car.width, car.height), OBSTACLE_SIZE), float)
+        images = np.empty((len(cars),) + self._image_shape, _UINT8)
+        render_scene(images, eyes, rotations, np.asarray(cars, dtype=np.int64), world.poses, world.parked,
+                     world.obstacle_poses, self._texels, *self._texture_size, self._view, self._sizes, self._colours)
+        return images
+
+
+@numba.njit(cache=True)
+def render_scene(images, eyes, rotations, cars, car_poses, parked, obstacle_poses, flat_texels, rows, columns, view,
+                 sizes, colours):
+    """`cast_ground`, then `draw_boxes`: one call from Python per batch of cameras. view is (ppm, x0, y0, focal,
+    cx, cy, near plane); sizes (2, 3) the car's and the obstacles' (length, width, height); colours (3 + K, C)
+    the sky, the floor, the obstacles and the K car colours."""
+    ppm, x0, y0, focal, cx, cy, near = view[0], view[1], view[2], view[3], view[4], view[5], view[6]
+    cast_ground(images, flat_texels, rows, columns, eyes, rotations, ppm, x0, y0, focal, cx, cy, colours[0],
+                colours[1])
+    draw_boxes(images, eyes, rotations, cars, car_poses, parked, sizes[0], colours[3:], obstacle_poses, sizes[1],
+               colours[2], focal, cx, cy, near)
 
 
 def bordered_texels(texels: np.ndarray, floor: np.ndarray) -> np.ndarray:
@@ -127,12 +138,13 @@ def cast_ground(images, flat_texels, rows, columns, eyes, rotations, ppm, x0, y0
     (x, y) has the direction right (x - cx) / f + down (y - cy) / f + forward and meets the ground at
     eye - eye_z / dir_z dir. Without roll (right_z = 0) dir_z, hence the depth, is the same along a row and
     the texel walks a straight line in equal steps; a rolled camera takes a division per pixel. The sky is
-    filled a slice per channel and the ground's pixels written element by element: a view per row costs
-    more than it saves at this size.
+    filled a slice per channel and the ground's pixels written element by element (a view per row costs more
+    than it saves at this size), their texel indices unsigned (no test for a negative index per lookup).
     """
     n, height, width, channels = images.shape
     inv_f = 1.0 / focal
-    index = np.empty(width, np.int32)
+    index = np.empty(width, np.uint32)  # unsigned: a lookup without a test for negative indices
+    steps = np.arange(width).astype(np.float32)
     for k in range(n):
         r = rotations[k]
         ez = eyes[k, 2]
@@ -148,7 +160,10 @@ def cast_ground(images, flat_texels, rows, columns, eyes, rotations, ppm, x0, y0
             by = r[2, 1] + r[1, 1] * down - ay * cx
             bz = r[2, 2] + r[1, 2] * down - az * cx
             if az == 0.0:
-                _walk_row(index, bz, ez, east, south, bx, by, ax, ay, ppm, rows, columns)
+                if _walk_row(index, steps, bz, ez, east, south, bx, by, ax, ay, ppm, rows, columns):
+                    for c in range(channels):  # the whole row beyond the texture
+                        images[k, y, :, c] = floor[c]
+                    continue
             else:
                 _divide_row(index, bz, az, ez, east, south, bx, by, ax, ay, ppm, rows, columns)
             if channels == 1:
@@ -161,26 +176,38 @@ def cast_ground(images, flat_texels, rows, columns, eyes, rotations, ppm, x0, y0
 
 
 @numba.njit(cache=True, fastmath=True)
-def _walk_row(index, bz, ez, east, south, bx, by, ax, ay, ppm, rows, columns):
+def _walk_row(index, steps, bz, ez, east, south, bx, by, ax, ay, ppm, rows, columns):
     """The texels of one image row of a camera without roll: a straight walk through the texture in equal
     steps. In single precision (vectorised; a texel is 1 cm, the walk's rounding far below it) and within
-    the bordered texture: the walk's coordinates are clamped into the border before the conversion."""
+    the bordered texture: the walk's coordinates are clamped into the border before the conversion, unless
+    both ends of the row lie inside it (the walk is monotonic, so then all of it does). Returns whether the
+    whole row lies in the border (floor colour), leaving `index` as it was."""
     width = index.shape[0]
     if bz >= 0.0:  # the row looks at or above the horizon: no ground, floor colour
-        for x in range(width):
-            index[x] = 0
-        return
+        return True
     scale = -ez / bz * ppm  # texels per unit of the ray's direction, on the ground
     # + 0.5, then truncation: the nearest texel; + 1: the border's offset
     u0, du = np.float32(east * ppm + scale * bx + 1.5), np.float32(scale * ax)
     v0, dv = np.float32(south * ppm - scale * by + 1.5), np.float32(-scale * ay)
     zero, last_u, last_v = np.float32(0.0), np.float32(columns + 1), np.float32(rows + 1)
     stride = np.int32(columns + 2)
+    first, last = steps[0], steps[width - 1]
+    u_first, u_last, v_first, v_last = u0 + du * first, u0 + du * last, v0 + dv * first, v0 + dv * last
+    u_low, u_high = min(u_first, u_last), max(u_first, u_last)
+    v_low, v_high = min(v_first, v_last), max(v_first, v_last)
+    if u_high < 1 or u_low >= last_u or v_high < 1 or v_low >= last_v:  # every texel in the border
+        return True
+    if zero <= u_low and u_high <= last_u and zero <= v_low and v_high <= last_v:
+        for x in range(width):
+            step = steps[x]
+            index[x] = np.int32(v0 + dv * step) * stride + np.int32(u0 + du * step)
+        return False
     for x in range(width):
-        step = np.float32(x)
+        step = steps[x]
         u = np.int32(min(max(u0 + du * step, zero), last_u))
         v = np.int32(min(max(v0 + dv * step, zero), last_v))
         index[x] = v * stride + u
+    return False
 
 
 @numba.njit(cache=True)
