@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 import os
 import socket
+import sys
 import threading
 import time
 import traceback
@@ -34,17 +35,19 @@ TRACK_LINES = (("center", (235, 190, 40), 0.01), ("inner", (240, 240, 240), 0.02
 
 
 def serve(sock_fd: int) -> None:
-    """Write the replays the race's process sends on the socket `sock_fd`, one after another, answering each;
-    end after a failed one, or when the race's process closes its end."""
+    """Write the replays the race's process sends on the socket `sock_fd`, one after another, answering each.
+    After a failed replay, or when the race's process closes its end in the middle of one, this process ends
+    at once (`os._exit`: rerun's exit hooks would wait to flush a recording nobody reads)."""
     sock = socket.socket(fileno=sock_fd)
     while (file_fd := next_file(sock)) is not None:
         cpu = time.process_time()
         outcome = _record(sock, file_fd)
-        if outcome is None:  # the race's end closed before `finish`: the race failed or its process ended
-            return
-        answer(sock, ("done", time.process_time() - cpu) if outcome == "done" else outcome)
         if outcome != "done":
-            return
+            if outcome is not None:  # (None: the race's end closed before `finish`, the race failed or ended)
+                answer(sock, outcome)
+            sys.stderr.flush()
+            os._exit(1 if outcome is not None else 0)
+        answer(sock, ("done", time.process_time() - cpu))
 
 
 def _record(sock: socket.socket, file_fd: int) -> str | tuple | None:
@@ -205,7 +208,7 @@ class ReplayWriter:
 
 class _FileCopy:
     """A pipe (`path`, for rerun to open) whose bytes a thread writes to `file`. The first write error is kept,
-    and the rest of the pipe drained, so that its writer never waits; `close` raises it."""
+    and the rest of the pipe drained, so that rerun never waits on it; `close` raises it."""
 
     def __init__(self, file):
         self.file, self.error, self.size = file, None, 0
@@ -230,5 +233,5 @@ class _FileCopy:
                 try:
                     self.file.write(chunk)
                     self.size += len(chunk)
-                except OSError as exc:
+                except (OSError, ValueError) as exc:  # ValueError: the file was closed (a replay given up)
                     self.error = exc
