@@ -53,6 +53,7 @@ APPLICATION_ID = "multirace"
 SHIP_EVERY = 30  # steps whose data go to the writer in one message
 DEFAULT_IMAGE_EVERY = 5  # 3 Hz camera frames
 SCALARS = ("speed", "progress", "reward", "rank", "standing")
+RACE_MARKS = ("laps", "resets", "penalties", "penalty_time", "collisions", "status")  # `_race_state`'s order
 END_TEXT = {
     "finished": "finished",
     "forfeit": "forfeit",
@@ -160,9 +161,9 @@ class ReplayRecorder:
 
     # --------------------------------------------------------------- helpers
     @staticmethod
-    def _race_state(race) -> dict:
-        return {"laps": race.laps, "resets": race.resets, "penalties": race.penalties,
-                "penalty_time": race.penalty_time, "collisions": len(race.collisions), "status": race.status}
+    def _race_state(race) -> tuple:
+        """What of a car's race record makes an event when it changes (RACE_MARKS)."""
+        return race.laps, race.resets, race.penalties, race.penalty_time, len(race.collisions), race.status
 
     def _blueprint(self, n: int):
         import rerun.blueprint as rrb
@@ -203,50 +204,47 @@ class ReplayRecorder:
         row = self._rows
         self._rows += 1
         state = env.race_state
-        step, cars, n = state.step, state.cars, self.n
+        step, cars, agents = state.step, state.cars, self._agents
         self._steps[row], self._times[row] = step, state.time
-        races = [car.race for car in cars]
         # a car is recorded while it races, on the step its run ends, and on the grid at step 0
-        self._active[row] = [race.racing or not ended or step == 0 for race, ended in zip(races, self._ended)]
+        self._active[row] = [not ended or step == 0 for ended in self._ended]
         self._pose[row] = [(car.x, car.y, car.yaw) for car in cars]
-        agents, nan = self._agents, math.nan
-        infos, rewards = infos or {}, rewards or {}
+        infos, rewards, nan = infos or {}, rewards or {}, math.nan
         self._scalars[row] = ([car.speed for car in cars],
                               [infos[a]["progress"] if a in infos else nan for a in agents],
                               [rewards[a] if a in rewards else nan for a in agents],
                               [infos[a]["rank"] if a in infos else nan for a in agents],
-                              env.standings()[:n])
+                              env.standings()[:self.n])
         take_image = bool(self.image_every) and observations is not None and step % self.image_every == 0
-        for i, race in enumerate(races):
+        for i, car in enumerate(cars):
             if self._ended[i]:  # its run ended on an earlier step
                 continue
             agent = agents[i]
             if take_image and agent in observations:
-                image = observations[agent]
-                if isinstance(image, dict):  # a LIDAR env: {"camera", "lidar"}
-                    if env.sensors.lidar == "lidar":  # (SECTOR_LIDAR's 8 sectors have no echo points)
-                        car = state.cars[i]
-                        self._echoes.append((step, state.time, i, env.lidar.echoes((car.x, car.y, car.yaw),
-                                                                                   image["lidar"])))
-                    image = image["camera"]
-                image = np.asarray(image)
-                if image.ndim == 3 and image.shape[2] == 2:  # a stereo pair: its left camera
-                    image = image[..., 0]
-                self._images.append((row, i, np.array(image)))  # a copy: the agent may reuse the array
-            if infos:
-                prev = self._prev[i]
-                if (race.laps != prev["laps"] or race.resets != prev["resets"] or race.penalties != prev["penalties"]
-                        or len(race.collisions) != prev["collisions"] or race.status != prev["status"]
-                        or infos.get(agent, {}).get("events")):
-                    self._log_events(env, state.cars[i], infos)
-            if not race.racing:
-                self._ended[i] = True
+                self._take_image(env, car, observations[agent])
+            if infos and (self._race_state(car.race) != self._prev[i] or agent in infos and infos[agent]["events"]):
+                self._log_events(env, car, infos)
+            self._ended[i] = not car.race.racing
+
+    def _take_image(self, env, car, observation) -> None:
+        """Keep a car's camera image (and LIDAR echoes) of this step for the writer."""
+        state = env.race_state
+        if isinstance(observation, dict):  # a LIDAR env: {"camera", "lidar"}
+            if env.sensors.lidar == "lidar":  # (SECTOR_LIDAR's 8 sectors have no echo points)
+                points = env.lidar.echoes((car.x, car.y, car.yaw), observation["lidar"])
+                self._echoes.append((state.step, state.time, car.index, points))
+            observation = observation["camera"]
+        image = np.asarray(observation)
+        if image.ndim == 3 and image.shape[2] == 2:  # a stereo pair: its left camera
+            image = image[..., 0]
+        self._images.append((self._rows - 1, car.index, np.array(image)))  # a copy: the agent may reuse the array
 
     def _log_events(self, env, car, infos) -> None:
         """Text log entries for what changed in a car's race record this step."""
         state = env.race_state
         i, race, name = car.index, car.race, car.name
-        prev, now = self._prev[i], self._race_state(race)
+        now = self._race_state(race)
+        prev, now = dict(zip(RACE_MARKS, self._prev[i])), dict(zip(RACE_MARKS, now))
         agent = self._agents[i]
         info = infos.get(agent) if agent else None
         step_events = list(info["events"]) if info is not None else []
@@ -276,4 +274,4 @@ class ReplayRecorder:
         if entries:
             clock = float(clock if clock is not None else 0.0)
             self._events.append((state.step, state.time, i, [entry + (clock,) for entry in entries]))
-        self._prev[i] = now
+        self._prev[i] = tuple(now.values())
