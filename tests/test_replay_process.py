@@ -90,7 +90,7 @@ def ended(process) -> bool:
 
 
 def test_a_long_replay_holds_every_step_and_every_camera_frame(tmp_path):
-    # 700 steps in blocks of 100 rows (not a multiple of the 30-step messages), a frame every 7th step: the
+    # 700 steps in blocks of 100 rows (not a multiple of the 90-step messages), a frame every 7th step: the
     # file must hold each car's pose at every step and the very frame of every 7th step, and rerun's reader must
     # read it (two blocks or more once made a file with two manifests, which it refused)
     path, frames = tmp_path / "long.rrd", Frames(every=7)

@@ -50,7 +50,7 @@ from ..sim.world import CAR_COLOURS, OBSTACLE_SIZE
 from .replay_process import WriterProcess, prepare
 
 APPLICATION_ID = "multirace"
-SHIP_EVERY = 30  # steps whose data go to the writer in one message
+SHIP_EVERY = 90  # steps whose data go to the writer in one message (fewer, larger messages wake it less)
 DEFAULT_IMAGE_EVERY = 5  # 3 Hz camera frames
 SCALARS = ("speed", "progress", "reward", "rank", "standing")
 RACE_MARKS = ("laps", "resets", "penalties", "penalty_time", "collisions", "status")  # `_race_state`'s order
