@@ -230,16 +230,8 @@ class ExplainRecorder(ReplayRecorder):
         )
 
     def log_heat(self, step: int, race_time: float, image_rgb: np.ndarray) -> None:
-        """Log one overlay (uint8 RGB) as a JPEG image at `step` / `race_time`."""
-        import rerun as rr
-
-        ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(image_rgb, cv2.COLOR_RGB2BGR),
-                               [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
-        if not ok:
-            return
-        self.rec.set_time("step", sequence=int(step))
-        self.rec.set_time("race_time", duration=float(race_time))
-        self.rec.log("explain/car_0", rr.EncodedImage(contents=jpg.tobytes(), media_type="image/jpeg"))
+        """Record one overlay (uint8 RGB) as a JPEG image at `step` / `race_time`."""
+        self.log_image("explain/car_0", step, race_time, image_rgb)
 
 
 class ExplainController(Controller):

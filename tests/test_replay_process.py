@@ -1,0 +1,187 @@
+"""Replays written by the writer process: every step and every image reaches the file, a writer's failure is an
+error naming the file, and no writer outlives the race's process or a failed race (real races, real processes)."""
+from __future__ import annotations
+
+import hashlib
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from multirace.atomic import OutputError
+from multirace.racing.entrant import BotController
+from multirace.racing.runner import RaceConfig, make_controller, run_race
+from multirace.recording.replay import ReplayRecorder
+from multirace.recording.replay_reader import read_chunks, replay_summary
+
+BOTS = ("bot:follow@1.5", "bot:lanes@1.0", "bot:follow@1.0", "bot:lanes@1.5")
+QUALITY = 75  # the recorder's JPEG quality
+
+
+class Frames:
+    """A recorder that keeps each car's pose every step and the JPEG of its camera frame every `every` steps (up to
+    the step its run ends)."""
+
+    def __init__(self, every: int):
+        self.every, self.poses, self.jpegs = every, {}, {}
+
+    def start(self, env):
+        self.done = [False] * len(env.race_state.cars)
+
+    def step(self, env, observations, rewards, infos):
+        state = env.race_state
+        for i, car in enumerate(state.cars):
+            self.poses[(i, state.step)] = (car.x, car.y)
+            if state.step % self.every == 0 and not self.done[i]:
+                image = observations[env.possible_agents[i]]
+                jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, QUALITY])[1]
+                self.jpegs[(i, state.step)] = hashlib.sha256(jpeg.tobytes()).hexdigest()
+            self.done[i] = not car.racing
+
+    def finish(self, env, result):
+        pass
+
+
+class Act(BotController):
+    """A bot that does `what(self)` once, at step `at`."""
+
+    def __init__(self, spec, at, what):
+        super().__init__(spec)
+        self.at, self.what = at, what
+
+    def act(self, observation, info):
+        if self.env.steps == self.at:
+            self.what(self)
+        return super().act(observation, info)
+
+
+def recorded_images(path) -> dict:
+    """{(car index, step): sha256 of the JPEG} of every camera image in a replay."""
+    found = {}
+    for entity, batches in read_chunks(path).items():
+        if not entity.startswith("cameras/car_"):
+            continue
+        car = int(entity.rsplit("_", 1)[1])
+        for batch in batches:
+            steps = batch.column(batch.schema.get_field_index("step")).to_pylist()
+            blobs = batch.column(batch.schema.get_field_index("EncodedImage:blob")).to_pylist()
+            for step, blob in zip(steps, blobs):
+                assert (car, step) not in found, f"two images of car_{car} at step {step}"
+                found[(car, step)] = hashlib.sha256(bytes(blob[0])).hexdigest()
+    return found
+
+
+def leftovers(folder) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if p.name.startswith("."))
+
+
+def ended(process) -> bool:
+    """Whether the writer's process has ended (a zombie whose parent died counts as ended)."""
+    try:
+        with open(f"/proc/{process}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] in ("Z", "X")
+    except FileNotFoundError:
+        return True
+
+
+def test_a_long_replay_holds_every_step_and_every_camera_frame(tmp_path):
+    # 700 steps in blocks of 100 rows (not a multiple of the 90-step messages), a frame every 7th step: the
+    # file must hold each car's pose at every step and the very frame of every 7th step, and rerun's reader must
+    # read it (two blocks or more once made a file with two manifests, which it refused)
+    path, frames = tmp_path / "long.rrd", Frames(every=7)
+    run_race([make_controller(b) for b in BOTS], RaceConfig(race="reset_rule", laps=1000, max_steps=700),
+             recorders=[frames, ReplayRecorder(path, image_every=7, flush_every=100)])
+    summary = replay_summary(path)
+    assert summary["steps"] == 700
+    for i in range(len(BOTS)):
+        poses = summary["poses"][f"car_{i}"]
+        assert [int(s) for s in poses[:, 0]] == list(range(701)), f"car_{i}: a step is missing"
+        truth = np.array([frames.poses[(i, s)] for s in range(1, 701)])
+        np.testing.assert_allclose(poses[1:, 1:3], truth, atol=1e-5)
+    images = recorded_images(path)
+    assert len(frames.jpegs) == 4 * 100 and images == frames.jpegs  # the right frame at the right step
+
+
+def test_a_replay_does_not_change_the_race(tmp_path):
+    config = RaceConfig(race="head_to_head", laps=1, seed=3, max_steps=300)
+    plain = run_race([make_controller(b) for b in BOTS[:2]], config)
+    recorded = run_race([make_controller(b) for b in BOTS[:2]], config, recorders=[ReplayRecorder(tmp_path / "r.rrd")])
+    assert recorded == plain
+
+
+def test_replays_in_a_row_share_one_writer_process(tmp_path):
+    recorders = [ReplayRecorder(tmp_path / f"{k}.rrd") for k in range(2)]
+    writers = []
+    for recorder in recorders:
+        watch = Act("bot:follow@1.5", 5, lambda car: writers.append(recorder._writer.process.pid))
+        run_race([watch], RaceConfig(laps=1, max_steps=40), recorders=[recorder])
+    assert writers[0] == writers[1]
+    assert [replay_summary(tmp_path / f"{k}.rrd")["steps"] for k in range(2)] == [40, 40]
+
+
+def test_a_writer_that_fails_is_an_error_naming_the_file_and_the_old_file_stays(tmp_path):
+    path = tmp_path / "race.rrd"
+    path.write_bytes(b"the previous replay")
+    recorder = ReplayRecorder(path)
+    bad = np.zeros((8, 8, 7), np.uint8)  # seven channels: no JPEG, the writer's cv2 raises
+    car = Act("bot:follow@1.5", 20, lambda car: recorder.log_image("explain/car_0", 20, 1.0, bad))
+    with pytest.raises(OutputError, match="race.rrd: not written .*the replay writer failed"):
+        run_race([car], RaceConfig(laps=1, max_steps=200), recorders=[recorder])
+    assert path.read_bytes() == b"the previous replay" and leftovers(tmp_path) == []
+
+
+def test_a_killed_writer_is_an_error_naming_the_file_and_the_next_replay_gets_a_new_one(tmp_path):
+    path = tmp_path / "race.rrd"
+    recorder = ReplayRecorder(path)
+    killed = []
+
+    def kill(car):
+        killed.append(recorder._writer.process.pid)
+        os.kill(killed[0], signal.SIGKILL)
+
+    with pytest.raises(OutputError, match="race.rrd: not written .*killed by signal 9"):
+        run_race([Act("bot:follow@1.5", 20, kill)], RaceConfig(laps=1, max_steps=200), recorders=[recorder])
+    assert not path.exists() and leftovers(tmp_path) == [] and ended(killed[0])
+    run_race([make_controller("bot:follow@1.5")], RaceConfig(laps=1, max_steps=30), recorders=[ReplayRecorder(path)])
+    assert replay_summary(path)["steps"] == 30
+
+
+@pytest.mark.parametrize("error", [KeyboardInterrupt, RuntimeError])
+def test_a_race_that_fails_stops_its_writer_and_leaves_no_file(tmp_path, error):
+    path, recorder, writer = tmp_path / "race.rrd", None, []
+
+    def fail(car):
+        writer.append(recorder._writer.process.pid)
+        raise error("stop")
+
+    recorder = ReplayRecorder(path)
+    with pytest.raises(error):
+        run_race([Act("bot:follow@1.5", 40, fail)], RaceConfig(laps=1, max_steps=200), recorders=[recorder])
+    assert ended(writer[0]) and not path.exists() and leftovers(tmp_path) == []
+
+
+def test_a_writer_ends_when_the_race_process_is_killed(tmp_path):
+    code = ("import os, signal, sys\n"
+            "from multirace.racing.runner import RaceConfig, make_controller, run_race\n"
+            "from multirace.recording.replay import ReplayRecorder\n"
+            f"recorder = ReplayRecorder({str(tmp_path / 'race.rrd')!r})\n"
+            "class Die:\n"
+            "    def start(self, env): pass\n"
+            "    def step(self, env, *args):\n"
+            "        if env.steps == 30:\n"
+            "            print(recorder._writer.process.pid, flush=True)\n"
+            "            os.kill(os.getpid(), signal.SIGKILL)\n"
+            "run_race([make_controller('bot:follow@1.5')], RaceConfig(laps=1, max_steps=200),\n"
+            "         recorders=[recorder, Die()])\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == -signal.SIGKILL, done.stderr[-2000:]
+    writer = int(done.stdout.split()[0])
+    deadline = time.monotonic() + 20
+    while not ended(writer) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert ended(writer)
