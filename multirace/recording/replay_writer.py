@@ -113,16 +113,16 @@ class ReplayWriter:
             jpeg = self._encode(image)
             if jpeg is not None:
                 self._frames[car].append((received + row, jpeg))
-        for step, time, entity, image in batch["pictures"]:
+        for step, race_time, entity, image in batch["pictures"]:
             jpeg = self._encode(image)
             if jpeg is not None:
-                self._log(step, time, entity, rr.EncodedImage(contents=jpeg, media_type="image/jpeg"))
-        for step, time, car, points in batch["echoes"]:
-            self._log(step, time, f"world/lidar/{self.ids[car]}",
+                self._log(step, race_time, entity, rr.EncodedImage(contents=jpeg, media_type="image/jpeg"))
+        for step, race_time, car, points in batch["echoes"]:
+            self._log(step, race_time, f"world/lidar/{self.ids[car]}",
                       rr.Points3D(points, colors=[self.colours[car]], radii=[0.015]))
-        for step, time, car, entries in batch["events"]:
+        for step, race_time, car, entries in batch["events"]:
             for kind, level, text, clock in entries:
-                self._log(step, time, f"events/{self.ids[car]}", rr.TextLog(text, level=level),
+                self._log(step, race_time, f"events/{self.ids[car]}", rr.TextLog(text, level=level),
                           rr.AnyValues(kind=kind, car=self.ids[car], clock=float(clock)))
         start, total = 0, len(batch["steps"])
         while start < total:

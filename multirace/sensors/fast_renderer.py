@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import math
 
-import cv2
 import numba
 import numpy as np
 

@@ -29,7 +29,7 @@ from .config import TrainConfig
 from .experts import TEACHER_PREFIX
 from .imitate import Dataset, fit_labels, greedy_actions, imitation_loss
 from .ppo import init_continuous_head, input_pooling, make_vector_env, observation_shapes
-from .rollout import Rollout, expert_actions, finished_episodes, vector_sizes
+from .rollout import Rollout, expert_actions, finished_episodes
 from .run import TrainingRun
 from .teacher import train_teacher
 from .teacher_net import load_teacher
