@@ -40,14 +40,14 @@ def test_tiny_rllib_run_writes_checkpoint_and_racing_agent_file(tmp_path, capsys
 
     out = tmp_path / "r.pt"
     code = main(["train", "--engine", "rllib", "--config", "tiny", "--track", "Oval_track", "--envs", "1",
-                 "--cars", "2", "--set", "rollout_steps=64", "--set", "episode_steps=100", "--minutes", "0.2",
-                 "--seed", "1", "--out", str(out)])
+                 "--cars", "2", "--set", "rollout_steps=64", "--set", "episode_steps=100",
+                 "--set", "max_iterations=4", "--minutes", "30", "--seed", "1", "--out", str(out)])
     assert code == 0
     printed = capsys.readouterr().out
     assert "rllib iter" in printed and "agent-steps/s" in printed
 
     summary = json.loads(out.with_suffix(".train.json").read_text())
-    assert summary["engine"] == "rllib" and summary["iterations"] >= 3
+    assert summary["engine"] == "rllib" and summary["iterations"] == 4  # max_iterations, not the minutes
     # rollout_steps env steps x 2 cars per iteration, plus about one agent-step per off-track (RLlib's count
     # of an ended car agent and the new agent id it drives on under)
     assert summary["iterations"] * 64 * 2 <= summary["agent_steps"] <= summary["iterations"] * 64 * 4

@@ -16,6 +16,7 @@ from multirace.environment.drivers import Driver
 from multirace.environment.race_env import RaceEnv
 from multirace.racing.agentfile import load_agent
 from multirace.racing.policy import Policy
+from multirace.sim.car import CarSpec
 from multirace.train.config import SHIPPED_AGENTS, make_config
 from multirace.train.selfplay import Opponent, OpponentPool
 
@@ -71,18 +72,24 @@ def test_in_training_a_continuous_opponents_commands_reach_the_env_unquantised(r
         assert [member.name for member in pool.members] == [racer.name]
         mask = pool.assign(1, config.cars_per_env)
         assert mask.tolist() == [[True, True, True, False]]
-        for _ in range(4):
+        learner_path = []
+        for _ in range(5):
             commands = pool.commands(obs, mask)
             assert np.isnan(commands[0, :3]).all()  # the learner's cars take their actions
             steer, speed = commands[0, 3]
             assert abs(steer - 30.0) > 2 * STEER_TOLERANCE  # far from the learner's one action
             obs, _, _, _, infos = vec.step(np.zeros(mask.shape, np.int64), commands)
             # the sim-trace rows: the opponent's steer and throttle as executed, the learner's as commanded
-            (opponent_steer, opponent_speed), (learner_steer, _) = (
-                (float(v) for v in infos[0][car]["deepracer"].text.split(",")[4:6]) for car in (3, 0))
-            assert abs(opponent_steer - steer) < STEER_TOLERANCE
-            assert abs(opponent_speed - speed) < SPEED_TOLERANCE
-            assert abs(learner_steer - 30.0) < STEER_TOLERANCE
+            opponent_row, learner_row = (infos[0][car]["deepracer"].text.split(",") for car in (3, 0))
+            assert abs(float(opponent_row[4]) - steer) < STEER_TOLERANCE
+            assert abs(float(opponent_row[5]) - speed) < SPEED_TOLERANCE
+            assert opponent_row[6] == f"[{opponent_row[4]} {opponent_row[5]}]"  # a command, no action index
+            assert learner_row[6] == "0"  # the learner's car took its action index
+            learner_path.append([float(v) for v in learner_row[1:4]])  # X, Y, yaw (degrees)
+        # what the learner's car executed, from its path: the curvature it drove gives its steering angle
+        (x0, y0, yaw0), (x1, y1, yaw1) = learner_path[1], learner_path[-1]
+        curvature = math.radians(yaw1 - yaw0) / math.hypot(x1 - x0, y1 - y0)
+        assert abs(math.degrees(math.atan(curvature * CarSpec().wheelbase)) - 30.0) < 2 * STEER_TOLERANCE
     finally:
         vec.close()
 

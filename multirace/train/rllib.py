@@ -352,8 +352,8 @@ def _start_ray(address, num_env_runners: int) -> bool:
 
 
 def _train_iterations(algo, config, write_snapshot, log) -> list[dict]:
-    """`algo.train()` until the budget is spent, a snapshot agent file every `eval_every` seconds; returns
-    the per-iteration stats."""
+    """`algo.train()` until the budget is spent (the minutes, or `max_iterations` iterations if that comes
+    first), a snapshot agent file every `eval_every` seconds; returns the per-iteration stats."""
     budget = 60.0 * float(config.minutes)
     train_start = last_snapshot = time.perf_counter()
     history = []
@@ -370,7 +370,7 @@ def _train_iterations(algo, config, write_snapshot, log) -> list[dict]:
             log(f"rllib iter {stats['iteration']:4d} {stats['elapsed']:7.1f}/{budget:.0f} s  "
                 f"return/car {'-' if ret is None else f'{ret:8.2f}'}  agent-steps {stats['agent_steps']:8d}  "
                 f"{stats['agent_steps_per_s']:7.1f} agent-steps/s  episodes {stats['episodes']}")
-        if stats["elapsed"] >= budget:
+        if stats["elapsed"] >= budget or 0 < config.max_iterations <= len(history):
             return history
         if config.eval_every and time.perf_counter() - last_snapshot >= config.eval_every:
             # an agent-file snapshot to race or `multirace evaluate` later (no in-loop evaluation here)
