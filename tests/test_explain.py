@@ -14,7 +14,7 @@ from multirace.tools.explain import (BORDER, CENTRE, FLOOR, ROAD, SKY, TRACK_LAB
                                heat_shares, last_conv_activation, scene_labels)
 from multirace.sensors.fast_renderer import _gray
 from multirace.racing.nets import build_net
-from multirace.recording.replay_reader import read_chunks, replay_summary
+from multirace.recording.replay_reader import read_chunks, replay_summary, view_origins
 
 AGENT = Path(__file__).resolve().parents[1] / "agents" / "dagger_small.pt"
 pytestmark = pytest.mark.skipif(not AGENT.exists(), reason="shipped agent agents/dagger_small.pt missing")
@@ -101,6 +101,7 @@ def test_outputs_strip_and_replay(run):
     first = cv2.imdecode(np.frombuffer(bytes(blobs[0][0]) if isinstance(blobs[0][0], (list, bytes)) else
                                        np.asarray(blobs[0], np.uint8).tobytes(), np.uint8), cv2.IMREAD_COLOR)
     assert first is not None and first.shape[:2] == (120, 160)
+    assert {"explain", "cameras", "world"} <= set(view_origins(tmp / "explain.rrd"))  # it opens on the overlay
 
 
 def test_continuous_agent_mp4_and_cli(tmp_path):

@@ -17,7 +17,7 @@ from multirace.atomic import OutputError
 from multirace.racing.entrant import BotController
 from multirace.racing.runner import RaceConfig, make_controller, run_race
 from multirace.recording.replay import ReplayRecorder
-from multirace.recording.replay_reader import read_chunks, replay_summary
+from multirace.recording.replay_reader import read_chunks, replay_summary, view_origins
 
 BOTS = ("bot:follow@1.5", "bot:lanes@1.0", "bot:follow@1.0", "bot:lanes@1.5")
 QUALITY = 75  # the recorder's JPEG quality
@@ -112,6 +112,20 @@ def test_a_replay_does_not_change_the_race(tmp_path):
     plain = run_race([make_controller(b) for b in BOTS[:2]], config)
     recorded = run_race([make_controller(b) for b in BOTS[:2]], config, recorders=[ReplayRecorder(tmp_path / "r.rrd")])
     assert recorded == plain
+
+
+def test_a_race_with_a_replay_opens_on_its_cameras_without_importing_rerun_in_its_process(tmp_path):
+    # the replay writer's process builds the screen the replay opens on; the race's process never loads rerun
+    path = tmp_path / "r.rrd"
+    script = ("import sys; from multirace.cli import main; "
+              f"code = main(['race', 'bot:follow@2.0', 'bot:lanes@1.5', '--laps', '1', '--replay', {str(path)!r}]); "
+              "print('rerun loaded' if any(m.split('.')[0] == 'rerun' for m in sys.modules) else 'no rerun'); "
+              "sys.exit(code)")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines()[-1] == "no rerun"
+    assert view_origins(path) == ["cameras/car_0", "cameras/car_1", "events", "plots/progress", "plots/rank",
+                                  "plots/reward", "plots/speed", "plots/standing", "world"]
 
 
 def test_replays_in_a_row_share_one_writer_process(tmp_path):

@@ -72,8 +72,11 @@ class ReplayRecorder:
     """Records a race to a rerun `.rrd` file (see the module docstring for its layout).
 
     `image_every`: record each car's camera every k-th step (0 or None: no images). A replay writer process
-    is started ahead (`replay_process.prepare`) unless one is waiting already.
+    is started ahead (`replay_process.prepare`) unless one is waiting already. `layout` names the screen the
+    replay opens on (`blueprints.LAYOUTS`).
     """
+
+    layout = "race"
 
     def __init__(self, path, image_every: int | None = DEFAULT_IMAGE_EVERY, jpeg_quality: int = 75,
                  flush_every: int = 600, application_id: str = APPLICATION_ID):
@@ -116,7 +119,7 @@ class ReplayRecorder:
             "half_size": (spec.length / 2, spec.width / 2, spec.height / 2),
             "track": {"center": track.center, "inner": track.inner, "outer": track.outer},
             "obstacles": np.asarray(state.obstacles), "obstacle_size": OBSTACLE_SIZE,
-            "blueprint": self._blueprint(n)}))
+            "layout": self.layout, "cameras": bool(self.image_every)}))
         # the grid at step 0
         self._record_step(env, None, {}, None)
 
@@ -164,22 +167,6 @@ class ReplayRecorder:
     def _race_state(race) -> tuple:
         """What of a car's race record makes an event when it changes (RACE_MARKS)."""
         return race.laps, race.resets, race.penalties, race.penalty_time, len(race.collisions), race.status
-
-    def _blueprint(self, n: int):
-        import rerun.blueprint as rrb
-
-        cams = [rrb.Spatial2DView(origin=f"cameras/{self.ids[i]}", name=self.ids[i]) for i in range(n)]
-        plots = [rrb.TimeSeriesView(origin=f"plots/{name}", name=name) for name in SCALARS]
-        return rrb.Blueprint(
-            rrb.Horizontal(
-                rrb.Vertical(rrb.Spatial3DView(origin="world", name="race"),
-                             rrb.TextLogView(origin="events", name="events"), row_shares=[3, 1]),
-                rrb.Vertical(rrb.Grid(*cams, name="cameras") if self.image_every else rrb.TextDocumentView(
-                    origin="race/info"), rrb.Tabs(*plots, name="plots"), row_shares=[1, 1]),
-                column_shares=[3, 2]),
-            rrb.TimePanel(timeline="race_time"),
-            collapse_panels=True,
-        )
 
     def _block_reset(self) -> None:
         """A block of `SHIP_EVERY` rows, one per step: its step and time, which cars are recorded, their poses

@@ -42,6 +42,21 @@ def read_chunks(path) -> dict:
     return by_entity
 
 
+def view_origins(path) -> list[str]:
+    """The origins of the views on the screen a replay opens on (its blueprint), e.g. ``world`` or
+    ``cameras/car_0``, sorted."""
+    from rerun.chunk import RrdReader
+
+    reader = RrdReader(str(path))
+    origins = set()
+    for store in reader.blueprints():
+        for chunk in reader.stream(store=store):
+            column = record_column(chunk.to_record_batch(), "ViewBlueprint:space_origin")
+            if column is not None:
+                origins.update(first_items(column.to_pylist()))
+    return sorted(origin for origin in origins if origin is not None)
+
+
 def index_values(batch, name):
     import pyarrow as pa
 

@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 import rerun as rr
 
+from . import blueprints
 from .replay_process import answer, next_file, receive
 
 TRACK_LINES = (("center", (235, 190, 40), 0.01), ("inner", (240, 240, 240), 0.025),
@@ -77,7 +78,8 @@ class ReplayWriter:
     """One recording: the static entities at once, then rows, images and log entries as they come."""
 
     def __init__(self, file, application_id: str, jpeg_quality: int, flush_every: int, scalars: tuple, info: str,
-                 cars: list, half_size: tuple, track: dict, obstacles, obstacle_size: tuple, blueprint):
+                 cars: list, half_size: tuple, track: dict, obstacles, obstacle_size: tuple, layout: str,
+                 cameras: bool):
         self.jpeg_quality, self.flush_every, self.scalars = jpeg_quality, flush_every, scalars
         self.ids, self.colours = [c["id"] for c in cars], [tuple(c["colour"]) for c in cars]
         self.z = half_size[2]
@@ -101,7 +103,7 @@ class ReplayWriter:
         for cid, colour, car in zip(self.ids, self.colours, cars):
             rec.log(f"world/cars/{cid}", rr.Boxes3D(half_sizes=[list(half_size)], colors=[colour],
                                                     labels=[car["name"]], fill_mode="solid"), static=True)
-        rec.send_blueprint(blueprint, make_active=True, make_default=True)
+        rec.send_blueprint(blueprints.build(layout, self.ids, scalars, cameras), make_active=True, make_default=True)
         self._first = 0  # the race's row index of the block's first row
         self._frames = [[] for _ in self.ids]  # per car: (row in the race, JPEG) not yet sent
         self._block_reset()

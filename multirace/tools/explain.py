@@ -46,7 +46,7 @@ from ..environment.race_env import ACTION_HZ
 from ..racing.agentfile import load_agent
 from ..racing.entrant import Controller
 from ..racing.runner import RaceConfig, run_race
-from ..recording.replay import SCALARS, ReplayRecorder
+from ..recording.replay import ReplayRecorder
 from ..sensors.camera import camera_pose
 from ..sensors.fast_renderer import FastRenderer
 
@@ -213,21 +213,7 @@ def heat_shares(heat: np.ndarray, labels: np.ndarray) -> dict:
 class ExplainRecorder(ReplayRecorder):
     """A race replay recorder that also holds the Grad-CAM overlays (``explain/car_0``) and shows them."""
 
-    def _blueprint(self, n: int):
-        import rerun.blueprint as rrb
-
-        plots = [rrb.TimeSeriesView(origin=f"plots/{name}", name=name) for name in SCALARS]
-        return rrb.Blueprint(
-            rrb.Horizontal(
-                rrb.Vertical(rrb.Spatial3DView(origin="world", name="race"),
-                             rrb.TextLogView(origin="events", name="events"), row_shares=[3, 1]),
-                rrb.Vertical(rrb.Spatial2DView(origin="explain", name="Grad-CAM"),
-                             rrb.Spatial2DView(origin="cameras", name="camera"),
-                             rrb.Tabs(*plots, name="plots")),
-                column_shares=[3, 2]),
-            rrb.TimePanel(timeline="race_time"),
-            collapse_panels=True,
-        )
+    layout = "explain"
 
     def log_heat(self, step: int, race_time: float, image_rgb: np.ndarray) -> None:
         """Record one overlay (uint8 RGB) as a JPEG image at `step` / `race_time`."""
