@@ -107,6 +107,7 @@ class ReplayRecorder:
         self._agents = [env.possible_agents[i] if i < len(env.possible_agents) else None for i in range(n)]
         self._prev = [self._race_state(car.race) for car in state.cars]
         self._ended = [not car.racing for car in state.cars]
+        self._recorded = [not ended for ended in self._ended]  # whether a car's pose goes in the next row
         self._block_reset()
         cars = [{"id": self.ids[i], "name": car.name, "colour": list(CAR_COLOURS[i % len(CAR_COLOURS)])}
                 for i, car in enumerate(state.cars)]
@@ -176,6 +177,7 @@ class ReplayRecorder:
         self._steps, self._times = np.empty(rows, np.int64), np.empty(rows, np.float64)
         self._active, self._pose = np.empty((rows, n), bool), np.empty((rows, n, 3), np.float64)
         self._scalars = np.empty((rows, len(SCALARS), n), np.float64)  # SCALARS' order
+        self._scalars_flat = self._scalars.reshape(rows, -1)  # the same memory, a row's scalars in one
         self._images, self._pictures, self._events, self._echoes = [], [], [], []
 
     def _ship(self) -> None:
@@ -194,14 +196,15 @@ class ReplayRecorder:
         step, cars, agents = state.step, state.cars, self._agents
         self._steps[row], self._times[row] = step, state.time
         # a car is recorded while it races, on the step its run ends, and on the grid at step 0
-        self._active[row] = [not ended or step == 0 for ended in self._ended]
-        self._pose[row] = [(car.x, car.y, car.yaw) for car in cars]
+        self._active[row] = self._recorded if step else True
+        self._pose[row] = [car[2:5] for car in cars]  # (x, y, yaw): CarState's fields 2-4
         infos, rewards, nan = infos or {}, rewards or {}, math.nan
-        self._scalars[row] = ([car.speed for car in cars],
-                              [infos[a]["progress"] if a in infos else nan for a in agents],
-                              [rewards[a] if a in rewards else nan for a in agents],
-                              [infos[a]["rank"] if a in infos else nan for a in agents],
-                              env.standings()[:self.n])
+        # the row's scalars flat, in SCALARS' order
+        self._scalars_flat[row] = ([car.speed for car in cars]
+                                   + [infos[a]["progress"] if a in infos else nan for a in agents]
+                                   + [rewards[a] if a in rewards else nan for a in agents]
+                                   + [infos[a]["rank"] if a in infos else nan for a in agents]
+                                   + env.standings()[:self.n])
         take_image = bool(self.image_every) and observations is not None and step % self.image_every == 0
         for i, car in enumerate(cars):
             if self._ended[i]:  # its run ended on an earlier step
@@ -211,7 +214,8 @@ class ReplayRecorder:
                 self._take_image(env, car, observations[agent])
             if infos and (self._race_state(car.race) != self._prev[i] or agent in infos and infos[agent]["events"]):
                 self._log_events(env, car, infos)
-            self._ended[i] = not car.race.racing
+            if not car.race.racing:
+                self._ended[i], self._recorded[i] = True, False
 
     def _take_image(self, env, car, observation) -> None:
         """Keep a car's camera image (and LIDAR echoes) of this step for the writer."""
