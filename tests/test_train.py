@@ -300,6 +300,15 @@ def test_reward_scale_keeps_discounted_returns_near_unit_size():
 REWARD_FILES = Path(__file__).parent / "reward_files"
 
 
+def test_train_command_counts_every_evaluation_run_in_its_closing_line(tmp_path, capsys):
+    from multirace.cli import main
+
+    assert main(["train", "--config", "tiny", "--envs", "1", "--cars", "1", "--no-progress", "--set", "max_iterations=1",
+                 "--set", "eval_laps=1", "--set", 'eval_tracks=["Bowtie_track"]', "--out", str(tmp_path / "a.pt")]) == 0
+    summary = " ".join(capsys.readouterr().out.split())  # one lap on the training track and one on Bowtie
+    assert "first clean 2/2 evaluation (no off-track)" in summary and "first 2/2 counting resets" in summary
+
+
 def test_train_command_takes_a_reward_file_and_names_a_bad_one(tmp_path, capsys):
     from multirace.cli import main
 

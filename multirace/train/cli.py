@@ -170,13 +170,15 @@ def cmd_train(args) -> int:
     if config.privileged:
         return report_privileged(config, args, command)
     from .ppo import train
+    from .run import evaluation_runs
 
     summary = train(config, args.out, init=args.init, resume=args.resume, command=command)
 
     def when(seconds):
         return f"{seconds} s" if seconds is not None else "none"
 
-    laps = f"{config.eval_laps}/{config.eval_laps}"
+    target = config.eval_laps * len(evaluation_runs(config))  # laps of one evaluation, over all its runs
+    laps = f"{target}/{target}"
     print(f"wrote {summary['out']}: {summary['iterations']} iterations, {summary['agent_steps']} agent-steps in "
           f"{summary['wall_seconds']} s ({summary['steps_per_s']} agent-steps/s, sampling "
           f"{summary['sample_seconds']} s, updates {summary['update_seconds']} s); first clean {laps} evaluation "
