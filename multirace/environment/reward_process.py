@@ -29,7 +29,7 @@ import weakref
 from pathlib import Path
 
 from . import rewards
-from .rewards import RewardFunction, RewardFunctionError, follow_centre_line
+from .rewards import BuiltInReward, RewardFunction, RewardFunctionError, follow_centre_line
 
 CONSTANT_KEYS = ("waypoints",)  # params that stay the same for a track: sent when they change
 EXIT_WAIT = 2.0  # seconds a worker whose pipe closed has to end before it is ended
@@ -211,9 +211,11 @@ class RewardProcess(RewardFunction):
 def load_reward_function(spec=None) -> RewardFunction:
     """A RewardFunction from None (the console default), a callable, or a path to a `.py` file."""
     if spec is None:
-        return RewardFunction(follow_centre_line, "follow_centre_line (default)")
+        return BuiltInReward(follow_centre_line, "follow_centre_line (default)")
     if isinstance(spec, RewardFunction):
         return spec
+    if spec is follow_centre_line:  # `--reward centre`
+        return BuiltInReward(follow_centre_line, "follow_centre_line")
     if callable(spec):
         return RewardFunction(spec, getattr(spec, "__name__", repr(spec)))
     path = Path(spec)
