@@ -70,6 +70,21 @@ def test_student_distils_the_teacher_into_a_camera_agent(teacher, tmp_path):
     assert result["cars"][0]["status"] != "forfeit"
 
 
+@pytest.mark.parametrize("anneal", [False, True])
+def test_the_students_learning_rate_falls_over_its_budget_only_when_asked(teacher, tmp_path, anneal):
+    teacher_path, _ = teacher
+    base = make_config("tiny", tracks=("reinvent_base",), action_space=SPACE, max_iterations=4, seed=0,
+                       progress=False, eval_every=0, distill_anneal_lr=anneal)
+    config = student_config(base, teacher_path, seconds=1e9)  # the iterations are the budget
+    config.rollout_steps, config.distill_steps, config.distill_batch = 16, 2, 16
+    summary = distill_student(config, tmp_path / "s.pt", log=None)
+    rates = [row["lr"] for row in summary["history"]]
+    if anneal:  # 1e-3 x (1 - iterations done / 4), to a floor of 10 %
+        assert rates == pytest.approx([1e-3, 7.5e-4, 5e-4, 2.5e-4])
+    else:
+        assert rates == [1e-3] * 4
+
+
 def test_student_can_start_from_an_imitation_agent(teacher, tmp_path):
     """`--init`: the student is the init file's net (its network, image and weights) and records that lineage;
     with no DAgger step its weights are the init file's."""

@@ -90,6 +90,7 @@ class TrainConfig(RewardWeights):
     teacher_norm_reward: bool = True  # the teacher divides rewards by a running std of the return (as norm_reward)
     student_network: str = TINY  # with privileged: the camera student's network (nets.NETWORKS)
     distill_lr: float = 1e-3  # with privileged: the student's Adam learning rate
+    distill_anneal_lr: bool = False  # with privileged: the student's learning rate falls linearly over its budget to 10 % (as anneal_lr)
     distill_batch: int = 128  # with privileged: labelled images per gradient step of the student
     distill_steps: int = 40  # with privileged: gradient steps after each rollout (of rollout_steps x cars)
     distill_speed_scale: float = 0.8  # with privileged: the student's labels ask for this share of the teacher's speed (a margin for a camera that sees less than the teacher's state; at 1.0 and 0.9 students left the road at one corner a lap, train README)

@@ -28,7 +28,7 @@ from ..racing.nets import build_net
 from .config import TrainConfig
 from .experts import TEACHER_PREFIX
 from .imitate import Dataset, fit_labels, greedy_actions, imitation_loss
-from .ppo import init_continuous_head, input_pooling, make_vector_env, observation_shapes
+from .ppo import decayed, init_continuous_head, input_pooling, make_vector_env, observation_shapes
 from .rollout import Rollout, expert_actions, finished_episodes
 from .run import TrainingRun
 from .teacher import train_teacher
@@ -104,10 +104,13 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
             run.agent_steps += T * E * A
             run.sample_time += time.perf_counter() - t0
             t1 = time.perf_counter()
+            rate = decayed(config.distill_lr, run.fraction()) if config.distill_anneal_lr else config.distill_lr
+            for group in optimiser.param_groups:
+                group["lr"] = rate
             loss = _fit(net, optimiser, loss_fn, data, config, pool > 1)
             run.update_time += time.perf_counter() - t1
             run.iteration += 1
-            run.record(episodes, {"expert_loss": round(loss, 4), "beta": round(beta, 4)}, 0.0, T * E * A,
+            run.record(episodes, {"expert_loss": round(loss, 4), "beta": round(beta, 4), "lr": rate}, 0.0, T * E * A,
                        time.perf_counter() - t0, {})
             if run.checkpoint_and_evaluate(net, optimiser, None, space, image_shape):
                 break

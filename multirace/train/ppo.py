@@ -233,11 +233,16 @@ def collect_rollout(vec, net, policy: Policy, rollout: Rollout, robust: RobustKn
     return next_value, env_reward, episodes
 
 
+def decayed(rate: float, fraction: float) -> float:
+    """`rate` decayed linearly over a budget of which `fraction` is spent, to a floor of 10 %."""
+    return rate * max(0.1, 1.0 - fraction)
+
+
 def anneal_learning_rate(optimiser, config: TrainConfig, fraction: float) -> None:
     """Linear decay of the learning rate over the time budget, to a floor of 10 %."""
     if config.anneal_lr:
         for group in optimiser.param_groups:
-            group["lr"] = config.lr * max(0.1, 1.0 - fraction)
+            group["lr"] = decayed(config.lr, fraction)
 
 
 # ------------------------------------------------------------------ the PPO update
