@@ -95,7 +95,8 @@ def test_a_reward_function_that_fails_late_in_training_is_one_message_not_a_trac
     path = _write(tmp_path, "late", "def reward_function(params):\n    if params['steps'] > 20:\n"
                   "        raise ValueError('late failure')\n" + RETURNS_ONE)
     out = tmp_path / "agent.pt"
-    done = subprocess.run([sys.executable, "-m", "multirace.cli", "train", "--config", "tiny", "--minutes", "0.5",
+    done = subprocess.run([sys.executable, "-m", "multirace.cli", "train", "--config", "tiny", "--minutes", "30",
+                           "--set", "max_iterations=2",  # step 21 comes in the first rollout (128 steps)
                            "--no-progress", "--envs", "2", "--cars", "2", "--reward", str(path), "--out", str(out)],
                           capture_output=True, text=True, timeout=900)
     assert done.returncode == 2, done.stderr[-3000:]
