@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -259,8 +260,9 @@ def cmd_bench(args) -> int:
     console = Console(width=120)
     progress = lambda line: console.print(f"[dim]{line}[/dim]")  # noqa: E731
     if args.profile:
-        figures = run_profile(progress=progress)
-        rows, title = format_profile(figures), f"where a {figures['cars']}-car env step goes (this machine)"
+        figures = run_profile(progress=progress, racing=args.racing)
+        workload = "racing cars" if args.racing else "random drivers"
+        rows, title = format_profile(figures), f"where a {figures['cars']}-car env step goes ({workload}, this machine)"
     else:
         figures = run_bench(seconds=args.seconds, replay_seconds=args.replay_seconds, progress=progress)
         rows, title = format_table(figures), "multirace bench (one run, this machine)"
@@ -455,6 +457,9 @@ def _add_bench_parser(sub) -> None:
     bench.add_argument("--profile", action="store_true",
                        help="instead: the per-stage split of a 4-car env step (dynamics, contacts, rules, params, "
                             "reward, render) and the renderer's frames/s alone")
+    bench.add_argument("--racing", action="store_true",
+                       help="with --profile: the cars driven as a head-to-head race (bots that keep their gaps, "
+                            "no boxes) instead of random drivers in a bunch")
     bench.set_defaults(func=cmd_bench)
 
 

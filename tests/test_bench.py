@@ -1,7 +1,8 @@
-"""`multirace bench --profile`: the per-stage split of an env step, and the env left as it was."""
+"""`multirace bench --profile`: the per-stage split of an env step, and the env left as it was; the bench's
+racing workload races."""
 import pytest
 
-from multirace.tools.bench import _random_driving, run_profile
+from multirace.tools.bench import _racing, _random_driving, run_profile
 from multirace.tools.profile import STAGES, format_profile, profile_step
 
 
@@ -21,9 +22,25 @@ def test_the_profile_splits_the_step_into_its_stages_and_leaves_the_env_untouche
         env.close()
 
 
-def test_run_profile_reports_every_stage_and_the_renderer_alone():
-    profile = run_profile(num_cars=2, steps=30, progress=lambda line: None)
+@pytest.mark.parametrize("racing", [False, True])
+def test_run_profile_reports_every_stage_and_the_renderer_alone(racing):
+    profile = run_profile(num_cars=2, steps=30, progress=lambda line: None, racing=racing)
+    assert profile["workload"] == ("racing" if racing else "random")
     labels = [label for label, _ in format_profile(profile)]
     assert labels[:len(STAGES)] == list(STAGES)
     assert profile["renderer_frames_per_s"] > 0 and 0 <= profile["pybullet_step_share"] <= 1
 
+
+
+def test_the_racing_workload_laps_without_contact_so_pybullet_is_seldom_stepped():
+    env, step = _racing(4, steps=450)  # 30 s at 1.0-2.2 m/s round re:Invent 2018 (17.7 m a lap)
+    try:
+        for _ in range(450):
+            step()
+        world, cars = env.world, env.race_state.cars
+        assert [car.race.laps >= 1 for car in cars] == [True] * 4 and not any(car.race.collisions for car in cars)
+        assert world.bullet_steps <= 0.05 * world.action_steps  # the cars keep apart: the contact shortcut moves them
+        step()  # the recording starts over: the grid again
+        assert env.race_state.step == 1 and all(car.race.laps == 0 for car in env.race_state.cars)
+    finally:
+        env.close()

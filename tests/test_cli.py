@@ -96,3 +96,12 @@ def test_race_help_names_every_bot_kind(capsys):
     assert main(["race", "--help"]) == 0
     text = " ".join(capsys.readouterr().out.split())
     assert all(kind in text.split("KIND:")[1] for kind in BOT_KINDS), text
+
+
+def test_a_reader_that_stops_early_ends_a_printing_command_quietly():
+    # the command's output goes to a pipe nobody reads any more (`multirace agent inspect racer --json | head -0`)
+    code = ("import os, sys\nread, write = os.pipe()\nos.close(read)\n"
+            "sys.stdout = open(write, 'w', buffering=1)  # line by line: the first print meets the closed pipe\n"
+            "from multirace.cli import main\nsys.exit(main(['agent', 'inspect', 'racer', '--json']))\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 1 and "Traceback" not in done.stderr and "Error" not in done.stderr, done.stderr

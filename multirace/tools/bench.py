@@ -8,7 +8,10 @@ scanned too, for 4 cars on the kinematic car model (`kinematic`, beside
 the default tyre model) and for 4 cars with PyBullet stepped in every step
 (`no_shortcut`, beside the contact shortcut); the floor (the same run's
 physics steps alone, replayed, plus one bare texture warp per camera); the
-share of steps that stepped PyBullet; the fast renderer alone; the
+same two for 4 cars driven as a head-to-head race (`racing`: no boxes, bots
+that keep their gaps, where the random drivers push each other in a bunch
+round the boxes); the share of steps
+that stepped PyBullet; the fast renderer alone; the
 speed-up of two worker processes over one; memory; and the cost of recording
 a replay. `run_profile` is `multirace bench --profile`: where a step's time
 goes (`profile.py`).
@@ -22,14 +25,18 @@ import time
 import cv2
 import numpy as np
 
-from ..sensors.camera import camera_pose
+from ..environment.actions import Command
+from ..environment.bots import parse_bot
 from ..environment.race_env import RaceEnv
+from ..sensors.camera import camera_pose
 from .profile import profile_step, renderer_frames_per_s
 
 CAR_COUNTS = (1, 2, 4, 8)
 WINDOWS = 15  # each figure is the best of this many equal time windows, taken in turns
 WARM_UP = 0.1  # untimed lead-in of each window, as a share of the window
 OBSTACLES = 3
+RACING_BOTS = ("follow@2.2", "follow@1.8", "follow@1.4", "follow@1.0")  # the `racing` workload's drivers, fastest first on the grid
+RACING_STEPS = 900  # steps of its recorded race (60 s), replayed in a loop
 CARS_PER_WORKER = 4  # cars in each env of the worker-process figures
 
 
@@ -82,26 +89,54 @@ def _random_driving(num_cars: int, renderer: str = "fast", seed: int = 0, lidar:
     return env, step
 
 
+def _racing(num_cars: int, seed: int = 0, steps: int = RACING_STEPS):
+    """The benchmark's env driven as a head-to-head race rather than a scrum: no boxes (the bots do not avoid
+    them), its cars follow `RACING_BOTS`' commands (each keeps its gap to the car ahead), recorded once and
+    replayed, so the step function costs the env alone. Returns the env, reset, and the step function (which
+    starts the recording over at its end)."""
+    env = RaceEnv(num_cars=num_cars, max_steps=steps, laps=1000)
+    bots = [parse_bot(f"bot:{RACING_BOTS[i % len(RACING_BOTS)]}") for i in range(num_cars)]
+    env.reset(seed=seed)
+    script = []
+    while env.agents:
+        state = env.race_state
+        script.append({agent: Command(bots[i].drive(state, i)) for i, agent in enumerate(env.agents)})
+        env.step(script[-1])
+    env.reset(seed=seed)
+    position = [0]
+
+    def step():
+        if position[0] == len(script):
+            env.reset(seed=seed)
+            position[0] = 0
+        env.step(script[position[0]])
+        position[0] += 1
+
+    return env, step
+
+
 def _env_stepper(num_cars: int, renderer: str, seed: int = 0, lidar: bool = False, dynamics: str = "dynamic",
-                 shortcut: bool = True):
-    """(step, close) of the env with random actions; `step.env` is the env."""
-    env, step = _random_driving(num_cars, renderer, seed, lidar, dynamics, shortcut)
+                 shortcut: bool = True, racing: bool = False):
+    """(step, close) of the env with random actions (`racing`: driven as a race, `_racing`); `step.env` is
+    the env."""
+    env, step = _racing(num_cars, seed) if racing else _random_driving(num_cars, renderer, seed, lidar, dynamics,
+                                                                       shortcut)
     step()  # warm-up
     step.env = env
     return step, env.close
 
 
-def _floor_stepper(num_cars: int, seed: int = 0, steps: int = 900):
+def _floor_stepper(num_cars: int, seed: int = 0, steps: int = 900, racing: bool = False):
     """(step, close) of the bare minimum of the env benchmark's run: its physics alone plus one texture warp per camera.
 
-    A run of the env benchmark (same cars, obstacles, random actions and seed)
+    A run of the env benchmark (same cars, obstacles, random actions or `racing` drivers, and seed)
     is recorded first: the commands of every physics step, and every time a car
     or box is put somewhere (an off-track car reset onto the track, say). The
     floor replays exactly that into the world alone, in a loop, so its PyBullet
     work, collisions included, is the env's; each step then warps one bare
     image per camera.
     """
-    env, drive = _random_driving(num_cars, seed=seed)
+    env, drive = _racing(num_cars, seed) if racing else _random_driving(num_cars, seed=seed)
     world = env.world
     start = (world.poses.tolist(), world.obstacle_poses.tolist())
     actions = {name: getattr(world, name) for name in ("place_car", "park", "place_obstacle", "step")}
@@ -189,20 +224,23 @@ def run_bench(seconds: float = 3.0, replay_seconds: float = 240.0, progress=prin
     steppers[("kinematic", 4)] = _env_stepper(4, "fast", dynamics="kinematic")
     steppers[("no_shortcut", 4)] = _env_stepper(4, "fast", shortcut=False)
     steppers.update({("floor", n): _floor_stepper(n) for n in (1, 4)})
+    steppers[("racing", 4)] = _env_stepper(4, "fast", racing=True)
+    steppers[("floor_racing", 4)] = _floor_stepper(4, racing=True)
     steppers.update({("workers", n): _workers_stepper(n, CARS_PER_WORKER) for n in (1, 2)})
     try:
         workloads = {key: (step, key[1] * CARS_PER_WORKER if key[0] == "workers" else key[1])
                      for key, (step, _) in steppers.items()}
         progress(f"measuring {len(workloads)} workloads, {WINDOWS} interleaved windows each ...")
-        world = steppers[("fast", 4)][0].env.world
-        before = (world.bullet_steps, world.action_steps)
+        worlds = {kind: steppers[(kind, 4)][0].env.world for kind in ("fast", "racing")}
+        before = {kind: (world.bullet_steps, world.action_steps) for kind, world in worlds.items()}
         rates = _interleaved_rates(workloads, seconds)
-        pybullet_share = (world.bullet_steps - before[0]) / max(world.action_steps - before[1], 1)
+        pybullet_share = {kind: (world.bullet_steps - before[kind][0]) / max(world.action_steps - before[kind][1], 1)
+                          for kind, world in worlds.items()}
         renderer_fps = renderer_frames_per_s(steppers[("fast", 4)][0].env)
     finally:
         for _, close in steppers.values():
             close()
-    kinds = ("fast", "pybullet", "lidar", "kinematic", "no_shortcut", "floor")
+    kinds = ("fast", "pybullet", "lidar", "kinematic", "no_shortcut", "floor", "racing", "floor_racing")
     figures: dict = {"agent_steps_per_s": {kind: {} for kind in kinds},
                      "agent_steps_per_cpu_s": {kind: {} for kind in kinds}}
     per_s, per_cpu_s = figures["agent_steps_per_s"], figures["agent_steps_per_cpu_s"]
@@ -217,10 +255,12 @@ def run_bench(seconds: float = 3.0, replay_seconds: float = 240.0, progress=prin
         figures["lidar_over_fast_4" + suffix] = round(rates_of["lidar"]["4"] / rates_of["fast"]["4"], 3)
         figures["dynamic_over_kinematic_4" + suffix] = round(rates_of["fast"]["4"] / rates_of["kinematic"]["4"], 3)
         figures["shortcut_gain_4" + suffix] = round(rates_of["fast"]["4"] / rates_of["no_shortcut"]["4"], 3)
-    figures["pybullet_step_share_4"] = round(pybullet_share, 3)
+        figures["racing_over_floor_4" + suffix] = round(rates_of["racing"]["4"] / rates_of["floor_racing"]["4"], 3)
+    figures["pybullet_step_share_4"] = round(pybullet_share["fast"], 3)
+    figures["pybullet_step_share_racing_4"] = round(pybullet_share["racing"], 3)
     figures["renderer_frames_per_s"] = round(renderer_fps, 1)
-    progress(f"PyBullet stepped in {100 * pybullet_share:.0f} % of the 4-car env's steps; "
-             f"renderer alone: {renderer_fps:.0f} frames/s")
+    progress(f"PyBullet stepped in {100 * pybullet_share['fast']:.0f} % of the 4-car env's steps (random drivers), "
+             f"{100 * pybullet_share['racing']:.0f} % when they race; renderer alone: {renderer_fps:.0f} frames/s")
     per_agent_us = {n: 1e6 / per_cpu_s["fast"][str(n)] for n in CAR_COUNTS}
     figures["per_agent_cost_growth_1_to_8"] = round(per_agent_us[8] / per_agent_us[1], 3)
     one, two = rates[("workers", 1)][0], rates[("workers", 2)][0]
@@ -251,9 +291,10 @@ def run_bench(seconds: float = 3.0, replay_seconds: float = 240.0, progress=prin
     return figures
 
 
-def run_profile(num_cars: int = 4, steps: int = 3000, progress=print) -> dict:
-    """The per-stage split of the bench's env step (`num_cars` cars, random actions) and the renderer alone."""
-    env, step = _random_driving(num_cars)
+def run_profile(num_cars: int = 4, steps: int = 3000, progress=print, racing: bool = False) -> dict:
+    """The per-stage split of the bench's env step (`num_cars` cars, random actions, or with `racing` the
+    `_racing` workload) and the renderer alone."""
+    env, step = _racing(num_cars) if racing else _random_driving(num_cars)
     try:
         for _ in range(200):  # untimed lead-in
             step()
@@ -263,8 +304,9 @@ def run_profile(num_cars: int = 4, steps: int = 3000, progress=print) -> dict:
         fps = renderer_frames_per_s(env)
     finally:
         env.close()
-    progress(f"profiled {steps} steps of a {num_cars}-car env; renderer alone: {fps:.0f} frames/s")
-    return {"cars": num_cars, "steps": steps, "us_per_step": split, "pybullet_step_share": round(pybullet_share, 3),
+    progress(f"profiled {steps} steps of a {num_cars}-car env ({'racing' if racing else 'random drivers'}); "
+             f"renderer alone: {fps:.0f} frames/s")
+    return {"cars": num_cars, "steps": steps, "workload": "racing" if racing else "random", "us_per_step": split, "pybullet_step_share": round(pybullet_share, 3),
             "renderer_frames_per_s": round(fps, 1)}
 
 
@@ -301,6 +343,9 @@ def format_table(figures: dict) -> list[tuple[str, str]]:
         ("with / without the contact shortcut, 4 cars (wall; CPU)", f"{figures['shortcut_gain_4']}; "
                                                                     f"{figures['shortcut_gain_4_cpu']}"),
         ("steps that stepped PyBullet, 4 cars", f"{100 * figures['pybullet_step_share_4']:.0f} %"),
+        ("racing / its floor, 4 cars (wall; CPU)", f"{figures['racing_over_floor_4']}; "
+                                                   f"{figures['racing_over_floor_4_cpu']}"),
+        ("steps that stepped PyBullet, 4 racing cars", f"{100 * figures['pybullet_step_share_racing_4']:.0f} %"),
         ("fast renderer alone, 120x160 grey (frames/s)", f"{figures['renderer_frames_per_s']:,.0f}"),
         ("per-agent CPU cost, 8 cars / 1 car", f"{figures['per_agent_cost_growth_1_to_8']}x"),
         ("2 workers / 1 worker", f"{figures['workers_speedup_2']}x"),
