@@ -10,10 +10,9 @@ the default tyre model) and for 4 cars with PyBullet stepped in every step
 physics steps alone, replayed, plus one bare texture warp per camera); the
 same two for 4 cars driven as a head-to-head race (`racing`: no boxes, bots
 that keep their gaps, where the random drivers push each other in a bunch
-round the boxes); the share of steps
-that stepped PyBullet; the fast renderer alone; the
-speed-up of two worker processes over one; memory; and the cost of recording
-a replay. `run_profile` is `multirace bench --profile`: where a step's time
+round the boxes); the share of steps that stepped PyBullet; the fast
+renderer alone; the speed-up of two worker processes over one; memory; and
+the cost of recording a replay. `run_profile` is `multirace bench --profile`: where a step's time
 goes (`profile.py`).
 """
 from __future__ import annotations
@@ -35,7 +34,7 @@ CAR_COUNTS = (1, 2, 4, 8)
 WINDOWS = 15  # each figure is the best of this many equal time windows, taken in turns
 WARM_UP = 0.1  # untimed lead-in of each window, as a share of the window
 OBSTACLES = 3
-RACING_BOTS = ("follow@2.2", "follow@1.8", "follow@1.4", "follow@1.0")  # the `racing` workload's drivers, fastest first on the grid
+RACING_BOTS = ("follow@2.2", "follow@1.8", "follow@1.4", "follow@1.0")  # `racing`'s drivers, fastest first
 RACING_STEPS = 900  # steps of its recorded race (60 s), replayed in a loop
 CARS_PER_WORKER = 4  # cars in each env of the worker-process figures
 
@@ -306,7 +305,8 @@ def run_profile(num_cars: int = 4, steps: int = 3000, progress=print, racing: bo
         env.close()
     progress(f"profiled {steps} steps of a {num_cars}-car env ({'racing' if racing else 'random drivers'}); "
              f"renderer alone: {fps:.0f} frames/s")
-    return {"cars": num_cars, "steps": steps, "workload": "racing" if racing else "random", "us_per_step": split, "pybullet_step_share": round(pybullet_share, 3),
+    return {"cars": num_cars, "steps": steps, "workload": "racing" if racing else "random", "us_per_step": split,
+            "pybullet_step_share": round(pybullet_share, 3),
             "renderer_frames_per_s": round(fps, 1)}
 
 
