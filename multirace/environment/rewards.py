@@ -8,14 +8,14 @@ it is executed as a module and its `reward_function` is used.
 A reward function is the user's own code, not data: it may read files and
 open sockets. A reward FILE runs in a process of its own (`reward_process`):
 a hard time limit per call that the function cannot disarm, nothing of the
-run's to reach, and a clear error when that process dies. A Python callable
-(a researcher's, or the built-in default) runs in-process under a watchdog:
+run's to reach, and a clear error when that process dies. A researcher's
+Python callable runs in-process under a watchdog:
 a time limit per call (`CALL_TIME_LIMIT`, SIGALRM, so it holds where the env
 runs in a process's main thread) on its own copy of the params. Either way,
 every way it can fail (an exception, `sys.exit`, a hang, a value that is not
 a finite number in range: DeepRacer requires a float) is a
 `RewardFunctionError` naming the file, the step and the car. multirace's own
-functions (`BuiltInReward`) are called directly.
+functions (the default, `BuiltInReward`) are called directly.
 
 The training rewards chosen by name (`multirace train --reward NAME`) are in
 `NAMED_REWARDS`, one line each: the built-in ``progress`` (`progress_reward`,
