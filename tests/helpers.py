@@ -5,6 +5,7 @@ import numpy as np
 
 from multirace.environment.bots import PurePursuit
 from multirace.environment.drivers import car_pose
+from multirace.environment.race_env import RaceEnv
 from multirace.racing.entrant import COMMAND_SPACE, BotController
 
 
@@ -107,3 +108,17 @@ def seeded_lidar_agent(path, seed=0):
     torch.manual_seed(seed)
     net = build_net(DEFAULT_NETWORK, (120, 160, 1), space, lidar_samples=64)
     return save_agent(path, net, make_metadata(space, DEFAULT_NETWORK, "lidar_car", lidar=True))
+
+
+
+class TorchThreadsEnv(RaceEnv):
+    """A race env that loads torch when it steps, as a teacher expert in a training worker does, and reports
+    torch's thread count in each car's info (``torch_threads``)."""
+
+    def step(self, actions):
+        import torch
+
+        *rest, infos = super().step(actions)
+        for info in infos.values():
+            info["torch_threads"] = torch.get_num_threads()
+        return (*rest, infos)

@@ -1,10 +1,13 @@
 """Worker-process vector env: the same observations and rewards as the env stepped in-process."""
 import functools
+import os
 
 import numpy as np
+import pytest
 
 from multirace.environment.race_env import RaceEnv
 from multirace.environment.vector import SubprocVectorEnv
+from helpers import TorchThreadsEnv
 
 
 def test_vector_env_matches_the_env_and_auto_resets():
@@ -68,5 +71,18 @@ def test_vector_sensors_reach_the_learner_as_the_env_observes_them():
             for key in ("camera", "lidar", "speed"):
                 assert np.array_equal(obs[key][0, 1], expected["car_1"][key]), (k, key)
         assert obs["speed"][0, 0, 0] > 0.1  # the cars drive
+    finally:
+        vec.close()
+
+
+@pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="one core: torch would use one thread anyway")
+def test_a_worker_that_loads_torch_computes_on_its_own_core():
+    # a teacher's net in a training worker: torch's second thread would spin on the core the other worker needs
+    vec = SubprocVectorEnv([functools.partial(TorchThreadsEnv, track="Oval_track", num_cars=1)],
+                           info_keys=("torch_threads",))
+    try:
+        vec.reset(seeds=[0])
+        *_, infos = vec.step(np.zeros((1, 1), np.int64))
+        assert infos[0][0]["torch_threads"] == 1
     finally:
         vec.close()

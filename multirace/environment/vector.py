@@ -28,6 +28,7 @@ import math
 import multiprocessing as mp
 import os
 import select
+import sys
 import time
 from multiprocessing import shared_memory
 from typing import Callable, Sequence
@@ -74,6 +75,12 @@ def _worker(remote, make_env, info_keys, spin_wait: float) -> None:
     import cv2
 
     cv2.setNumThreads(1)  # one core per worker; OpenCV's own threads only contend
+    # and torch's (an expert's net in a training env): its second thread spins beside the env, on the core the
+    # other worker needs (it took more CPU than the env itself)
+    os.environ["OMP_NUM_THREADS"] = "1"  # read where torch is imported later
+    torch = sys.modules.get("torch")  # imported already (spawn imports the main script again here)
+    if torch is not None:
+        torch.set_num_threads(1)
     _Worker(remote, make_env(), info_keys, spin_wait).serve()
 
 
