@@ -1,7 +1,10 @@
 """What keeps the league's web app safe on a network: body-size caps, rate limits, CSRF tokens, headers.
 
-- `BodyLimit`: an ASGI middleware that refuses a request body over the cap before it is read whole (a
-  Content-Length over the cap is refused at once; a chunked body is counted as it streams in).
+- `BodyLimit`: an ASGI middleware that refuses a request body over the cap before it is stored (a
+  Content-Length over the cap is refused before the app sees it; a chunked body is counted as it streams
+  in). The rest of a refused body, up to `DRAIN_BYTES`, is read and dropped before the 413 goes out: a
+  client that sends its whole body before it reads the answer (curl, Python's http.client) then gets the
+  413 in plain words instead of a connection reset.
 - `RateLimiter`: at most N events per key in a sliding window (uploads per entrant, failed tokens per client).
 - CSRF: forms carry a random token that must equal the one in a SameSite=Strict cookie (double submit), and a
   cross-origin Origin header is refused. The JSON API takes the entrant's token in the Authorization header,
@@ -18,6 +21,7 @@ import threading
 import time
 from urllib.parse import urlsplit
 
+DRAIN_BYTES = 64 << 20  # of a refused body, read and dropped before the 413 (beyond: the connection closes)
 CSRF_COOKIE = "multirace_csrf"
 CSRF_FIELD = "csrf_token"
 PAGE_POLICY = ("default-src 'self'; img-src 'self' data:; media-src 'self'; frame-src 'self'; "
@@ -42,6 +46,8 @@ class BodyLimit:
             return await self.app(scope, receive, send)
         length = dict(scope["headers"]).get(b"content-length")
         if length is not None and (not length.isdigit() or int(length) > self.limit):
+            if length.isdigit() and int(length) <= DRAIN_BYTES:
+                await _drain(receive)
             return await _too_large(send, self.limit)
         seen = 0
         started = False
@@ -64,7 +70,18 @@ class BodyLimit:
             await self.app(scope, counted, watched)
         except BodyTooLarge:
             if not started:
+                await _drain(receive, DRAIN_BYTES - seen)
                 await _too_large(send, self.limit)
+
+
+async def _drain(receive, most: int = DRAIN_BYTES) -> None:
+    """Read and drop the rest of the request body, up to about `most` bytes."""
+    dropped = 0
+    while dropped <= most:
+        message = await receive()
+        if message["type"] != "http.request" or not message.get("more_body", False):
+            return
+        dropped += len(message.get("body", b""))
 
 
 async def _too_large(send, limit: int) -> None:
