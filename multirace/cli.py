@@ -280,7 +280,8 @@ def cmd_bench(args) -> int:
 def _entrants_help() -> str:
     from .environment.bots import bot_kinds_help
 
-    return f"agent files, shipped agents by name ({', '.join(list_agents())}) or bot:KIND@SPEED ({bot_kinds_help()})"
+    return (f"agent files, shipped agents by name ({', '.join(list_agents())}), bot:KIND@SPEED ({bot_kinds_help()}) "
+            "or teacher:FILE.teacher.pt (an RL teacher of train --privileged)")
 
 
 def _add_race_parser(sub) -> None:

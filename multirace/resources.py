@@ -76,3 +76,17 @@ def agent_argument(spec: str) -> str:
         raise argparse.ArgumentTypeError(f"{spec}: no such agent file, and no shipped agent of that name "
                                          f"(`multirace agent list` shows them)")
     return str(path)
+
+
+def racer_argument(spec: str) -> str:
+    """`agent_argument`, or ``teacher:PATH`` (an RL teacher file of `train --privileged`, raced from its
+    privileged state): the argparse `type` of `evaluate`'s racers."""
+    import argparse
+
+    from .racing.entrant import TEACHER_PREFIX, teacher_spec
+
+    if spec.startswith(TEACHER_PREFIX):
+        if not Path(teacher_spec(spec)[0]).is_file():
+            raise argparse.ArgumentTypeError(f"{spec}: no such teacher file")
+        return spec
+    return agent_argument(spec)

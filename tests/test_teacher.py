@@ -13,7 +13,7 @@ from multirace.racing.runner import RaceConfig, run_race
 from multirace.train.config import make_config
 from multirace.train.distill import distill_student, milestones, student_config
 from multirace.train.teacher import evaluate_teacher, train_teacher
-from multirace.train.teacher_net import load_teacher
+from multirace.racing.teacher_net import load_teacher
 
 SPACE = str(Path(__file__).parents[1] / "agents" / "action_space_racer.json")  # steering +-30 deg, 0.5-4 m/s
 
@@ -33,7 +33,7 @@ def test_teacher_learns_to_lap_from_the_reward(teacher):
     out, summary = teacher
     assert summary["iterations"] == 24 and summary["agent_steps"] == 24 * 2 * 4 * 256
     net = load_teacher(out)
-    row = evaluate_teacher(net, net.space, "reinvent_base", laps=2)
+    row = evaluate_teacher(net, "reinvent_base", laps=2)
     assert row["laps"] == 2 and row["status"] == "finished"
     assert row["resets"] <= 1
     assert row["best_lap"] < 9.0, "faster than 2 m/s round the lap (the racing line laps in 4.9 s)"
@@ -199,23 +199,36 @@ def test_a_teacher_labels_every_car_of_an_env_in_one_pass_as_it_labels_each_alon
         env.close()
 
 
-def test_a_teacher_is_timed_on_a_track_split(teacher, tmp_path, capsys):
-    """`python -m multirace.tools.teacher_eval`: both directions of each track, laps, off-tracks and the pace
-    against the racing line; a file that is not a teacher is one error naming it."""
-    import json
-
-    from multirace.tools.teacher_eval import evaluate_split, main
+def test_a_teacher_races_as_an_entrant(teacher):
+    """`teacher:PATH` is an entrant like an agent file or a bot: it drives its car from its privileged state
+    in a head-to-head race, under its file's name and hash."""
+    from multirace.racing.entrant import file_sha256
+    from multirace.racing.runner import make_controller
 
     out, _ = teacher
-    rows = evaluate_split(out, ["reinvent_base"], laps=1, log=None)
-    assert [(r["track"], r["reverse"]) for r in rows] == [("reinvent_base", False), ("reinvent_base", True)]
-    forward = rows[0]
-    assert forward["laps"] == 1 and forward["clean"] == (forward["resets"] == 0)
-    assert forward["ratio"] == pytest.approx(forward["best_lap"] / forward["racing_line"], abs=1e-3)
-    bad = tmp_path / "not.teacher.pt"
-    bad.write_bytes(b"not a teacher")
-    with pytest.raises(SystemExit) as stop:
-        main([str(bad), "--json", str(tmp_path / "rows.json")])
-    assert stop.value.code == 2 and str(bad) in capsys.readouterr().err
-    assert not (tmp_path / "rows.json").exists()
-    json.dumps(rows)  # the rows --json writes
+    result = run_race([make_controller(f"teacher:{out}"), make_controller("bot:follow@1.0")],
+                      RaceConfig(track="reinvent_base", race="head_to_head", laps=1, seed=1))
+    car = next(c for c in result["cars"] if c["car"] == "car_0")
+    assert car["name"] == "teacher:t.teacher.pt" and car["file_sha256"] == file_sha256(out)
+    assert car["laps"] == 1 and car["status"] == "finished" and car["position"] == 1, "it passes a 1 m/s car"
+
+
+def test_evaluate_reports_a_teacher_on_tracks_it_never_saw(teacher, tmp_path):
+    """`multirace evaluate teacher:PATH` (a real subprocess): the teacher's training tracks are read from its
+    file, so they are labelled trained-on; a missing teacher file is refused by name before any race."""
+    import json
+    import subprocess
+    import sys
+
+    out, _ = teacher
+    report = tmp_path / "t.json"
+    cli = [sys.executable, "-m", "multirace.cli", "evaluate"]
+    run = subprocess.run(cli + [f"teacher:{out}", "--tracks", "Oval_track", "--parts", "held-out", "--directions",
+                                "both", "--laps", "1", "--json", str(report)], capture_output=True, text=True, cwd=tmp_path)
+    assert run.returncode == 0, run.stderr[-2000:]
+    rows = json.loads(report.read_text())
+    assert rows["trained_on"] == ["reinvent_base"]
+    assert [(r["track"], r["reverse"]) for r in rows["held_out"]] == [("Oval_track", False), ("Oval_track", True)]
+    assert all(r["laps"] + r["resets"] >= 1 for r in rows["held_out"])
+    missing = subprocess.run(cli + ["teacher:nowhere.teacher.pt"], capture_output=True, text=True, cwd=tmp_path)
+    assert missing.returncode == 2 and "teacher:nowhere.teacher.pt: no such teacher file" in missing.stderr

@@ -22,6 +22,7 @@ if TYPE_CHECKING:
     from ..environment.race_env import RaceEnv
 
 COMMAND_SPACE = DRIVER_COMMANDS  # what the race env accepts: any DeepRacer command, as its entrant gives it
+TEACHER_PREFIX = "teacher:"  # an entrant or expert spec naming an RL teacher file (`racing.teacher_net`)
 
 
 class Forfeit(Exception):
@@ -60,3 +61,15 @@ class BotController(Controller):
 def file_sha256(path: Path) -> str:
     """Hex SHA-256 of a file's bytes."""
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def teacher_spec(spec: str) -> tuple[str, float]:
+    """(path, speed scale) of ``teacher:PATH`` or ``teacher:PATH@SCALE``."""
+    path = spec[len(TEACHER_PREFIX):]
+    head, at, tail = path.rpartition("@")
+    if at:
+        try:
+            return head, float(tail)
+        except ValueError:
+            pass  # an "@" inside the file's path
+    return path, 1.0

@@ -14,13 +14,18 @@ import dataclasses
 from ..environment.race_env import RaceEnv
 from ..resources import resolve_agent_path
 from ..sensors.suite import race_suite
-from .entrant import COMMAND_SPACE, BotController, Controller, Forfeit
+from .entrant import COMMAND_SPACE, TEACHER_PREFIX, BotController, Controller, Forfeit
 
 
 def make_controller(spec: str, **agent_options) -> Controller:
-    """A controller from `bot:KIND@SPEED`, the path of an agent file, or a shipped agent's name (`dagger_fast`)."""
+    """A controller from `bot:KIND@SPEED`, `teacher:PATH` (an RL teacher file, `racing.teacher_net`), the
+    path of an agent file, or a shipped agent's name (`dagger_fast`)."""
     if spec.startswith("bot:"):
         return BotController(spec)
+    if spec.startswith(TEACHER_PREFIX):
+        from .teacher_net import TeacherController
+
+        return TeacherController.load(spec)
     from .agentfile import AgentController  # torch is only needed for agent files
 
     return AgentController(resolve_agent_path(spec), **agent_options)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from ..environment.rewards import NAMED_REWARDS
 from ..options import COUNT, POSITIVE, POSITIVE_INT, SEED, input_file, number, output_file
-from ..resources import agent_argument
+from ..resources import agent_argument, racer_argument
 
 PARTS = ("held-out", "perturbations", "traffic", "heats", "scenarios")  # the parts of `multirace evaluate`'s report
 
@@ -236,7 +236,7 @@ def add_evaluate_parser(sub) -> None:
                        description="Race an agent over held-out tracks and a grid of perturbations and report lap "
                                    "completion, mean best lap, off-tracks per lap and collisions per lap in "
                                    "traffic, as a table and a PNG.")
-    p.add_argument("agents", nargs="+", metavar="FILE.pt", type=agent_argument,
+    p.add_argument("agents", nargs="+", metavar="FILE.pt", type=racer_argument,
                    help="agent file(s) or shipped agents' names to evaluate")
     p.add_argument("--json", metavar="FILE", type=output_file, help="write the report as JSON")
     p.add_argument("--png", metavar="FILE.png", type=output_file,

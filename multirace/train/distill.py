@@ -32,7 +32,7 @@ from .ppo import decayed, init_continuous_head, input_pooling, make_vector_env, 
 from .rollout import Rollout, expert_actions, finished_episodes
 from .run import TrainingRun
 from .teacher import train_teacher
-from .teacher_net import load_teacher
+from ..racing.teacher_net import load_teacher
 from .warmstart import init_lineage, init_settings, load_init_agent
 from .threads import update_threads
 

@@ -66,10 +66,9 @@ def race_agent(agent_path, track="reinvent_base", reverse=False, laps=2, seed=0,
     Inference is allowed `step_budget` seconds a step (far more than a league's 1/15 s: a robustness
     report judges driving, not speed of inference).
     """
-    from ..racing.agentfile import AgentController
-    from ..racing.runner import RaceConfig, run_race
+    from ..racing.runner import RaceConfig, make_controller, run_race
 
-    controller = AgentController(agent_path, step_budget=step_budget)
+    controller = make_controller(str(agent_path), step_budget=step_budget)
     config = RaceConfig(track=track, reverse=reverse, race=race, laps=laps, seed=seed, max_steps=max_steps,
                         bots=tuple(bots), randomize=randomize)
     result = run_race([controller], config)
@@ -96,13 +95,19 @@ def reference_lap(track: str, reverse: bool = False, laps: int = 2):
 
 
 def trained_tracks(agent_path) -> set:
+    """The tracks an agent file (or a ``teacher:PATH``), and every file it started from, trained on."""
     from ..racing.agentfile import parse_metadata, read_payload
+    from ..racing.entrant import TEACHER_PREFIX, teacher_spec
+    from ..racing.teacher_net import load_teacher
 
     try:
-        meta = parse_metadata(read_payload(agent_path), str(agent_path))
+        if str(agent_path).startswith(TEACHER_PREFIX):
+            training = load_teacher(teacher_spec(str(agent_path))[0]).training_notes
+        else:
+            training = parse_metadata(read_payload(agent_path), str(agent_path)).get("training")
     except Exception:
         return set()
-    seen, training = set(), meta.get("training")
+    seen = set()
     while isinstance(training, dict):  # this agent's training, then that of the file it started from, ...
         seen |= {Path(str(t)).stem for t in training.get("tracks") or []}
         training = (training.get("init") or {}).get("training") if isinstance(training.get("init"), dict) else None
@@ -367,6 +372,8 @@ def run_evaluation(args) -> int:
     """The `multirace evaluate` command."""
     from rich.console import Console
 
+    from ..racing.entrant import TEACHER_PREFIX, teacher_spec
+
     console = Console(width=160)
     tracks = _names(args.tracks)
     grid = QUICK_GRID if args.quick else None
@@ -375,8 +382,9 @@ def run_evaluation(args) -> int:
         check_heats(_names(args.heat_tracks), _names(args.field))
     reports = []
     for agent in args.agents:
-        if not Path(agent).exists():
-            raise FileNotFoundError(f"{agent}: no such agent file")
+        path = teacher_spec(agent)[0] if agent.startswith(TEACHER_PREFIX) else agent
+        if not Path(path).exists():
+            raise FileNotFoundError(f"{path}: no such {'teacher' if path != agent else 'agent'} file")
         reports.append(evaluate_agent(agent, tracks=tracks, grid=grid, laps=args.laps, seeds=args.seeds,
                                       quick=args.quick, directions=args.directions, randomize=args.randomize,
                                       heats=args.heats, heat_tracks=_names(args.heat_tracks),

@@ -7,7 +7,7 @@ far fewer. It learns from the same reward as a camera run (the built-in progress
 DeepRacer reward file) and is evaluated like one: a greedy 3-lap time trial under the race rules. Stage
 2 (`distill.py`) teaches a camera policy to drive as it does by DAgger; no scripted driver is involved.
 
-The teacher's network and its file are in `teacher_net.py`.
+The teacher's network, its file and the teacher as a driver are in `racing/teacher_net.py`.
 """
 from __future__ import annotations
 
@@ -25,28 +25,22 @@ from .ppo import Policy, RewardScale, anneal_learning_rate, check_reward_file, c
     training_runs
 from .robust import RobustKnobs
 from .rollout import Rollout, expert_actions
-from .teacher_net import StatePolicyNet, save_teacher
+from ..racing.teacher_net import StatePolicyNet, TeacherController, TeacherDriver, save_teacher
 
 
-def evaluate_teacher(net: StatePolicyNet, space, track: str, laps: int = 3, seed: int = 0,
-                     reverse: bool = False) -> dict:
-    """A greedy time trial of the teacher under the race rules (`multirace race`'s, with DeepRacer's action
-    noise); a result row like a race's: laps, resets, total_time, best_lap, status."""
-    from ..environment.race_env import RaceEnv
-    from ..environment.rewards import NO_REWARD
+def evaluate_teacher(net: StatePolicyNet, track: str, laps: int = 3, seed: int = 0, reverse: bool = False,
+                     bots=()) -> dict:
+    """A greedy race of the teacher under the race rules (`multirace race`'s, with DeepRacer's action noise):
+    a time trial, or with `bots` a head-to-head race against them in which each collision it caused counts like
+    an off-track (as `run.evaluate_time_trial` does for a camera agent); its result row (laps, resets,
+    total_time, best_lap, status, ...)."""
+    from ..racing.runner import RaceConfig, run_race
 
-    env = RaceEnv(track=track, reverse=reverse, num_cars=1, race="time_trial", laps=laps, action_space=space,
-                  observation="state", reward_function=NO_REWARD)  # a time trial's result: no reward read
-    try:
-        obs, _ = env.reset(seed=seed)
-        while env.agents:
-            action = net.command(obs["car_0"][None])[0]
-            obs, _, _, _, infos = env.step({"car_0": action})
-        race = env.race_state.cars[0].race
-        return {"laps": race.laps, "resets": race.resets, "total_time": race.finish_time,
-                "best_lap": min(race.lap_times) if race.lap_times else None, "status": race.status}
-    finally:
-        env.close()
+    controller = TeacherController(TeacherDriver(net, "teacher"))
+    result = run_race([controller], RaceConfig(track=track, reverse=reverse, laps=laps, seed=seed, bots=tuple(bots),
+                                               race="head_to_head" if bots else "time_trial"))
+    car = next(c for c in result["cars"] if c["car"] == "car_0")
+    return {**car, "resets": car["resets"] + car["collisions_caused"]} if bots else car
 
 
 def train_teacher(config: TrainConfig, out, seconds: float, log=print) -> dict:
@@ -97,22 +91,23 @@ def train_teacher(config: TrainConfig, out, seconds: float, log=print) -> dict:
             summary["agent_steps"] += T * N
             summary["iterations"] += 1
             if time.perf_counter() - last_eval >= config.eval_every:
-                best = _evaluate_and_keep(net, space, config, started, summary, best, log)
+                best = _evaluate_and_keep(net, config, started, summary, best, log)
                 last_eval = time.perf_counter()
     finally:
         vec.close()
-    best = _evaluate_and_keep(net, space, config, started, summary, best, log)
+    best = _evaluate_and_keep(net, config, started, summary, best, log)
     net.load_state_dict(best[1])
     summary.update(wall_seconds=round(time.perf_counter() - started, 1), selected=best[2])
-    save_teacher(out, net, space, {k: v for k, v in summary.items() if k != "evals"})
+    notes = {k: v for k, v in summary.items() if k != "evals"}
+    save_teacher(out, net, space, {**notes, "tracks": [str(t) for t in config.tracks], "reverse": config.reverse})
     return summary
 
 
-def _evaluate_and_keep(net, space, config: TrainConfig, started: float, summary: dict, best, log):
+def _evaluate_and_keep(net, config: TrainConfig, started: float, summary: dict, best, log):
     """Evaluate the teacher now, record it, and return the best (score, weights, evaluation) so far."""
     from .run import combined_evaluation, eval_score, evaluation_runs
 
-    row = combined_evaluation([evaluate_teacher(net.eval(), space, track, config.eval_laps, reverse=reverse)
+    row = combined_evaluation([evaluate_teacher(net, track, config.eval_laps, reverse=reverse, bots=config.eval_bots)
                                for track, reverse in evaluation_runs(config)], config.eval_laps)
     row.update(elapsed=round(time.perf_counter() - started, 1), agent_steps=summary["agent_steps"])
     summary["evals"].append(row)

@@ -1,7 +1,9 @@
-"""The teacher's network and its file: a Gaussian policy MLP over the privileged state (`environment.state`).
+"""An RL teacher (learning by cheating, `train.teacher`): its network, its file, and the teacher as a driver.
 
+The net is a Gaussian policy MLP over a car's privileged state (`environment.state.car_features`).
 A teacher file is a torch weights-only archive: {"weights", "features", "hidden", "action_space",
-"training"}; loading it runs no code.
+"training"}; loading it runs no code. `TeacherDriver` drives a car from that state: DAgger's expert
+(``teacher:PATH`` as an expert spec); `TeacherController` races one (the entrant ``teacher:PATH``).
 """
 from __future__ import annotations
 
@@ -14,7 +16,9 @@ import torch
 from torch import nn
 
 from ..environment.actions import load_action_space
-from ..environment.state import CAR_FEATURES
+from ..environment.drivers import Driver
+from ..environment.state import CAR_FEATURES, car_features
+from .entrant import TEACHER_PREFIX, Controller, file_sha256, teacher_spec
 
 
 class StatePolicyNet(nn.Module):
@@ -31,7 +35,7 @@ class StatePolicyNet(nn.Module):
         if space.discrete:
             raise ValueError("the privileged teacher drives a continuous action space (steering and speed "
                              "ranges); give --action-space a continuous model_metadata.json")
-        self.features, self.hidden = int(features), int(hidden)
+        self.features, self.hidden, self.space = int(features), int(hidden), space
         self.trunk = nn.Sequential(nn.Linear(features, hidden), nn.Tanh(), nn.Linear(hidden, hidden), nn.Tanh())
         self.mean = nn.Linear(hidden, 2)
         self.value_head = nn.Sequential(nn.Linear(features, hidden), nn.Tanh(), nn.Linear(hidden, hidden), nn.Tanh(),
@@ -76,9 +80,54 @@ def load_teacher(path) -> StatePolicyNet:
         space = load_action_space(saved["action_space"])
         net = StatePolicyNet(space, int(saved["features"]), int(saved["hidden"]))
         net.load_state_dict(saved["weights"])
+        net.training_notes = dict(saved.get("training") or {})
     except (OSError, KeyError, RuntimeError, ValueError, TypeError, pickle.UnpicklingError, EOFError) as exc:
         raise ValueError(f"teacher file {path}: not a readable teacher ({type(exc).__name__}: {exc})") from None
     if net.features != CAR_FEATURES:
         raise ValueError(f"teacher file {path}: reads {net.features} state values, this version gives {CAR_FEATURES}")
-    net.space = space
     return net.eval()
+
+
+class TeacherDriver(Driver):
+    """A teacher's state policy driving from its car's privileged state vector (the observation it reads), its
+    commands within its action space's box; `speed_scale` < 1 asks for that share of the teacher's speed (a
+    margin for a student that sees less)."""
+
+    def __init__(self, net: StatePolicyNet, name: str, speed_scale: float = 1.0):
+        if not 0.0 < speed_scale <= 1.0:
+            raise ValueError(f"{name}: the speed scale must be in (0, 1], not {speed_scale:g}")
+        self.net = net.eval()
+        self.speed_scale = float(speed_scale)
+        self.low, self.high = np.asarray(net.space.low, float), np.asarray(net.space.high, float)
+        self.name = name + (f"@{speed_scale:g}" if speed_scale != 1.0 else "")
+
+    @classmethod
+    def load(cls, path, speed_scale: float = 1.0) -> "TeacherDriver":
+        """The driver of a teacher file."""
+        return cls(load_teacher(path), f"{TEACHER_PREFIX}{Path(path).name}", speed_scale)
+
+    def drive(self, state, car, observation=None) -> tuple[float, float]:
+        """The teacher's command from `observation`, its car's privileged state vector."""
+        return self.drive_many(observation[None])[0]
+
+    def drive_many(self, observations: np.ndarray) -> list[tuple[float, float]]:
+        """The teacher's commands for several cars' state vectors (N, features), in one pass of its net."""
+        commands = self.net.command(observations).astype(float) * (1.0, self.speed_scale)
+        return [tuple(command) for command in np.clip(commands, self.low, self.high).tolist()]
+
+
+class TeacherController(Controller):
+    """A teacher as a race entrant (``teacher:PATH``), driving from its car's privileged state: a research
+    entrant (the DeepRacer car has none of its inputs), to race a student's teacher in heats or time trials."""
+
+    def __init__(self, driver: TeacherDriver, sha256: str | None = None):
+        self.driver, self.name, self.file_sha256 = driver, driver.name, sha256
+
+    @classmethod
+    def load(cls, spec: str) -> "TeacherController":
+        """The entrant of ``teacher:PATH`` (``teacher:PATH@SCALE``: at that share of its speed)."""
+        path, scale = teacher_spec(spec)
+        return cls(TeacherDriver.load(path, scale), file_sha256(Path(path)))
+
+    def act(self, observation, info) -> tuple[float, float]:
+        return self.driver.drive(None, self.car, car_features(self.env, self.car))
