@@ -232,3 +232,23 @@ def test_evaluate_reports_a_teacher_on_tracks_it_never_saw(teacher, tmp_path):
     assert all(r["laps"] + r["resets"] >= 1 for r in rows["held_out"])
     missing = subprocess.run(cli + ["teacher:nowhere.teacher.pt"], capture_output=True, text=True, cwd=tmp_path)
     assert missing.returncode == 2 and "teacher:nowhere.teacher.pt: no such teacher file" in missing.stderr
+
+
+def test_a_teacher_can_start_from_another_teachers_weights(teacher, tmp_path):
+    """`teacher_init`: an RL fine-tune (in traffic, say) starts from a teacher file, not from nothing; its file
+    records where it started; a teacher of another action space is refused by name before any env starts."""
+    start, _ = teacher
+    config = make_config("fast", tracks=("reinvent_base",), action_space=SPACE, max_iterations=1, seed=3,
+                         eval_every=1e9, progress=False, teacher_init=str(start), teacher_lr=1e-5)
+    train_teacher(config, tmp_path / "t2.teacher.pt", seconds=1e9, log=None)
+    before, after = load_teacher(start), load_teacher(tmp_path / "t2.teacher.pt")
+    moved = (after.trunk[0].weight - before.trunk[0].weight).abs().max().item()
+    assert 0 < moved < 0.01, "one small step from the file's weights, not a fresh net"
+    assert after.training_notes["teacher_init"] == str(start)
+    other = tmp_path / "other.json"
+    other.write_text('{"action_space": {"steering_angle": {"low": -20, "high": 20}, "speed": {"low": 0.5, "high": 2}},'
+                     ' "action_space_type": "continuous"}')
+    config = make_config("fast", tracks=("reinvent_base",), action_space=str(other), max_iterations=1,
+                         teacher_init=str(start), progress=False)
+    with pytest.raises(ValueError, match="teacher_init .*t.teacher.pt"):
+        train_teacher(config, tmp_path / "t3.teacher.pt", seconds=1e9, log=None)

@@ -88,6 +88,7 @@ class TrainConfig(RewardWeights):
     teacher_epochs: int = 5  # the teacher's passes over each rollout
     teacher_minibatch: int = 512  # the teacher's samples per gradient step
     teacher_norm_reward: bool = True  # the teacher divides rewards by a running std of the return (as norm_reward)
+    teacher_init: str = ""  # with privileged: the teacher starts from this teacher file's weights (an RL fine-tune, e.g. in traffic); "" = from nothing
     student_network: str = TINY  # with privileged: the camera student's network (nets.NETWORKS)
     distill_lr: float = 1e-3  # with privileged: the student's Adam learning rate
     distill_anneal_lr: bool = False  # with privileged: the student's learning rate falls linearly over its budget to 10 % (as anneal_lr)

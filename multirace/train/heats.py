@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
+from ..racing.entrant import TEACHER_PREFIX, teacher_spec
 from ..racing.overtakes import FIELDS, OvertakeRecorder
 from ..resources import agents_dir, list_agents
 
@@ -28,7 +29,8 @@ STEP_BUDGET = 30.0  # seconds of CPU time per inference step: heats judge drivin
 def default_field(agent_path) -> list[str]:
     """The other shipped agents (by content, so a copy of a shipped file is not raced against itself) and
     `bot:follow@1.0`."""
-    own = hashlib.sha256(Path(agent_path).read_bytes()).digest()
+    spec = str(agent_path)
+    own = hashlib.sha256(Path(teacher_spec(spec)[0] if spec.startswith(TEACHER_PREFIX) else spec).read_bytes()).digest()
     others = [name for name in list_agents()
               if hashlib.sha256((agents_dir() / f"{name}.pt").read_bytes()).digest() != own]
     return others + [FIELD_BOT]
@@ -51,6 +53,9 @@ def check_heats(tracks, field) -> None:
                 parse_bot(spec)
             except ValueError as exc:
                 raise ValueError(f"--field: {exc}") from None
+        elif spec.startswith(TEACHER_PREFIX):
+            if not Path(teacher_spec(spec)[0]).is_file():
+                raise ValueError(f"--field: {spec}: no such teacher file")
         elif not resolve_agent_path(spec).is_file():
             raise ValueError(f"--field: {spec}: no such agent file or shipped agent")
 

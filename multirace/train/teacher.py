@@ -25,7 +25,7 @@ from .ppo import Policy, RewardScale, anneal_learning_rate, check_reward_file, c
     training_runs
 from .robust import RobustKnobs
 from .rollout import Rollout, expert_actions
-from ..racing.teacher_net import StatePolicyNet, TeacherController, TeacherDriver, save_teacher
+from ..racing.teacher_net import StatePolicyNet, TeacherController, TeacherDriver, load_teacher, save_teacher
 
 
 def evaluate_teacher(net: StatePolicyNet, track: str, laps: int = 3, seed: int = 0, reverse: bool = False,
@@ -53,6 +53,8 @@ def train_teacher(config: TrainConfig, out, seconds: float, log=print) -> dict:
     runs = training_runs(config)
     check_reward_file(config, runs)
     net = StatePolicyNet(space, hidden=config.teacher_hidden)  # a discrete space is refused before any env starts
+    if config.teacher_init:
+        _start_from(net, config.teacher_init)
     settings = {**env_settings(config), "observation": "state", "expert_labels": False, "deepracer_log": False}
     from ..environment.vector import SubprocVectorEnv
 
@@ -99,8 +101,20 @@ def train_teacher(config: TrainConfig, out, seconds: float, log=print) -> dict:
     net.load_state_dict(best[1])
     summary.update(wall_seconds=round(time.perf_counter() - started, 1), selected=best[2])
     notes = {k: v for k, v in summary.items() if k != "evals"}
-    save_teacher(out, net, space, {**notes, "tracks": [str(t) for t in config.tracks], "reverse": config.reverse})
+    save_teacher(out, net, space, {**notes, "tracks": [str(t) for t in config.tracks], "reverse": config.reverse,
+                                   "bots": list(config.bots), "teacher_init": config.teacher_init or None})
     return summary
+
+
+def _start_from(net: StatePolicyNet, path) -> None:
+    """Load a teacher file's weights into `net` (`teacher_init`); its action space and sizes must be the run's."""
+    start = load_teacher(path)
+    if (start.hidden, list(start.space.low), list(start.space.high)) != (
+            net.hidden, list(net.space.low), list(net.space.high)):
+        raise ValueError(f"teacher_init {path}: its action space ({list(start.space.low)}..{list(start.space.high)}) "
+                         f"or width ({start.hidden}) is not the run's ({list(net.space.low)}..{list(net.space.high)}, "
+                         f"{net.hidden})")
+    net.load_state_dict(start.state_dict())
 
 
 def _evaluate_and_keep(net, config: TrainConfig, started: float, summary: dict, best, log):
