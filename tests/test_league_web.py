@@ -4,7 +4,6 @@ subprocesses; the browser test drives the pages in Debian's headless Chromium.""
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 import sqlite3
 import threading

@@ -66,7 +66,7 @@ class TrackTexture:
         def pts(xy):
             return np.round(self.world_to_pixel(xy) * scale).astype(np.int32)
 
-        inner, outer, centre = pts(self.track.inner), pts(self.track.outer), pts(self.track.center)
+        inner, outer = pts(self.track.inner), pts(self.track.outer)
         quads = [np.array([inner[i], inner[i + 1], outer[i + 1], outer[i]]) for i in range(len(inner) - 1)]
         cv2.fillPoly(img, quads, p.road, lineType=cv2.LINE_AA, shift=shift)
         border_px = max(1, int(round(BORDER_WIDTH * self.ppm)))
