@@ -39,6 +39,16 @@ def test_teacher_learns_to_lap_from_the_reward(teacher):
     assert row["best_lap"] < 9.0, "faster than 2 m/s round the lap (the racing line laps in 4.9 s)"
 
 
+def test_a_teachers_evaluation_in_traffic_counts_the_collisions_it_caused(teacher):
+    """With `eval_bots` the teacher's evaluation is a head-to-head race: a collision it caused costs like an
+    off-track in the row's resets (so the kept teacher is the one that stays on the road and off other cars)."""
+    out, _ = teacher
+    net = load_teacher(out)
+    row = evaluate_teacher(net, "reinvent_base", laps=2, seed=1, bots=("follow@1.0", "lanes@1.0"))
+    assert row["laps"] == 2 and row["position"] == 1
+    assert row["resets"] == row["off_tracks"] + row["collisions_caused"]
+
+
 def test_teacher_file_is_checked(tmp_path):
     bad = tmp_path / "bad.teacher.pt"
     bad.write_bytes(b"not a torch file")
