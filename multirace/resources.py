@@ -77,16 +77,3 @@ def agent_argument(spec: str) -> str:
                                          f"(`multirace agent list` shows them)")
     return str(path)
 
-
-def racer_argument(spec: str) -> str:
-    """`agent_argument`, or ``teacher:PATH`` (an RL teacher file of `train --privileged`, raced from its
-    privileged state): the argparse `type` of `evaluate`'s racers."""
-    import argparse
-
-    from .racing.entrant import TEACHER_PREFIX, teacher_spec
-
-    if spec.startswith(TEACHER_PREFIX):
-        if not Path(teacher_spec(spec)[0]).is_file():
-            raise argparse.ArgumentTypeError(f"{spec}: no such teacher file")
-        return spec
-    return agent_argument(spec)

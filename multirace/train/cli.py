@@ -8,7 +8,8 @@ from pathlib import Path
 
 from ..environment.rewards import NAMED_REWARDS
 from ..options import COUNT, POSITIVE, POSITIVE_INT, SEED, input_file, number, output_file
-from ..resources import agent_argument, racer_argument
+from ..racing.entrant import TEACHER_PREFIX, teacher_spec
+from ..resources import agent_argument
 
 PARTS = ("held-out", "perturbations", "traffic", "heats", "scenarios")  # the parts of `multirace evaluate`'s report
 
@@ -284,3 +285,15 @@ def cmd_evaluate(args) -> int:
     from .evaluate import run_evaluation
 
     return run_evaluation(args)
+
+
+def racer_argument(spec: str) -> str:
+    """`agent_argument`, or ``teacher:PATH`` (an RL teacher file of `train --privileged`, raced from its
+    privileged state): the argparse `type` of `evaluate`'s racers."""
+    import argparse
+
+    if spec.startswith(TEACHER_PREFIX):
+        if not Path(teacher_spec(spec)[0]).is_file():
+            raise argparse.ArgumentTypeError(f"{spec}: no such teacher file")
+        return spec
+    return agent_argument(spec)
