@@ -8,7 +8,6 @@ from pathlib import Path
 
 from ..environment.rewards import NAMED_REWARDS
 from ..options import COUNT, POSITIVE, POSITIVE_INT, SEED, input_file, number, output_file
-from ..racing.entrant import TEACHER_PREFIX, teacher_spec
 from ..resources import agent_argument
 
 PARTS = ("held-out", "perturbations", "traffic", "heats", "scenarios")  # the parts of `multirace evaluate`'s report
@@ -291,6 +290,8 @@ def racer_argument(spec: str) -> str:
     """`agent_argument`, or ``teacher:PATH`` (an RL teacher file of `train --privileged`, raced from its
     privileged state): the argparse `type` of `evaluate`'s racers."""
     import argparse
+
+    from ..racing.entrant import TEACHER_PREFIX, teacher_spec  # not at import: the CLI's parser stays light
 
     if spec.startswith(TEACHER_PREFIX):
         if not Path(teacher_spec(spec)[0]).is_file():
