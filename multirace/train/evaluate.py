@@ -372,8 +372,6 @@ def run_evaluation(args) -> int:
     """The `multirace evaluate` command."""
     from rich.console import Console
 
-    from ..racing.entrant import TEACHER_PREFIX, teacher_spec
-
     console = Console(width=160)
     tracks = _names(args.tracks)
     grid = QUICK_GRID if args.quick else None
@@ -381,10 +379,7 @@ def run_evaluation(args) -> int:
     if args.heats and "heats" in parts:
         check_heats(_names(args.heat_tracks), _names(args.field))
     reports = []
-    for agent in args.agents:
-        path = teacher_spec(agent)[0] if agent.startswith(TEACHER_PREFIX) else agent
-        if not Path(path).exists():
-            raise FileNotFoundError(f"{path}: no such {'teacher' if path != agent else 'agent'} file")
+    for agent in args.agents:  # each one checked as the arguments were read (`cli.racer_argument`)
         reports.append(evaluate_agent(agent, tracks=tracks, grid=grid, laps=args.laps, seeds=args.seeds,
                                       quick=args.quick, directions=args.directions, randomize=args.randomize,
                                       heats=args.heats, heat_tracks=_names(args.heat_tracks),
