@@ -237,7 +237,8 @@ def add_evaluate_parser(sub) -> None:
                                    "completion, mean best lap, off-tracks per lap and collisions per lap in "
                                    "traffic, as a table and a PNG.")
     p.add_argument("agents", nargs="+", metavar="FILE.pt", type=racer_argument,
-                   help="agent file(s) or shipped agents' names to evaluate")
+                   help="agent file(s), shipped agents' names or teacher:FILE.teacher.pt (an RL teacher of "
+                        "train --privileged, raced from its privileged state) to evaluate")
     p.add_argument("--json", metavar="FILE", type=output_file, help="write the report as JSON")
     p.add_argument("--png", metavar="FILE.png", type=output_file,
                    help="write the report plot (default: next to --json, else AGENT.eval.png in the working folder)")
@@ -259,7 +260,8 @@ def add_evaluate_parser(sub) -> None:
                    help="comma-separated heat tracks (default: reinvent_base and the first held-out track the "
                         "agent did not train on)")
     p.add_argument("--field", default=None, metavar="ENTRANTS",
-                   help="comma-separated heat opponents: agent files, shipped agents' names or bot specs (default: "
+                   help="comma-separated heat opponents: agent files, shipped agents' names, teacher:FILE.teacher.pt or "
+                        "bot specs (default: "
                         "the other shipped agents and bot:follow@1.0)")
     p.add_argument("--scenarios", type=COUNT, default=0, metavar="N",
                    help="also run the overtake scenarios (a slower car ahead on a straight, in a chicane, a car "
