@@ -40,12 +40,13 @@ from .rewards import RewardFunctionError
 
 DEFAULT_INFO_KEYS = ("progress", "laps_completed", "lap_times", "resets", "status", "collisions")
 RESET, ACTIONS, COMMANDS, STEP, CLOSE, DONE = b"r", b"a", b"m", b"s", b"c", b"d"  # one-byte commands, the bare reply
+ACTOR, ACT = b"t", b"x"  # attach an actor (a picklable factory), run it once (a picklable payload)
 FAILED = b"f"  # the reply of a worker whose env's reward function failed; its message follows
 SPIN_WAIT = 0.0005  # seconds a worker polls for its next command before it sleeps in a blocking read
 VECTOR_PREFIX = "vector:"  # shared-array names of the vector sensors (LIDAR, SPEED, ...): "vector:lidar"
 
 
-class _SharedArray:
+class SharedArray:
     """A numpy array in a named shared-memory block; `attach` maps the same block in another process."""
 
     def __init__(self, shape, dtype, name: str | None = None):
@@ -59,7 +60,7 @@ class _SharedArray:
         return self.memory.name, self.shape, self.dtype.str
 
     @classmethod
-    def attach(cls, spec: tuple) -> "_SharedArray":
+    def attach(cls, spec: tuple) -> "SharedArray":
         name, shape, dtype = spec
         return cls(shape, dtype, name=name)
 
@@ -91,14 +92,17 @@ class _Worker:
         self.remote, self.env, self.info_keys, self.spin_wait = remote, env, info_keys, spin_wait
         self.agents = env.possible_agents
         self.fd = remote.fileno()
-        self.shared: dict = {}  # name -> _SharedArray, once the learner has sent them
+        self.shared: dict = {}  # name -> SharedArray, once the learner has sent them
         self.slot = 0
         self.integer_actions = True
         self.episode_seed = None
+        self.obs = None  # the env's latest observations (per agent)
+        self.actor = None  # with `attach_actor`: runs this worker's cars itself (`SubprocVectorEnv.act`)
 
     def serve(self) -> None:
-        """Answer the learner's commands (step, reset, new action arrays) until it closes or goes away."""
-        handlers = {STEP: self.step, RESET: self.reset, ACTIONS: self.attach_actions, COMMANDS: self.attach_commands}
+        """Answer the learner's commands (step, reset, new action arrays, actors) until it closes or goes away."""
+        handlers = {STEP: self.step, RESET: self.reset, ACTIONS: self.attach_actions, COMMANDS: self.attach_commands,
+                    ACTOR: self.attach_actor, ACT: self.act}
         try:
             while True:
                 command = self.next_command()
@@ -123,23 +127,37 @@ class _Worker:
             os.sched_yield()
         return os.read(self.fd, 1)
 
-    def step(self) -> None:
-        """Step the env with the actions in this worker's row (a new episode when it ends) and publish the result."""
-        agents, shared = self.agents, self.shared
-        obs, rewards, terms, truncs, infos = self.env.step(dict(zip(agents, self.actions())))
+    def advance(self, actions: list) -> tuple:
+        """Step the env with one action per car (a new episode when it ends): (rewards per car, done, truncated,
+        infos of the step taken); the observations after it (the new episode's first) are in `self.obs`."""
+        agents = self.agents
+        obs, rewards, terms, truncs, infos = self.env.step(dict(zip(agents, actions)))
         truncated = all(truncs.values())
         done = all(terms.values()) or truncated
-        shared["rewards"].array[self.slot] = [rewards[a] for a in agents]
-        shared["flags"].array[self.slot] = (done, truncated)
-        small = self.small_infos(infos) if self.info_keys else None
         if done:
             self.episode_seed = None if self.episode_seed is None else self.episode_seed + 1000
             obs, _ = self.env.reset(seed=self.episode_seed)
-        self.publish_images(obs)
+        self.obs = obs
+        return [rewards[a] for a in agents], done, truncated, infos
+
+    def step(self) -> None:
+        """Step the env with the actions in this worker's row and publish the result."""
+        rewards, done, truncated, infos = self.advance(self.actions())
+        self.shared["rewards"].array[self.slot] = rewards
+        self.shared["flags"].array[self.slot] = (done, truncated)
+        self.publish_images(self.obs)
         if self.info_keys:
-            self.remote.send(small)
+            self.remote.send(self.small_infos(infos))
         else:
             os.write(self.fd, DONE)
+
+    def attach_actor(self) -> None:
+        """Build the actor from the factory the learner sends (called with this worker)."""
+        self.actor = self.remote.recv()(self)
+
+    def act(self) -> None:
+        """Run the actor on the payload the learner sends; its result goes back."""
+        self.remote.send(self.actor(self.remote.recv()))
 
     def actions(self) -> list:
         """Each car's action from this worker's row: the learner's action, or a `Command` where the car is driven
@@ -155,8 +173,8 @@ class _Worker:
     def reset(self) -> None:
         """Start an episode with the seed the learner sends; publish its first observations."""
         self.episode_seed = self.remote.recv()
-        obs, infos = self.env.reset(seed=self.episode_seed)
-        self.publish_images(obs)
+        self.obs, infos = self.env.reset(seed=self.episode_seed)
+        self.publish_images(self.obs)
         self.remote.send(self.small_infos(infos))
 
     def attach_actions(self) -> None:
@@ -164,11 +182,11 @@ class _Worker:
         spec, self.integer_actions = self.remote.recv()
         if "actions" in self.shared:
             self.shared["actions"].close()
-        self.shared["actions"] = _SharedArray.attach(spec)
+        self.shared["actions"] = SharedArray.attach(spec)
 
     def attach_commands(self) -> None:
         """Attach the commands block the learner sends."""
-        self.shared["commands"] = _SharedArray.attach(self.remote.recv())
+        self.shared["commands"] = SharedArray.attach(self.remote.recv())
 
     def small_infos(self, infos) -> list[dict]:
         return [{key: infos[a][key] for key in self.info_keys if key in infos[a]} for a in self.agents]
@@ -183,7 +201,7 @@ class _Worker:
             self.remote.send(((len(agents),) + image.shape, tuple((key, first[key].shape) for key in vectors),
                               image.dtype.str))
             self.slot, specs = self.remote.recv()
-            shared.update({name: _SharedArray.attach(spec) for name, spec in specs.items()})
+            shared.update({name: SharedArray.attach(spec) for name, spec in specs.items()})
         images = shared["images"].array[self.slot]
         for k, agent in enumerate(agents):
             images[k] = obs[agent]["camera"] if vectors else obs[agent]
@@ -235,10 +253,10 @@ class SubprocVectorEnv:
         images, vectors, dtype = shapes[0]
         cars = images[0]
         E = self.num_envs
-        self.shared = {"images": _SharedArray((E,) + images, dtype),
-                       "rewards": _SharedArray((E, cars), np.float32), "flags": _SharedArray((E, 2), bool)}
+        self.shared = {"images": SharedArray((E,) + images, dtype),
+                       "rewards": SharedArray((E, cars), np.float32), "flags": SharedArray((E, 2), bool)}
         for key, shape in vectors:
-            self.shared[VECTOR_PREFIX + key] = _SharedArray((E, cars) + tuple(shape), np.float32)
+            self.shared[VECTOR_PREFIX + key] = SharedArray((E, cars) + tuple(shape), np.float32)
         specs = {name: array.spec for name, array in self.shared.items()}
         for k, remote in enumerate(self.remotes):
             remote.send((k, specs))
@@ -253,7 +271,7 @@ class SubprocVectorEnv:
         if "actions" not in self.shared or self.shared["actions"].shape != rows.shape:
             if "actions" in self.shared:
                 self.shared["actions"].close(unlink=True)
-            self.shared["actions"] = _SharedArray(rows.shape, np.float64)
+            self.shared["actions"] = SharedArray(rows.shape, np.float64)
             for remote in self.remotes:
                 os.write(remote.fileno(), ACTIONS)
                 remote.send((self.shared["actions"].spec, integer))
@@ -264,7 +282,7 @@ class SubprocVectorEnv:
         if commands is None and "commands" not in self.shared:
             return
         if "commands" not in self.shared:
-            self.shared["commands"] = _SharedArray(self.shared["rewards"].shape + (2,), np.float64)
+            self.shared["commands"] = SharedArray(self.shared["rewards"].shape + (2,), np.float64)
             for remote in self.remotes:
                 os.write(remote.fileno(), COMMANDS)
                 remote.send(self.shared["commands"].spec)
@@ -314,6 +332,26 @@ class SubprocVectorEnv:
         flags = self.shared["flags"].array
         return (self._observations(), self.shared["rewards"].array.copy(), flags[:, 0].copy(),
                 flags[:, 1].copy(), infos)
+
+    def shared_array(self, name: str, shape, dtype) -> SharedArray:
+        """A new shared block `name` owned (and unlinked at close) by this vector env, for actors to fill."""
+        if name in self.shared:
+            self.shared.pop(name).close(unlink=True)
+        self.shared[name] = SharedArray(shape, dtype)
+        return self.shared[name]
+
+    def attach_actors(self, factories: Sequence[Callable]) -> None:
+        """Give each worker an actor: `factories[k](worker)`, built in worker k's process (picklable)."""
+        for remote, factory in zip(self.remotes, factories):
+            os.write(remote.fileno(), ACTOR)
+            remote.send(factory)
+
+    def act(self, payloads: Sequence) -> list:
+        """Run every worker's actor on its payload, all at once; their results, in worker order."""
+        for remote, payload in zip(self.remotes, payloads):
+            os.write(remote.fileno(), ACT)
+            remote.send(payload)
+        return [_checked(remote.recv()) for remote in self.remotes]
 
     def worker_cpu_seconds(self) -> float | None:
         """CPU seconds (user + system) the worker processes have used so far; None where /proc is missing."""

@@ -2,8 +2,9 @@
 every setting alike): ``python -m multirace.tools.train_speed --seconds 40 --rounds 2``.
 
 Each setting is a dict of `TrainConfig` overrides; `SETTINGS` holds the steps of issue 26's faster learner,
-each on top of the previous one (`old`: the settings before them). The figures of one run on a busy
-machine are in multirace/train/README.md ("Throughput").
+each on top of the previous one (`old`: the settings before them), and last the throughput preset with the
+learner inferring for every car (no actors) as a control. Figures are in multirace/train/README.md
+("Throughput").
 """
 from __future__ import annotations
 
@@ -11,10 +12,13 @@ import argparse
 import json
 
 SETTINGS = {
-    "old": {"pool_inputs": False},
-    "+ pooled inputs (the default)": {},
-    "+ overlapped update": {"overlap_update": True, "worker_spin_wait": 0.0005},
-    "+ workers sleep at once": {"overlap_update": True},
+    "old": {"pool_inputs": False, "actors": False},
+    "+ pooled inputs": {"actors": False},
+    "+ actors (the default)": {},
+    "+ overlapped update, 8 cars per worker (--config throughput)": {"overlap_update": True, "cars_per_env": 8,
+                                                                     "rollout_steps": 128},
+    "--config throughput, the learner inferring": {"overlap_update": True, "cars_per_env": 8, "rollout_steps": 128,
+                                                   "actors": False},
 }
 
 

@@ -102,6 +102,7 @@ class TrainConfig(RewardWeights):
     seed: int = 0  # seeds torch, the envs and sampling
     threads: int = 1  # torch threads of the learner while sampling (the workers need the cores then)
     overlap_update: bool = False  # True: the PPO update of a rollout runs on a thread while the workers sample the next one, with the policy from before that update (one iteration stale, decoupled PPO); False: the workers wait for each update (learnt faster per agent-step and per minute on the busy machine, see the train README's Throughput)
+    actors: bool = True  # each env worker drives its own cars with a copy of the policy for a whole rollout (train/actors.py; the weights shared at each rollout) and the learner only updates: no round trip per step; False (and always with the opponent pool or expert_coef): the learner infers for every car at every step
     worker_spin_wait: float | None = None  # seconds an env worker polls for its next step before it sleeps; None: 0 with overlap_update (the update thread wants the core), else `vector.SPIN_WAIT`
     pool_inputs: bool = True  # workers send camera images pooled as the net's first layer pools them (block sums): the same outputs, less to copy and compute (not with the opponent pool, whose agents read full images)
     update_precision: str = "auto"  # the PPO update's forward and backward passes: "bfloat16" (mixed precision: weights, optimiser and inference stay float32), "float32", or "auto": bfloat16 where the CPU computes it natively (train/threads.py)
@@ -153,8 +154,9 @@ class TrainConfig(RewardWeights):
 
 PRESETS: dict[str, dict] = {
     "fast": {},
-    # the PPO loop's fastest settings on 2 cores (issue 26 item 4): the update beside the next rollout, 8 cars
-    # per worker (the same 2,048-sample batch); not the default until its learning is checked as fast's was
+    # the PPO loop's fastest settings on 2 cores (issue 26 item 4): with the actors (the default), the update beside
+    # the next rollout, 8 cars per worker (the same 2,048-sample batch); not the default until its learning is
+    # checked as fast's was
     "throughput": {"overlap_update": True, "cars_per_env": 8, "rollout_steps": 128},
     "deepracer": {"anneal_lr": False, "minibatch_size": 64, "lr": 3e-4, "ent_coef": 0.01, "gamma": 0.999, "epochs": 10, "clip": 0.2,
                   "gae_lambda": 0.95, "network": SHALLOW, "reward": "centre"},

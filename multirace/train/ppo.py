@@ -2,10 +2,12 @@
 
 Every learning car in every env is driven by the same policy and all their
 samples train it (parameter sharing / self-play). Envs run in worker processes
-(`vector.SubprocVectorEnv`, one per core) and send their camera images pooled
-as the net's first layer pools them (`pool_inputs`: the same outputs, a
-sixteenth of the pixels for the tiny net); the learner runs inference on the
-whole batch of cars at once on one torch thread, then does the PPO updates on
+(`vector.SubprocVectorEnv`, one per core) and pool their camera images as the
+net's first layer pools them (`pool_inputs`: the same outputs, a sixteenth of
+the pixels for the tiny net). Each worker drives its own cars with a copy of
+the policy for a whole rollout (`actors`, `train/actors.py`); where the
+opponent pool or expert labels need it, the learner instead runs inference on
+the whole batch of cars at each step on one torch thread. The learner does the PPO updates on
 `update_threads` (the workers wait meanwhile, so their cores are free), in
 bfloat16 where the CPU computes it natively (`update_precision`); or,
 with `overlap_update`, the update of a rollout runs on a thread while the
@@ -29,41 +31,20 @@ import time
 import numpy as np
 import torch
 from torch import nn
-from torch.distributions import Categorical, Normal
 
 from ..environment.actions import load_action_space
 from ..environment.rewards import NAMED_REWARDS
 from ..racing.nets import build_net, input_pool
 from ..sensors.camera import image_shape_of
+from .actors import Actors
 from .config import TrainConfig
 from .envs import INFO_KEYS, TrainEnv, env_settings
+from .policy import Policy, forward
 from .robust import RobustKnobs
 from .rollout import Rollout, batch_input, expert_actions, finished_episodes, vector_sizes
 from .run import TrainingRun
 from .threads import update_in_bfloat16, update_threads
 from .warmstart import init_lineage, init_settings, load_init_agent
-
-
-# ------------------------------------------------------------------ policy
-class Policy:
-    """Turns the net's outputs into a distribution over the action space (discrete or Gaussian)."""
-
-    def __init__(self, space):
-        self.space = space
-        self.discrete = space.discrete
-
-    def dist(self, out: torch.Tensor):
-        if self.discrete:
-            return Categorical(logits=out, validate_args=False)
-        return Normal(out[:, :2], torch.exp(torch.clamp(out[:, 2:], -5.0, 2.0)), validate_args=False)
-
-    def log_prob(self, dist, actions):
-        lp = dist.log_prob(actions)
-        return lp if self.discrete else lp.sum(-1)
-
-    def entropy(self, dist):
-        ent = dist.entropy()
-        return ent if self.discrete else ent.sum(-1)
 
 
 def init_continuous_head(net, space) -> None:
@@ -170,16 +151,6 @@ def input_pooling(config: TrainConfig) -> int:
     return k
 
 
-def forward(net, x, pooled: bool, bfloat16: bool = False):
-    """The net's (outputs, value) for input `x`, images pooled by the workers if `pooled`; with `bfloat16`
-    computed in bfloat16 (torch's CPU autocast) and returned as float32."""
-    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bfloat16):
-        out, value = net.forward_all(x, pooled=True) if pooled else net.forward_all(x)
-    if bfloat16:
-        out, value = out.float(), None if value is None else value.float()
-    return out, value
-
-
 def cpu_seconds(vec) -> float | None:
     """CPU seconds the learner (every thread) and the env workers have used so far (None: not known here)."""
     workers = vec.worker_cpu_seconds()
@@ -211,26 +182,58 @@ def collect_rollout(vec, net, policy: Policy, rollout: Rollout, robust: RobustKn
         commands = robust.opponent_commands(rollout.next_obs, learner_mask)  # the pool's cars: their own commands
         rollout.learn[t] = learner_mask.reshape(N)
         rollout.next_obs, reward, env_done, _, infos = vec.step(actions, commands)
-        if deepracer is not None:
-            deepracer.write_step(infos, reward, learner_mask)
         if config.expert_coef:
             rollout.next_expert = expert_actions(infos, policy.discrete)
-        done = np.array([[infos[e][a]["train_done"] for a in range(A)] for e in range(E)]).reshape(N)
-        step_reward = reward.reshape(N).astype(np.float64)
-        env_reward += float(step_reward.sum())
-        if reward_scale is not None:
-            step_reward = reward_scale(step_reward, done)
-        rollout.rew[t] = torch.from_numpy(step_reward.astype(np.float32))
-        # an episode cut by the step limit (not by an off-track or a crash) would have gone on:
-        # bootstrap it, with this state's value standing in for the unseen next state's
-        cut = np.array([[infos[e][a]["time_limit"] for a in range(A)] for e in range(E)]).reshape(N)
-        rollout.rew[t] += config.gamma * value * torch.from_numpy(cut.astype(np.float32))
-        rollout.next_done = torch.from_numpy(done.astype(np.float32))
-        episodes += finished_episodes(infos, learner_mask)
-        robust.after_step(infos, reward, env_done)
+        env_reward += record_step(rollout, t, infos, reward, env_done, value, learner_mask, reward_scale, robust,
+                                  config.gamma, deepracer, episodes)
     with torch.no_grad():
         next_value = forward(net, rollout.net_input(rollout.next_obs), pooled)[1]
     return next_value, env_reward, episodes
+
+
+def record_step(rollout: Rollout, t: int, infos, reward, env_done, value, learner_mask, reward_scale, robust,
+                gamma: float, deepracer, episodes: list) -> float:
+    """What step t of every car returned, into `rollout`: its rewards (scaled, and bootstrapped with `value`
+    where the step limit cut an episode), the dones entering step t+1, the training episodes that ended (added
+    to `episodes`), the sim-trace rows. Returns the env's own reward summed over the cars."""
+    N = rollout.cars
+    if deepracer is not None:
+        deepracer.write_step(infos, reward, learner_mask)
+    done = np.array([info["train_done"] for env_infos in infos for info in env_infos]).reshape(N)
+    step_reward = reward.reshape(N).astype(np.float64)
+    total = float(step_reward.sum())
+    if reward_scale is not None:
+        step_reward = reward_scale(step_reward, done)
+    rollout.rew[t] = torch.from_numpy(step_reward.astype(np.float32))
+    # an episode cut by the step limit (not by an off-track or a crash) would have gone on:
+    # bootstrap it, with this state's value standing in for the unseen next state's
+    cut = np.array([info["time_limit"] for env_infos in infos for info in env_infos]).reshape(N)
+    rollout.rew[t] += gamma * value * torch.from_numpy(cut.astype(np.float32))
+    rollout.next_done = torch.from_numpy(done.astype(np.float32))
+    episodes += finished_episodes(infos, learner_mask)
+    robust.after_step(infos, reward, env_done)
+    return total
+
+
+def collect_actor_rollout(actors, net, rollout: Rollout, robust: RobustKnobs, learner_mask, reward_scale,
+                          config: TrainConfig, deepracer=None):
+    """`collect_rollout` with the workers' actors driving their cars (`TrainConfig.actors`): the same returns."""
+    T, N = rollout.steps, rollout.cars
+    blocks, infos = actors.run(net)
+    rollout.obs[:] = blocks["obs"].reshape(rollout.obs.shape)
+    for key, values in rollout.vectors.items():
+        values[:] = blocks["vector:" + key].reshape(values.shape)
+    rollout.act[:] = torch.from_numpy(blocks["act"].reshape(rollout.act.shape))
+    rollout.logp[:] = torch.from_numpy(blocks["logp"].reshape(T, N))
+    values = torch.from_numpy(blocks["val"].reshape(T + 1, N).copy())
+    rollout.val[:] = values[:T]
+    rollout.learn[:] = learner_mask.reshape(N)
+    env_reward, episodes = 0.0, []
+    for t in range(T):
+        rollout.done[t] = rollout.next_done
+        env_reward += record_step(rollout, t, infos[t], blocks["rew"][t], blocks["env_done"][t], values[t],
+                                  learner_mask, reward_scale, robust, config.gamma, deepracer, episodes)
+    return values[T], env_reward, episodes
 
 
 def decayed(rate: float, fraction: float) -> float:
@@ -446,6 +449,9 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
     rollout.start(obs, expert_actions(reset_infos, space.discrete))
     deepracer = run.deepracer_folder(net, space, image_shape)  # out.deepracer/ (deepracer_log), else None
     updater = Updater(net, Policy(space), optimiser, config, space, pooled=pool > 1)
+    # the workers drive their own cars, unless the pool's opponents or the expert's labels need the learner each step
+    use_actors = config.actors and not config.opponent_pool and not config.expert_coef
+    actors = Actors(vec, net, space, rollout, pool > 1, config.seed) if use_actors else None
     try:
         start_iteration = run.iteration
         while run.keep_going(start_iteration):
@@ -457,8 +463,13 @@ def train(config: TrainConfig, out, init=None, resume=None, command=None, log=pr
             t0 = time.perf_counter()
             if deepracer is not None:
                 deepracer.start_iteration(run.iteration)
-            next_value, env_reward, episodes = collect_rollout(vec, updater.behaviour, updater.policy, rollout, robust,
-                                                               learner_mask, reward_scale, config, deepracer, pool > 1)
+            if actors is not None:
+                next_value, env_reward, episodes = collect_actor_rollout(actors, updater.behaviour, rollout, robust,
+                                                                         learner_mask, reward_scale, config, deepracer)
+            else:
+                next_value, env_reward, episodes = collect_rollout(vec, updater.behaviour, updater.policy, rollout,
+                                                                   robust, learner_mask, reward_scale, config,
+                                                                   deepracer, pool > 1)
             samples = int(rollout.learn.sum())
             run.agent_steps += samples
             t1 = time.perf_counter()
