@@ -117,6 +117,40 @@ def test_student_can_start_from_an_imitation_agent(teacher, tmp_path):
             assert torch.equal(value, after[key]), key
 
 
+@pytest.mark.parametrize("decay", [0.0, 0.5])
+def test_the_shipped_student_is_the_moving_average_of_its_weights_when_asked(teacher, tmp_path, decay):
+    """`distill_average`: the shipped student is decay x the previous average + (1 - decay) x the raw student
+    after each iteration; 0 ships the raw student. One iteration from the racer: the shipped weights move
+    exactly (1 - decay) of the raw student's way."""
+    import torch
+
+    from multirace.racing.agentfile import read_payload
+
+    teacher_path, _ = teacher
+    racer = Path(__file__).parents[1] / "agents" / "racer.pt"
+
+    def student(average):
+        base = make_config("tiny", tracks=("reinvent_base",), max_iterations=1, seed=0, progress=False,
+                           eval_every=0, distill_average=average)
+        config = student_config(base, teacher_path, seconds=1e9, init=racer)
+        config.rollout_steps, config.distill_steps, config.distill_batch = 16, 3, 8
+        return config
+
+    raw = tmp_path / "raw.pt"
+    distill_student(student(0.0), raw, log=None, init=racer)
+    distill_student(student(decay), tmp_path / "s.pt", log=None, init=racer)
+    before = read_payload(racer)["state_dict"]
+    learnt, shipped = read_payload(raw)["state_dict"], read_payload(tmp_path / "s.pt")["state_dict"]
+    moved = 0
+    for key, value in before.items():
+        if key.startswith("value_head.") or not value.is_floating_point():
+            continue
+        expected = decay * value + (1 - decay) * learnt[key]
+        assert torch.allclose(shipped[key], expected, atol=1e-6), key
+        moved += not torch.equal(learnt[key], value)
+    assert moved, "the raw student learnt something"
+
+
 def test_a_discrete_init_agent_is_refused_for_a_student(teacher):
     teacher_path, _ = teacher
     base = make_config("tiny", tracks=("reinvent_base",), progress=False)

@@ -99,11 +99,13 @@ class Actors:
         self.vec, self.steps, self.version = vec, T, 0
         self.weights = vec.shared_array("actor:weights", flat_weights(net).shape, np.float32)
         act_dtype = np.int64 if space.discrete else np.float32
-        blocks = {"obs": ((T, E, A, *rollout.obs_shape), rollout.obs.dtype), "act": ((T, E, A, *rollout.act_shape), act_dtype),
+        blocks = {"obs": ((T, E, A, *rollout.obs_shape), rollout.obs.dtype),
+                  "act": ((T, E, A, *rollout.act_shape), act_dtype),
                   "logp": ((T, E, A), np.float32), "val": ((T + 1, E, A), np.float32),
                   "rew": ((T, E, A), np.float32), "env_done": ((T, E), bool),
                   **{"vector:" + key: ((T, E, A, size), np.float32) for key, size in rollout.vector_inputs.items()}}
-        self.buffers = {name: vec.shared_array("actor:" + name, shape, dtype) for name, (shape, dtype) in blocks.items()}
+        self.buffers = {name: vec.shared_array("actor:" + name, shape, dtype)
+                        for name, (shape, dtype) in blocks.items()}
         spec = {"net": copy.deepcopy(net), "space": space, "pooled": pooled,
                 "weights": self.weights.spec, "buffers": {name: block.spec for name, block in self.buffers.items()}}
         vec.attach_actors([functools.partial(RolloutActor, spec={**spec, "seed": seed * 1000 + 17 * e + 1})

@@ -15,6 +15,8 @@ reference lap for scale).
 """
 from __future__ import annotations
 
+import copy
+
 import dataclasses
 import json
 import time
@@ -79,6 +81,7 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
         elif not space.discrete:
             init_continuous_head(net, space)
         optimiser = torch.optim.Adam(net.parameters(), lr=config.distill_lr)
+        shipped = copy.deepcopy(net) if config.distill_average > 0 else net  # evaluated, kept and written
         loss_fn = imitation_loss(space)
         label_shape, label_dtype = ((), np.int64) if space.discrete else ((2,), np.float32)
         data = Dataset(config.distill_samples, obs_shape, label_shape, label_dtype, rng, vectors, obs_dtype)
@@ -108,16 +111,25 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
             for group in optimiser.param_groups:
                 group["lr"] = rate
             loss = _fit(net, optimiser, loss_fn, data, config, pool > 1)
+            if shipped is not net:
+                moving_average(shipped, net, config.distill_average)
             run.update_time += time.perf_counter() - t1
             run.iteration += 1
             run.record(episodes, {"expert_loss": round(loss, 4), "beta": round(beta, 4), "lr": rate}, 0.0, T * E * A,
                        time.perf_counter() - t0, {})
-            if run.checkpoint_and_evaluate(net, optimiser, None, space, image_shape):
+            if run.checkpoint_and_evaluate(shipped, optimiser, None, space, image_shape):
                 break
     finally:
         run.stop_progress()
         vec.close()
-    return run.finish(net, optimiser, None, space, image_shape)
+    return run.finish(shipped, optimiser, None, space, image_shape)
+
+
+def moving_average(average, net, decay: float) -> None:
+    """`average`'s parameters <- decay x themselves + (1 - decay) x `net`'s (an exponential moving average)."""
+    with torch.no_grad():
+        for mine, theirs in zip(average.parameters(), net.parameters()):
+            mine.mul_(decay).add_(theirs, alpha=1.0 - decay)
 
 
 def _fit(net, optimiser, loss_fn, data: Dataset, config: TrainConfig, pooled: bool) -> float:

@@ -19,10 +19,11 @@ import numpy as np
 import torch
 
 from ..environment.actions import load_action_space
+from .actors import Actors
 from .config import TrainConfig
 from .envs import INFO_KEYS, TrainEnv, env_settings
-from .ppo import Policy, RewardScale, anneal_learning_rate, check_reward_file, collect_rollout, ppo_update, \
-    training_runs
+from .ppo import Policy, RewardScale, anneal_learning_rate, check_reward_file, collect_actor_rollout, \
+    collect_rollout, ppo_update, training_runs
 from .robust import RobustKnobs
 from .rollout import Rollout, expert_actions
 from ..racing.teacher_net import StatePolicyNet, TeacherController, TeacherDriver, load_teacher, save_teacher
@@ -77,12 +78,17 @@ def train_teacher(config: TrainConfig, out, seconds: float, log=print) -> dict:
         rollout = Rollout(T, N, obs.shape[2:], {}, space, obs_dtype=np.float32)
         rollout.start(obs, expert_actions([[{}] * A] * E, discrete=False))  # no expert labels: NaN
         torch.set_num_threads(1)
+        actors = Actors(vec, net, space, rollout, pooled=False, seed=config.seed) if config.actors else None
         while time.perf_counter() - started < seconds and not (
                 config.max_iterations and summary["iterations"] >= config.max_iterations):
             fraction = (time.perf_counter() - started) / seconds
             t0 = time.perf_counter()
-            next_value, _, _ = collect_rollout(vec, net, policy, rollout, robust, learner_mask, reward_scale,
-                                               teacher_config)
+            if actors is not None:  # the workers drive their cars with the teacher's copy
+                next_value, _, _ = collect_actor_rollout(actors, net, rollout, robust, learner_mask, reward_scale,
+                                                         teacher_config)
+            else:
+                next_value, _, _ = collect_rollout(vec, net, policy, rollout, robust, learner_mask, reward_scale,
+                                                   teacher_config)
             t1 = time.perf_counter()
             advantages, returns = rollout.advantages(next_value, config.gamma, config.gae_lambda)
             anneal_learning_rate(optimiser, teacher_config, fraction)
