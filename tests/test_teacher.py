@@ -117,11 +117,10 @@ def test_student_can_start_from_an_imitation_agent(teacher, tmp_path):
             assert torch.equal(value, after[key]), key
 
 
-@pytest.mark.parametrize("decay", [0.0, 0.5])
-def test_the_shipped_student_is_the_moving_average_of_its_weights_when_asked(teacher, tmp_path, decay):
-    """`distill_average`: the shipped student is decay x the previous average + (1 - decay) x the raw student
-    after each iteration; 0 ships the raw student. One iteration from the racer: the shipped weights move
-    exactly (1 - decay) of the raw student's way."""
+@pytest.mark.parametrize("share", [1.0, 0.6])
+def test_the_shipped_student_blends_in_the_init_agents_weights_when_asked(teacher, tmp_path, share):
+    """`init_blend`: the student evaluated and shipped is share x the trained weights + (1 - share) x the init
+    agent's (1.0: the trained ones). One iteration from the racer, against the same run unblended."""
     import torch
 
     from multirace.racing.agentfile import read_payload
@@ -129,26 +128,33 @@ def test_the_shipped_student_is_the_moving_average_of_its_weights_when_asked(tea
     teacher_path, _ = teacher
     racer = Path(__file__).parents[1] / "agents" / "racer.pt"
 
-    def student(average):
+    def student(blend):
         base = make_config("tiny", tracks=("reinvent_base",), max_iterations=1, seed=0, progress=False,
-                           eval_every=0, distill_average=average)
+                           eval_every=0, init_blend=blend)
         config = student_config(base, teacher_path, seconds=1e9, init=racer)
         config.rollout_steps, config.distill_steps, config.distill_batch = 16, 3, 8
         return config
 
     raw = tmp_path / "raw.pt"
-    distill_student(student(0.0), raw, log=None, init=racer)
-    distill_student(student(decay), tmp_path / "s.pt", log=None, init=racer)
+    distill_student(student(1.0), raw, log=None, init=racer)
+    distill_student(student(share), tmp_path / "s.pt", log=None, init=racer)
     before = read_payload(racer)["state_dict"]
     learnt, shipped = read_payload(raw)["state_dict"], read_payload(tmp_path / "s.pt")["state_dict"]
     moved = 0
     for key, value in before.items():
         if key.startswith("value_head.") or not value.is_floating_point():
             continue
-        expected = decay * value + (1 - decay) * learnt[key]
+        expected = share * learnt[key] + (1 - share) * value
         assert torch.allclose(shipped[key], expected, atol=1e-6), key
         moved += not torch.equal(learnt[key], value)
-    assert moved, "the raw student learnt something"
+    assert moved, "the trained student moved from the racer"
+
+
+def test_a_blend_needs_an_init_agent(teacher, tmp_path):
+    teacher_path, _ = teacher
+    base = make_config("tiny", tracks=("reinvent_base",), max_iterations=1, progress=False, init_blend=0.5)
+    with pytest.raises(ValueError, match="init_blend: needs --init"):
+        distill_student(student_config(base, teacher_path, seconds=1e9), tmp_path / "s.pt", log=None)
 
 
 def test_a_discrete_init_agent_is_refused_for_a_student(teacher):

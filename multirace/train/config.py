@@ -95,7 +95,7 @@ class TrainConfig(RewardWeights):
     distill_batch: int = 128  # with privileged: labelled images per gradient step of the student
     distill_steps: int = 40  # with privileged: gradient steps after each rollout (of rollout_steps x cars)
     distill_speed_scale: float = 0.8  # with privileged: the student's labels ask for this share of the teacher's speed (a margin for a camera that sees less than the teacher's state; at 1.0 and 0.9 students left the road at one corner a lap, train README)
-    distill_average: float = 0.0  # with privileged: > 0: the student evaluated, kept and shipped is a moving average of the student's weights (this decay per iteration); the raw student drives and learns
+    init_blend: float = 1.0  # with privileged and an --init agent: the student evaluated, kept and shipped is this share of the trained weights plus the rest of the init agent's (weight-space ensembling, WiSE-FT: Wortsman et al. 2022); 1.0: the trained weights alone
     distill_samples: int = 60000  # with privileged: labelled images kept (beyond: new ones replace random old ones)
     # ---- budget, logging, outputs
     minutes: float = 10.0  # wall-clock budget, including evaluations and checkpoints
@@ -193,7 +193,7 @@ RANGES = {  # setting: (lowest, highest), inclusive; None: no bound
     "value_warmup": (0, None), "minutes": (1e-6, None), "lr": (1e-12, None), "gamma": (0, 1), "gae_lambda": (0, 1),
     "clip": (1e-6, None), "pool_fraction": (0, 1), "checkpoint_every": (0, None), "eval_every": (0, None),
     "snapshot_every": (1e-6, None), "worker_spin_wait": (0, 1), "nature_temperature": (1e-6, None), "max_grad_norm": (1e-12, None),
-    "distill_speed_scale": (0.1, 1.0), "distill_average": (0, 0.999999),
+    "distill_speed_scale": (0.1, 1.0), "init_blend": (0, 1),
 }
 
 

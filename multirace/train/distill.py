@@ -59,6 +59,8 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
     """DAgger of a camera net from `config.expert` (a teacher) in the vectorised envs, starting from the agent
     file `init` if given (else from scratch); writes the agent file (the best-evaluated student) and its curve
     and history like a PPO run; returns the run's summary."""
+    if config.init_blend < 1 and not init:
+        raise ValueError("--set init_blend: needs --init (the agent whose weights the student is blended with)")
     run = TrainingRun(config, out, command, log)
     run.method, run.notes = "dagger", {"expert": config.expert.replace(TEACHER_PREFIX, "teacher:"),
                                        "stage": "student of an RL teacher (learning by cheating)"}
@@ -81,7 +83,9 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
         elif not space.discrete:
             init_continuous_head(net, space)
         optimiser = torch.optim.Adam(net.parameters(), lr=config.distill_lr)
-        shipped = copy.deepcopy(net) if config.distill_average > 0 else net  # evaluated, kept and written
+        blend = config.init_blend < 1  # the student evaluated, kept and written mixes in the init agent's weights
+        start = {key: value.clone() for key, value in net.state_dict().items()} if blend else None
+        shipped = copy.deepcopy(net) if blend else net
         loss_fn = imitation_loss(space)
         label_shape, label_dtype = ((), np.int64) if space.discrete else ((2,), np.float32)
         data = Dataset(config.distill_samples, obs_shape, label_shape, label_dtype, rng, vectors, obs_dtype)
@@ -111,8 +115,8 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
             for group in optimiser.param_groups:
                 group["lr"] = rate
             loss = _fit(net, optimiser, loss_fn, data, config, pool > 1)
-            if shipped is not net:
-                moving_average(shipped, net, config.distill_average)
+            if blend:
+                blend_weights(shipped, start, net, config.init_blend)
             run.update_time += time.perf_counter() - t1
             run.iteration += 1
             run.record(episodes, {"expert_loss": round(loss, 4), "beta": round(beta, 4), "lr": rate}, 0.0, T * E * A,
@@ -125,11 +129,11 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
     return run.finish(shipped, optimiser, None, space, image_shape)
 
 
-def moving_average(average, net, decay: float) -> None:
-    """`average`'s parameters <- decay x themselves + (1 - decay) x `net`'s (an exponential moving average)."""
-    with torch.no_grad():
-        for mine, theirs in zip(average.parameters(), net.parameters()):
-            mine.mul_(decay).add_(theirs, alpha=1.0 - decay)
+def blend_weights(out, start: dict, net, share: float) -> None:
+    """`out`'s weights <- `share` x `net`'s + (1 - share) x the `start` state's (same architecture)."""
+    state = net.state_dict()
+    out.load_state_dict({key: share * value + (1.0 - share) * start[key] if value.is_floating_point() else value
+                         for key, value in state.items()})
 
 
 def _fit(net, optimiser, loss_fn, data: Dataset, config: TrainConfig, pooled: bool) -> float:
