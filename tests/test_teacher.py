@@ -148,6 +148,8 @@ def test_the_shipped_student_blends_in_the_init_agents_weights_when_asked(teache
         assert torch.allclose(shipped[key], expected, atol=1e-6), key
         moved += not torch.equal(learnt[key], value)
     assert moved, "the trained student moved from the racer"
+    training = load_agent(tmp_path / "s.pt", step_budget=None).metadata["training"]
+    assert training.get("init_blend") == (share if share < 1 else None)  # the file says what it is
 
 
 def test_a_blend_needs_an_init_agent(teacher, tmp_path):

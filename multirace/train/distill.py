@@ -66,6 +66,8 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
                                        "stage": "student of an RL teacher (learning by cheating)"}
     if init:
         run.lineage = init_lineage(init)
+    if config.init_blend < 1:
+        run.notes["init_blend"] = config.init_blend  # the share of the trained weights; the rest: the init agent's
     torch.set_num_threads(int(config.threads))
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
