@@ -6,9 +6,10 @@ samples train it (parameter sharing / self-play). Envs run in worker processes
 net's first layer pools them (`pool_inputs`: the same outputs, a sixteenth of
 the pixels for the tiny net). Each worker drives its own cars with a copy of
 the policy for a whole rollout (`actors`, `train/actors.py`); where the
-opponent pool or expert labels need it, the learner instead runs inference on
-the whole batch of cars at each step on one torch thread. The learner does the PPO updates on
-`update_threads` (the workers wait meanwhile, so their cores are free), in
+opponent pool or expert labels need it, the learner instead runs inference
+on the whole batch of cars at each step on one torch thread. The learner
+does the PPO updates on `update_threads` (the workers wait meanwhile, so
+their cores are free), in
 bfloat16 where the CPU computes it natively (`update_precision`); or,
 with `overlap_update`, the update of a rollout runs on a thread while the
 workers sample the next one (`Updater`; decoupled PPO corrects for the
