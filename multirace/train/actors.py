@@ -10,7 +10,6 @@ seed and the worker's index, so a seed still gives the same run.
 """
 from __future__ import annotations
 
-import copy
 import functools
 
 import numpy as np
@@ -84,7 +83,7 @@ class RolloutActor:
             rewards, done, _, infos = worker.advance(action.tolist())
             b["rew"][t, slot] = rewards
             b["env_done"][t, slot] = done
-            step_infos.append(worker.small_infos(infos))
+            step_infos.append(infos)
         with torch.inference_mode():
             b["val"][steps, slot] = forward(self.net, self.net_input(worker.obs), self.pooled)[1].reshape(-1).numpy()
         return step_infos
@@ -106,7 +105,8 @@ class Actors:
                   **{"vector:" + key: ((T, E, A, size), np.float32) for key, size in rollout.vector_inputs.items()}}
         self.buffers = {name: vec.shared_array("actor:" + name, shape, dtype)
                         for name, (shape, dtype) in blocks.items()}
-        spec = {"net": copy.deepcopy(net), "space": space, "pooled": pooled,
+        spec = {"net": net,  # pickled to each worker: a copy
+                "space": space, "pooled": pooled,
                 "weights": self.weights.spec, "buffers": {name: block.spec for name, block in self.buffers.items()}}
         vec.attach_actors([functools.partial(RolloutActor, spec={**spec, "seed": seed * 1000 + 17 * e + 1})
                            for e in range(E)])
