@@ -152,6 +152,58 @@ def test_the_shipped_student_blends_in_the_init_agents_weights_when_asked(teache
     assert training.get("init_blend") == (share if share < 1 else None)  # the file says what it is
 
 
+def test_the_overlapped_fit_trains_on_every_label_one_rollout_behind():
+    """`distill_overlap`: the fit of rollout k's labels runs while rollout k+1 is gathered; that rollout's
+    labels join the dataset only when the fit ends, the driver then takes the fitted weights, and every fit
+    runs its `distill_steps` (Adam's step count)."""
+    import torch
+
+    from multirace.environment.actions import load_action_space
+    from multirace.racing.nets import build_net
+    from multirace.train.distill import StudentFit
+    from multirace.train.imitate import Dataset, imitation_loss
+
+    space = load_action_space(SPACE)
+    config = make_config("tiny", distill_overlap=True, distill_steps=3, distill_batch=4)
+    net = build_net(config.student_network, (120, 160, 1), space)
+    optimiser = torch.optim.Adam(net.parameters(), lr=1e-2)
+    rng = np.random.default_rng(0)
+    data = Dataset(100, (120, 160, 1), (2,), np.float32, rng)
+    fit = StudentFit(net, optimiser, imitation_loss(space), data, config, pooled=False)
+
+    def gather(n):
+        for _ in range(n):
+            fit.add(torch.from_numpy(rng.integers(0, 255, (120, 160, 1), dtype=np.uint8)),
+                    np.array([rng.uniform(-30, 30), rng.uniform(0.5, 4)], np.float32))
+
+    fit.begin(1e-2)  # nothing gathered yet: no fit beside the first rollout
+    gather(10)
+    assert data.size == 0
+    assert np.isfinite(fit.finish(1e-2)) and data.size == 10  # the first rollout's fit runs at its end
+    before = {key: value.clone() for key, value in net.state_dict().items()}
+    fit.begin(1e-2)
+    gather(10)  # while the fit runs on the first 10
+    loss = fit.finish(1e-2)
+    assert np.isfinite(loss) and data.size == 20
+    assert any(not torch.equal(before[key], value) for key, value in net.state_dict().items())
+    for key, value in net.state_dict().items():
+        assert torch.equal(fit.driver.state_dict()[key], value), key
+    steps = {int(state["step"]) for state in optimiser.state_dict()["state"].values()}
+    assert steps == {6}
+    fit.close()
+
+
+def test_an_overlapped_student_run_records_a_fit_per_iteration(teacher, tmp_path):
+    teacher_path, _ = teacher
+    base = make_config("tiny", tracks=("reinvent_base",), action_space=SPACE, max_iterations=3, seed=0,
+                       progress=False, eval_every=0, distill_overlap=True)
+    config = student_config(base, teacher_path, seconds=1e9)
+    config.rollout_steps, config.distill_steps, config.distill_batch = 16, 2, 16
+    summary = distill_student(config, tmp_path / "s.pt", log=None)
+    assert [np.isfinite(row["expert_loss"]) for row in summary["history"]] == [True] * 3
+    assert load_agent(tmp_path / "s.pt", step_budget=None).metadata["training"]["method"] == "dagger"
+
+
 def test_a_blend_needs_an_init_agent(teacher, tmp_path):
     teacher_path, _ = teacher
     base = make_config("tiny", tracks=("reinvent_base",), max_iterations=1, progress=False, init_blend=0.5)

@@ -96,6 +96,7 @@ class TrainConfig(RewardWeights):
     distill_steps: int = 40  # with privileged: gradient steps after each rollout (of rollout_steps x cars)
     distill_speed_scale: float = 0.8  # with privileged: the student's labels ask for this share of the teacher's speed (a margin for a camera that sees less than the teacher's state; at 1.0 and 0.9 students left the road at one corner a lap, train README)
     init_blend: float = 1.0  # with privileged and an --init agent: the student evaluated, kept and shipped is this share of the trained weights plus the rest of the init agent's (weight-space ensembling, WiSE-FT: Wortsman et al. 2022); 1.0: the trained weights alone
+    distill_overlap: bool = False  # with privileged: the student's fit on the labels gathered so far runs on a thread while the workers gather the next rollout's (driven by the student from before that fit: one iteration stale); False: the workers wait for each fit
     distill_samples: int = 60000  # with privileged: labelled images kept (beyond: new ones replace random old ones)
     # ---- budget, logging, outputs
     minutes: float = 10.0  # wall-clock budget, including evaluations and checkpoints

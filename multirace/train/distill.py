@@ -15,8 +15,8 @@ reference lap for scale).
 """
 from __future__ import annotations
 
+import concurrent.futures
 import copy
-
 import dataclasses
 import json
 import time
@@ -75,6 +75,7 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
     pool = input_pooling(config)  # the workers pool the images as the net's first layer would
     vec = make_vector_env(config, pool=pool)
     E, A, T = config.num_envs, config.cars_per_env, config.rollout_steps
+    fitter = None  # the student's fit, once the net is built
     try:
         obs, infos = vec.reset(seeds=[config.seed * 100_000 + e for e in range(E)])
         obs_shape, image_shape, vectors = observation_shapes(obs, pool)
@@ -93,18 +94,22 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
         data = Dataset(config.distill_samples, obs_shape, label_shape, label_dtype, rng, vectors, obs_dtype)
         view = Rollout(1, E * A, obs_shape, vectors, space, obs_dtype)  # only its net_input(): (E, A, ...) -> (N, ...)
         labels = expert_actions(infos, space.discrete).numpy()
+        fitter = StudentFit(net, optimiser, loss_fn, data, config, pool > 1)
         while run.keep_going(0):
             t0 = time.perf_counter()
             beta = 0.5 ** run.iteration
-            net.eval()
+            rate = decayed(config.distill_lr, run.fraction()) if config.distill_anneal_lr else config.distill_lr
+            fitter.begin(rate)  # with distill_overlap: on its thread, beside this rollout
+            driver = fitter.driver
+            driver.eval()
             episodes = []
             for _ in range(T):
                 x = view.net_input(obs)
                 known = labels >= 0 if space.discrete else ~np.isnan(labels).any(-1)
                 for k in np.flatnonzero(known):
-                    data.add({key: x[key][k] for key in x} if vectors else x[k], labels[k])
+                    fitter.add({key: x[key][k] for key in x} if vectors else x[k], labels[k])
                 with torch.no_grad():
-                    mine = np.asarray(greedy_actions(space, net(x, pooled=pool > 1)))
+                    mine = np.asarray(greedy_actions(space, driver(x, pooled=pool > 1)))
                 teacher_drives = (rng.random(E * A) < beta) & known
                 actions = np.where(teacher_drives.reshape(-1, *([1] * (mine.ndim - 1))), labels, mine)
                 obs, _, _, _, infos = vec.step(actions.reshape(E, A, *actions.shape[1:]))
@@ -113,10 +118,7 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
             run.agent_steps += T * E * A
             run.sample_time += time.perf_counter() - t0
             t1 = time.perf_counter()
-            rate = decayed(config.distill_lr, run.fraction()) if config.distill_anneal_lr else config.distill_lr
-            for group in optimiser.param_groups:
-                group["lr"] = rate
-            loss = _fit(net, optimiser, loss_fn, data, config, pool > 1)
+            loss = fitter.finish(rate)
             if blend:
                 blend_weights(shipped, start, net, config.init_blend)
             run.update_time += time.perf_counter() - t1
@@ -128,6 +130,8 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
     finally:
         run.stop_progress()
         vec.close()
+        if fitter is not None:
+            fitter.close()
     return run.finish(shipped, optimiser, None, space, image_shape)
 
 
@@ -138,12 +142,68 @@ def blend_weights(out, start: dict, net, share: float) -> None:
                          for key, value in state.items()})
 
 
-def _fit(net, optimiser, loss_fn, data: Dataset, config: TrainConfig, pooled: bool) -> float:
-    """`distill_steps` gradient steps on the aggregated labels (one torch thread on a busy machine); the mean loss."""
-    torch.set_num_threads(update_threads(config.update_threads))
-    loss = fit_labels(net, optimiser, loss_fn, data, config.distill_steps, config.distill_batch, pooled=pooled)
-    torch.set_num_threads(int(config.threads))
-    return loss
+class StudentFit:
+    """The student's fit on the aggregated labels after each rollout: at once (the workers wait), or with
+    `distill_overlap` on a thread while the next rollout is gathered, driven by `driver`, a copy of the
+    student that takes the new weights when the fit ends. The labels of a rollout join the dataset when its
+    fit ends, so the fit reads a dataset nothing writes to."""
+
+    def __init__(self, net, optimiser, loss_fn, data: Dataset, config: TrainConfig, pooled: bool):
+        self.net, self.optimiser, self.loss_fn, self.data = net, optimiser, loss_fn, data
+        self.steps, self.batch, self.pooled = config.distill_steps, config.distill_batch, pooled
+        self.threads, self.update_threads = int(config.threads), config.update_threads
+        self.overlap = bool(config.distill_overlap)
+        self.driver = copy.deepcopy(net) if self.overlap else net
+        self.pool = concurrent.futures.ThreadPoolExecutor(1) if self.overlap else None
+        self.pending: list = []  # with overlap: (input, label) pairs of this rollout, added when the fit ends
+        self.running = None  # with overlap: the fit on the thread (None before the first labels)
+
+    def begin(self, rate: float) -> None:
+        """With overlap: start the fit on the labels gathered so far (the rollout's labels go to `pending`)."""
+        if self.overlap and self.data.size:
+            self._set_rate(rate)
+            torch.set_num_threads(1)  # one for the fit, the other core for the learner's sampling and the workers
+            self.running = self.pool.submit(self._fit)
+
+    def add(self, observation, label) -> None:
+        """A labelled input of the rollout being gathered."""
+        if self.overlap:
+            self.pending.append(({key: value.clone() for key, value in observation.items()}
+                                 if isinstance(observation, dict) else observation.clone(), np.array(label)))
+        else:
+            self.data.add(observation, label)
+
+    def finish(self, rate: float) -> float:
+        """The fit's mean loss: the overlapped one's (then the rollout's labels join the dataset and the driver
+        takes the new weights), or a fit now on every label so far."""
+        if not self.overlap:
+            self._set_rate(rate)
+            torch.set_num_threads(update_threads(self.update_threads))
+            loss = self._fit()
+            torch.set_num_threads(self.threads)
+            return loss
+        loss = self.running.result() if self.running is not None else float("nan")
+        for observation, label in self.pending:
+            self.data.add(observation, label)
+        self.pending.clear()
+        if self.running is None:  # the first rollout: nothing to fit beside it, so fit now
+            loss = self._fit()
+        self.running = None
+        self.driver.load_state_dict(self.net.state_dict())
+        return loss
+
+    def close(self) -> None:
+        """Let the fit thread go (a fit still running ends on its own)."""
+        if self.pool is not None:
+            self.pool.shutdown(wait=False)
+
+    def _set_rate(self, rate: float) -> None:
+        for group in self.optimiser.param_groups:
+            group["lr"] = rate
+
+    def _fit(self) -> float:
+        return fit_labels(self.net, self.optimiser, self.loss_fn, self.data, self.steps, self.batch,
+                          pooled=self.pooled)
 
 
 def train_privileged(config: TrainConfig, out, command: str | None = None, log=print, init=None,
