@@ -116,6 +116,18 @@ def test_evaluate_refuses_bad_parts_heats_entrants_and_heat_tracks_up_front(caps
     assert "--scenario-track: track 'Nowhere'" in capsys.readouterr().err
 
 
+def test_evaluate_refuses_a_damaged_agent_file_before_any_race(tmp_path, capsys):
+    """A file that cannot race is an error naming it, not a report of 0-lap forfeits."""
+    broken = tmp_path / "broken.pt"
+    data = AGENT.read_bytes()
+    broken.write_bytes(data[: len(data) // 2])
+    report = tmp_path / "report.json"
+    assert main(["evaluate", str(broken), "--parts", "held-out", "--json", str(report)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("multirace evaluate: error: ") and "broken.pt" in err
+    assert not report.exists()
+
+
 def test_the_report_figure_draws_zero_counts_from_zero_and_plots_traffic():
     import matplotlib.pyplot as plt
 

@@ -368,6 +368,17 @@ def _names(text):
     return [t.strip() for t in text.split(",") if t.strip()] if text else None
 
 
+def check_agent_files(agents) -> None:
+    """Load every agent file to evaluate (teachers are checked as the arguments are read): a file that cannot
+    race is an `AgentFileError` naming it and its fault, before any race (a race would score it as a forfeit)."""
+    from ..racing.agentfile import load_agent
+    from ..racing.entrant import TEACHER_PREFIX
+
+    for agent in agents:
+        if not str(agent).startswith(TEACHER_PREFIX):
+            load_agent(agent, step_budget=None)
+
+
 def run_evaluation(args) -> int:
     """The `multirace evaluate` command."""
     from rich.console import Console
@@ -378,8 +389,9 @@ def run_evaluation(args) -> int:
     parts = _names(args.parts)
     if args.heats and "heats" in parts:
         check_heats(_names(args.heat_tracks), _names(args.field))
+    check_agent_files(args.agents)
     reports = []
-    for agent in args.agents:  # each one checked as the arguments were read (`cli.racer_argument`)
+    for agent in args.agents:
         reports.append(evaluate_agent(agent, tracks=tracks, grid=grid, laps=args.laps, seeds=args.seeds,
                                       quick=args.quick, directions=args.directions, randomize=args.randomize,
                                       heats=args.heats, heat_tracks=_names(args.heat_tracks),
