@@ -182,11 +182,12 @@ class StudentFit:
             loss = self._fit()
             torch.set_num_threads(self.threads)
             return loss
-        loss = self.running.result() if self.running is not None else float("nan")
+        loss = self.running.result() if self.running is not None else None
         for observation, label in self.pending:
             self.data.add(observation, label)
         self.pending.clear()
-        if self.running is None:  # the first rollout: nothing to fit beside it, so fit now
+        if self.running is None:  # the first rollout: nothing was fitted beside it, so fit now
+            self._set_rate(rate)
             loss = self._fit()
         self.running = None
         self.driver.load_state_dict(self.net.state_dict())
