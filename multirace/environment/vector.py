@@ -129,13 +129,13 @@ class _Worker:
 
     def advance(self, actions: list) -> tuple:
         """Step the env with one action per car (a new episode when it ends): (rewards per car, done, truncated,
-        the small infos of the step taken, read before any reset); the observations after it (the new episode's
-        first) are in `self.obs`."""
+        the small infos of the step taken, read before any reset, or None without `info_keys`); the observations
+        after it (the new episode's first) are in `self.obs`."""
         agents = self.agents
         obs, rewards, terms, truncs, infos = self.env.step(dict(zip(agents, actions)))
         truncated = all(truncs.values())
         done = all(terms.values()) or truncated
-        infos = self.small_infos(infos)
+        infos = self.small_infos(infos) if self.info_keys else None  # read before the reset below
         if done:
             self.episode_seed = None if self.episode_seed is None else self.episode_seed + 1000
             obs, _ = self.env.reset(seed=self.episode_seed)
@@ -148,7 +148,7 @@ class _Worker:
         self.shared["rewards"].array[self.slot] = rewards
         self.shared["flags"].array[self.slot] = (done, truncated)
         self.publish_images(self.obs)
-        if self.info_keys:
+        if infos is not None:
             self.remote.send(infos)
         else:
             os.write(self.fd, DONE)
