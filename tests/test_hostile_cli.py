@@ -38,6 +38,7 @@ def assert_refused(done, *words):
     (["train", "--set", "no_such=1", "--out", "{tmp}/a.pt"], ["--set no_such"]),
     (["train", "--set", 'eval_tracks=["Nowhere_track"]', "--out", "{tmp}/a.pt"], ["--set eval_tracks", "Nowhere_track"]),
     (["train", "--set", 'track_sampling="hardest"', "--out", "{tmp}/a.pt"], ["--set track_sampling"]),
+    (["train", "--set", 'eval_randomize="wild"', "--out", "{tmp}/a.pt"], ["--set eval_randomize", "wild"]),
     (["train", "--set", 'update_precision="float16"', "--out", "{tmp}/a.pt"], ["--set update_precision"]),
     (["train", "--cars", "4", "--set", "cars_per_env=8", "--out", "{tmp}/a.pt"], ["--set cars_per_env", "--cars"]),
     (["train", "--set", "seed=3", "--out", "{tmp}/a.pt"], ["--set seed", "--seed"]),

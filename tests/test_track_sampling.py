@@ -3,7 +3,7 @@ over several tracks (`eval_tracks`: train/run.py `evaluation_runs`, `combined_ev
 import numpy as np
 import pytest
 
-from multirace.train.config import make_config
+from multirace.train.config import SHIPPED_AGENTS, make_config
 from multirace.train.envs import TrainEnv
 from multirace.train.run import combined_evaluation, evaluation_runs
 from multirace.train.track_sampling import CAP, FLOOR, RunSampler
@@ -79,3 +79,21 @@ def test_evaluations_over_several_tracks_add_up():
     row = combined_evaluation(rows, laps=2)
     assert (row["laps"], row["target"], row["resets"], row["total_time"]) == (3, 4, 4, None)
     assert row["best_lap"] == 9.5 and row["status"] == "finished" and row["runs"] == 2
+
+
+def test_evaluations_race_in_the_world_eval_randomize_perturbs():
+    """`eval_randomize` judges the kept policy in the perturbed world `evaluate --randomize` races in: the same
+    race as `multirace race` with that randomisation (seed 0), not the clean world's."""
+    from multirace.racing.agentfile import AgentController
+    from multirace.racing.runner import RaceConfig, run_race
+    from multirace.train.run import evaluate_agent
+
+    agent = SHIPPED_AGENTS / "racer.pt"
+    config = make_config("fast", tracks=("reinvent_base",), eval_laps=1, eval_randomize="strong")
+    judged = evaluate_agent(agent, config)
+    raced = run_race([AgentController(agent, step_budget=5.0)],
+                     RaceConfig(track="reinvent_base", race="time_trial", laps=1, seed=0, randomize="strong"))
+    assert judged["total_time"] == pytest.approx(raced["cars"][0]["total_time"], abs=1e-3)  # the sum is rounded
+    assert judged["resets"] == raced["cars"][0]["resets"]
+    clean = evaluate_agent(agent, make_config("fast", tracks=("reinvent_base",), eval_laps=1))
+    assert clean["total_time"] != pytest.approx(judged["total_time"], abs=1e-3)

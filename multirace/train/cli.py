@@ -132,12 +132,17 @@ def check_inputs(config) -> None:
     load, a reward file that is not there: one line naming the option (in the worker processes they would
     end in a traceback)."""
     from ..environment.actions import load_action_space
+    from ..environment.randomize import Randomization
     from ..racing.nets import NETWORKS
 
     if config.network not in NETWORKS:
         raise ValueError(f"--network: unknown network {config.network!r}; choose from {', '.join(NETWORKS)}")
     check_tracks(config.tracks, "--track")
     check_tracks(config.eval_tracks, "--set eval_tracks")
+    try:
+        Randomization.from_config(config.eval_randomize)
+    except (ValueError, TypeError) as exc:
+        raise ValueError(f"--set eval_randomize: {exc}") from None
     if config.reward not in NAMED_REWARDS and not Path(config.reward).is_file():
         raise ValueError(f"--reward: {config.reward}: no such file (give {', '.join(NAMED_REWARDS)} or a reward "
                          f".py file)")

@@ -285,13 +285,14 @@ def evaluate_agent(agent_path, config: TrainConfig) -> dict:
     """The combined evaluation row of an agent file over `evaluation_runs` (time trials, or races against
     `eval_bots`)."""
     return combined_evaluation([evaluate_time_trial(agent_path, track, config.eval_laps, reverse=reverse,
-                                                    bots=config.eval_bots)
+                                                    bots=config.eval_bots, randomize=config.eval_randomize)
                                 for track, reverse in evaluation_runs(config)], config.eval_laps)
 
 
 def evaluate_time_trial(agent_path, track: str, laps: int = 3, seed: int = 0, reverse: bool = False,
-                        bots=()) -> dict:
-    """Race the agent file alone (as `multirace race FILE --format time_trial`); its result row.
+                        bots=(), randomize=None) -> dict:
+    """Race the agent file alone (as `multirace race FILE --format time_trial`, in the world `randomize`
+    perturbs, see environment.randomize); its result row.
 
     With `bots`: a head-to-head race against them instead, in which each collision the agent caused
     counts like an off-track reset in the row's "resets" (so the best-policy choice avoids both).
@@ -304,10 +305,11 @@ def evaluate_time_trial(agent_path, track: str, laps: int = 3, seed: int = 0, re
         from .evaluate import race_agent
 
         row = race_agent(agent_path, track, reverse=reverse, laps=laps, seed=seed, bots=tuple(bots),
-                         race="head_to_head", step_budget=5.0)
+                         race="head_to_head", step_budget=5.0, randomize=randomize)
         return {**row, "resets": row["resets"] + row["collisions_caused"]}
     result = run_race([AgentController(agent_path, step_budget=5.0)],
-                      RaceConfig(track=track, reverse=reverse, race="time_trial", laps=laps, seed=seed))
+                      RaceConfig(track=track, reverse=reverse, race="time_trial", laps=laps, seed=seed,
+                                 randomize=randomize))
     return result["cars"][0]
 
 

@@ -30,16 +30,17 @@ from ..racing.teacher_net import StatePolicyNet, TeacherController, TeacherDrive
 
 
 def evaluate_teacher(net: StatePolicyNet, track: str, laps: int = 3, seed: int = 0, reverse: bool = False,
-                     bots=()) -> dict:
+                     bots=(), randomize=None) -> dict:
     """A greedy race of the teacher under the race rules (`multirace race`'s, with DeepRacer's action noise):
     a time trial, or with `bots` a head-to-head race against them in which each collision it caused counts like
-    an off-track (as `run.evaluate_time_trial` does for a camera agent); its result row (laps, resets,
-    total_time, best_lap, status, ...)."""
+    an off-track (as `run.evaluate_time_trial` does for a camera agent), in the world `randomize` perturbs; its
+    result row (laps, resets, total_time, best_lap, status, ...)."""
     from ..racing.runner import RaceConfig, run_race
 
     controller = TeacherController(TeacherDriver(net, "teacher"))
     result = run_race([controller], RaceConfig(track=track, reverse=reverse, laps=laps, seed=seed, bots=tuple(bots),
-                                               race="head_to_head" if bots else "time_trial"))
+                                               race="head_to_head" if bots else "time_trial",
+                                               randomize=randomize))
     car = next(c for c in result["cars"] if c["car"] == "car_0")
     return {**car, "resets": car["resets"] + car["collisions_caused"]} if bots else car
 
@@ -127,7 +128,8 @@ def _evaluate_and_keep(net, config: TrainConfig, started: float, summary: dict, 
     """Evaluate the teacher now, record it, and return the best (score, weights, evaluation) so far."""
     from .run import combined_evaluation, eval_score, evaluation_runs
 
-    row = combined_evaluation([evaluate_teacher(net, track, config.eval_laps, reverse=reverse, bots=config.eval_bots)
+    row = combined_evaluation([evaluate_teacher(net, track, config.eval_laps, reverse=reverse, bots=config.eval_bots,
+                                                randomize=config.eval_randomize)
                                for track, reverse in evaluation_runs(config)], config.eval_laps)
     row.update(elapsed=round(time.perf_counter() - started, 1), agent_steps=summary["agent_steps"])
     summary["evals"].append(row)
