@@ -356,3 +356,32 @@ def test_a_teacher_can_start_from_another_teachers_weights(teacher, tmp_path):
                          teacher_init=str(start), progress=False)
     with pytest.raises(ValueError, match="teacher_init .*t.teacher.pt"):
         train_teacher(config, tmp_path / "t3.teacher.pt", seconds=1e9, log=None)
+
+
+def test_steering_balance_draws_hard_turns_in_proportion_to_their_weight():
+    """`distill_balance`: a label's draw weight is 1 + balance x |steering| / 30 deg, for continuous and
+    discrete spaces; at 0 the draws are the uniform ones of before (same seed, same indices)."""
+    from multirace.environment.actions import load_action_space
+    from multirace.train.distill import steering_weight
+    from multirace.train.imitate import Dataset
+
+    space = load_action_space(SPACE)
+    assert steering_weight(space, 0.0) is None
+    weight = steering_weight(space, 4.0)
+    assert weight(np.array([0.0, 3.0])) == 1.0 and weight(np.array([-30.0, 1.0])) == 5.0
+    assert weight(np.array([15.0, 2.0])) == pytest.approx(3.0)
+    data = Dataset(1000, (2, 2, 1), (2,), np.float32, np.random.default_rng(0), weight=weight)
+    for k in range(1000):  # one label in ten a full-lock turn, the rest straight
+        data.add(np.full((2, 2, 1), k % 10, np.uint8), np.array([30.0 if k % 10 == 0 else 0.0, 2.0], np.float32))
+    _, labels = data.batch(20_000)
+    assert abs(float((labels[:, 0] == 30.0).float().mean()) - 5 / 14) < 0.02  # 100 x 5 of 900 + 100 x 5
+    uniform = Dataset(1000, (2, 2, 1), (2,), np.float32, np.random.default_rng(0))
+    for k in range(1000):
+        uniform.add(np.zeros((2, 2, 1), np.uint8), np.array([float(k), 2.0], np.float32))
+    _, labels = uniform.batch(8)
+    assert labels[:, 0].tolist() == np.random.default_rng(0).integers(1000, size=8).astype(float).tolist()
+
+    discrete = load_action_space(str(Path(SPACE).with_name("action_space_fast.json")))
+    per_action = steering_weight(discrete, 2.0)
+    for index, (steer, _) in enumerate(discrete.actions):
+        assert per_action(index) == pytest.approx(1.0 + 2.0 * abs(steer) / 30.0)

@@ -91,7 +91,8 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
         shipped = copy.deepcopy(net) if blend else net
         loss_fn = imitation_loss(space)
         label_shape, label_dtype = ((), np.int64) if space.discrete else ((2,), np.float32)
-        data = Dataset(config.distill_samples, obs_shape, label_shape, label_dtype, rng, vectors, obs_dtype)
+        data = Dataset(config.distill_samples, obs_shape, label_shape, label_dtype, rng, vectors, obs_dtype,
+                       weight=steering_weight(space, config.distill_balance))
         view = Rollout(1, E * A, obs_shape, vectors, space, obs_dtype)  # only its net_input(): (E, A, ...) -> (N, ...)
         labels = expert_actions(infos, space.discrete).numpy()
         fitter = StudentFit(net, optimiser, loss_fn, data, config, pool > 1)
@@ -140,6 +141,19 @@ def blend_weights(out, start: dict, net, share: float) -> None:
     state = net.state_dict()
     out.load_state_dict({key: share * value + (1.0 - share) * start[key] if value.is_floating_point() else value
                          for key, value in state.items()})
+
+
+def steering_weight(space, balance: float):
+    """Label -> 1 + `balance` x |its steering| / the space's widest steering: the student's fit then draws the
+    rare hard-turn labels (hairpins) more often than the many straight ones; None (uniform draws) at 0."""
+    if not balance:
+        return None
+    if space.discrete:
+        steering = np.abs([steer for steer, _ in space.actions])
+        per_action = 1.0 + balance * steering / max(steering.max(), 1e-9)
+        return lambda label: per_action[int(label)]
+    widest = max(abs(space.low[0]), abs(space.high[0]), 1e-9)
+    return lambda label: 1.0 + balance * abs(float(label[0])) / widest
 
 
 class StudentFit:
