@@ -141,3 +141,22 @@ def test_defend_bot_does_not_move_across_a_car_that_overlaps_it():
     assert steer_followed > steer_alone + 3.0  # across to the inside (left)
     assert steer_beside < 0.0  # not into the car beside it: away from it
     assert parse_bot("bot:defend@1.2").name == "bot:defend@1.2"
+
+
+def test_weave_bot_drifts_across_the_road_and_dips_its_speed_but_stays_on_track():
+    from multirace.environment.bots.weave import weave_command
+    from multirace.environment.bots import Situation
+    from multirace.sim.car import CarSpec
+    from multirace.sim.tracks import load_track
+
+    track, spec = load_track("reinvent_base"), CarSpec()
+    pose = track.point_at(2.0, 0.0)
+    proj = track.project(*pose[:2])
+    commands = [weave_command(Situation(track, spec, pose, proj, None, t / 15, []), 2.0) for t in range(150)]
+    steers, speeds = [c[0] for c in commands], [c[1] for c in commands]
+    assert min(steers) < -3.0 and max(steers) > 3.0  # on a straight it steers to both sides
+    assert max(speeds) == pytest.approx(2.0, abs=0.01) and min(speeds) < 1.0  # full speed, and dips well below it
+    result = run_race([make_controller("bot:weave@2.0")],
+                      RaceConfig(track="2022_april_open", race="time_trial", laps=1, seed=0))
+    car = result["cars"][0]
+    assert car["status"] == "finished" and car["off_tracks"] == 0

@@ -149,3 +149,19 @@ def test_the_report_figure_draws_zero_counts_from_zero_and_plots_traffic():
     assert "traffic" in traffic_panel.get_title()
     assert [t.get_text() for t in traffic_panel.get_xticklabels()] == ["lap completion", "collisions/lap", "caused/lap"]
     plt.close(fig)
+
+
+def test_the_default_heat_field_of_an_agent_that_is_not_shipped_fits_in_a_race(tmp_path):
+    """Seven shipped agents, the bot and an agent of one's own are nine cars: a heat holds eight."""
+    from multirace.environment.race_env import MAX_CARS
+    from multirace.resources import list_agents
+    from multirace.train.heats import check_heats, default_field, left_out
+
+    mine = tmp_path / "mine.pt"
+    mine.write_bytes(AGENT.read_bytes() + b"\0")  # not the content of any shipped file
+    field = default_field(mine)
+    assert len(field) + 1 <= MAX_CARS and field[-1] == "bot:follow@1.0"
+    assert sorted(field[:-1] + left_out(mine)) == list_agents()
+    check_heats(["reinvent_base"], field)  # what evaluate races by default, it accepts
+    with pytest.raises(ValueError, match="--field: 8 entrants and the agent make 9 cars"):
+        check_heats(["reinvent_base"], list_agents()[:7] + ["bot:follow@1.0"])

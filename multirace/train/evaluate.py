@@ -42,8 +42,9 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import AtomicOutput, write_text
+from ..environment.race_env import MAX_CARS
 from ..sim.tracks import list_tracks
-from .heats import check_heats, run_heats, summarise_heats
+from .heats import check_heats, left_out, run_heats, summarise_heats
 from .nature import UNCERTAINTY_SET
 from .scenarios import run_scenarios, summarise_scenarios
 from .splits import HELD_OUT_TRACKS
@@ -163,6 +164,8 @@ def evaluate_agent(agent_path, tracks=None, grid=None, laps=2, seeds=1, referenc
             f"{row['collisions']} collisions")
     if heats > 0 and "heats" in parts:
         heat_tracks = heat_tracks or ["reinvent_base", *held_out_tracks(seen)[:1]]
+        if field is None and left_out(agent_path):
+            say(f"heats: no room in the field for {', '.join(left_out(agent_path))} (a race holds {MAX_CARS} cars)")
         report["heats"] = run_heats(agent_path, heat_tracks, range(1, heats + 1), field=field, progress=say)
     if scenarios > 0 and "scenarios" in parts:
         report["scenarios"] = run_scenarios(agent_path, range(scenarios), scenario_track, progress=say)

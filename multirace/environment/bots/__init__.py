@@ -7,8 +7,10 @@ centre line at 1.5 m/s, ``lanes@1.0`` changes lane every few seconds at
 1.0 m/s, ``pass@2.0`` keeps the centre line at 2 m/s and overtakes slower
 cars with side room to spare, ``racingline`` (or ``racingline@F``) drives the
 track's racing line at F (default 1.0) times the fastest speeds the tyres and
-drive train allow, and ``defend@1.5`` drives the racing line at up to 1.5 m/s
-and covers the inside of the next corner from a car close behind.
+drive train allow, ``defend@1.5`` drives the racing line at up to 1.5 m/s
+and covers the inside of the next corner from a car close behind, and
+``weave@1.0`` drifts from side to side and brakes without warning, as a
+camera car in traffic does.
 
 A new bot is a `base.Bot` subclass in a file of its own (its `kind` and
 `steer`) and one line in `BOTS`.
@@ -23,6 +25,7 @@ from .follow import FollowBot
 from .lanes import LanesBot
 from .passing import PASS_AHEAD, PASS_BEHIND, PASS_GAP, RETURN_STEP, ROAD_MARGIN, PassBot, passing_line
 from .racingline import RacingLineBot, line_blocked_alongside, racing_line_command
+from .weave import WeaveBot
 
 BOTS: dict[str, type[Bot]] = {  # KIND -> its driver: a new bot is one file and one line here
     "follow": FollowBot,
@@ -30,6 +33,7 @@ BOTS: dict[str, type[Bot]] = {  # KIND -> its driver: a new bot is one file and 
     "pass": PassBot,
     "racingline": RacingLineBot,
     "defend": DefendBot,
+    "weave": WeaveBot,
 }
 BOT_KINDS = tuple(BOTS)
 _BOT_PATTERN = re.compile(r"^(?:bot:)?(?P<kind>[a-z]+)(?:@(?P<speed>[0-9]*\.?[0-9]+))?$")
