@@ -17,7 +17,7 @@ import math
 import numpy as np
 
 from ..sim.car import CarSpec
-from ..sim.tracks import Track
+from ..sim.tracks import CarLocation, Track
 from ..sim.world import World
 from .race_state import CarState, RaceState
 from .rules import CarRace, RaceRules, StepMeasure, Stewards
@@ -28,8 +28,8 @@ CLEAR_RADIUS = 0.45  # m; a reset spot closer than this to another body is taken
 class RaceCore:
     """Every car of one race (learning cars first, then bots) in one PyBullet world, under `rules`.
 
-    `geometry[i]` is car i's location this step (a dict: reported point `x`, `y`, `yaw`, projection `proj`,
-    `wheels_on`), None once its run is over; `state` is the last published `RaceState`.
+    `geometry[i]` is car i's location this step (a `tracks.CarLocation`: reported point, heading, projection,
+    wheels on), None once its run is over; `state` is the last published `RaceState`.
     """
 
     def __init__(self, track: Track, rules: RaceRules, car_spec: CarSpec, car_names: list[str], num_learners: int,
@@ -45,12 +45,12 @@ class RaceCore:
         self.steps = 0
         self.sim_time = 0.0
         self.commands = [(0.0, 0.0)] * self.total_cars  # (steer rad, speed m/s) per car
-        self.geometry: list[dict | None] = []
+        self.geometry: list[CarLocation | None] = []
         self.obstacle_slots: list[tuple[float, int]] = []  # (arc length, lane) of every box
         self.obstacle_rows: list[tuple] = []  # every box as a row of `RaceEnv`'s object table
         self.state: RaceState | None = None
         self._s: list[float] = []  # each car's arc length when its distance was last advanced
-        self._stopped: dict[int, dict] = {}  # where each parked car was located last
+        self._stopped: dict[int, CarLocation] = {}  # where each parked car was located last
         self._prev_distance: list[float] = []
         self._stewards: Stewards | None = None
 
@@ -66,13 +66,12 @@ class RaceCore:
             self.world.place_car(i, *track.point_at(s - self.car_spec.reported_point_offset, lateral))
         self._place_obstacles(rng)
         self._measure_all()
-        self._s = [geo["proj"].s for geo in self.geometry]
-        for i, geo in enumerate(self.geometry):
-            s = geo["proj"].s
+        self._s = [loc.s for loc in self.geometry]
+        for i, loc in enumerate(self.geometry):
+            s = loc.s
             signed = s - track.length if s > track.length / 2 else s
             self.races.append(CarRace(name=self.car_names[i], distance=signed, start_distance=signed,
-                                      lap_start_distance=signed, last_on_track_s=s,
-                                      segment_hint=geo["proj"].segment))
+                                      lap_start_distance=signed, last_on_track_s=s, segment_hint=loc.segment))
         self._stewards = Stewards(self.rules, self.races, self.car_names, self.car_spec.length, track.length, self.dt)
 
     def _place_obstacles(self, rng: np.random.Generator) -> None:
@@ -102,13 +101,13 @@ class RaceCore:
         contacts = self.world.step(commands)
         self.steps += 1
         self.sim_time = self.steps * self.dt
-        self._prev_distance = [race.distance for race in self.races]
+        races, last_s, wrap_ds = self.races, self._s, self.track.wrap_ds
+        self._prev_distance = [race.distance for race in races]
         self._measure_all()
-        for i, geo in enumerate(self.geometry):
-            if geo is not None:
-                s = geo["proj"].s
-                self.races[i].distance += self.track.wrap_ds(s - self._s[i])
-                self._s[i] = s
+        for i, loc in enumerate(self.geometry):
+            if loc is not None:
+                races[i].distance += wrap_ds(loc.s - last_s[i])
+                last_s[i] = loc.s
         return self._apply_contacts(contacts)
 
     def _apply_contacts(self, contacts) -> list[set]:
@@ -118,8 +117,8 @@ class RaceCore:
             for me, other in ((contact.a, contact.b), (contact.b, contact.a)):
                 if me[0] == "car":
                     touched[me[1]].add(other)
-        places = {i: (self.races[i].distance, geo["proj"].lateral)
-                  for i, geo in enumerate(self.geometry) if geo is not None}
+        races = self.races
+        places = {i: (races[i].distance, loc.lateral) for i, loc in enumerate(self.geometry) if loc is not None}
         self._stewards.judge(contacts, places, self.sim_time)
         return touched
 
@@ -133,12 +132,14 @@ class RaceCore:
 
     def _apply_rules(self, i: int, touched: set) -> list[str]:
         """Ask the rules about car i's step and carry out their ruling; returns the step's events."""
-        race, geo = self.races[i], self.geometry[i]
-        if geo is None or not race.racing:
+        race, loc = self.races[i], self.geometry[i]
+        if loc is None or not race.racing:
             return []
-        hit_box = sorted(o[1] for o in touched if o[0] == "obstacle")
+        hit_box = sorted(o[1] for o in touched if o[0] == "obstacle") if touched else ()
+        if self.rules.uneventful(race, loc.wheels_on, loc.s, bool(hit_box), self.track.length):
+            return []
         measure = StepMeasure(prev_distance=self._prev_distance[i], dt=self.dt, track_length=self.track.length,
-                              wheels_on=geo["wheels_on"], s=geo["proj"].s,
+                              wheels_on=loc.wheels_on, s=loc.s,
                               obstacle_hit=self.obstacle_slots[hit_box[0]] if hit_box else None)
         ruling = self.rules.judge(race, measure, self.sim_time)
         if ruling.reset is not None:
@@ -157,20 +158,19 @@ class RaceCore:
             for i, geo in zip(cars, self._locate(cars)):
                 self.geometry[i] = geo
 
-    def _locate(self, cars: list[int]) -> list[dict]:
-        """Geometry of these cars: reported point, heading, projection and wheels on track."""
-        hints = [self.races[i].segment_hint if i < len(self.races) else None for i in cars]
+    def _locate(self, cars: list[int]) -> list[CarLocation]:
+        """Where these cars are: reported point, heading, projection and wheels on track."""
+        races = self.races
+        hints = [races[i].segment_hint if i < len(races) else None for i in cars]
         hints = np.array([-1 if hint is None else hint for hint in hints], np.int64)
-        poses = self.world.poses[cars]
+        poses = self.world.poses if len(cars) == self.total_cars else self.world.poses[cars]
         located = self.track.locate_cars(poses, hints, self.car_spec.reported_point_offset, self._wheels)
-        geometry = []
-        for i, yaw, (px, py, proj, wheels_on) in zip(cars, poses[:, 2].tolist(), located):
-            if i < len(self.races):
-                self.races[i].segment_hint = proj.segment
-            geometry.append({"x": px, "y": py, "yaw": yaw, "proj": proj, "wheels_on": wheels_on})
-        return geometry
+        for i, loc in zip(cars, located):
+            if i < len(races):
+                races[i].segment_hint = loc.segment
+        return located
 
-    def last_geometry(self, i: int) -> dict:
+    def last_geometry(self, i: int) -> CarLocation:
         """Car i's location this step, or where it was last located once its run is over."""
         geo = self.geometry[i]
         return geo if geo is not None else self._stopped[i]
@@ -194,10 +194,10 @@ class RaceCore:
     def _place(self, i: int, x: float, y: float, yaw: float) -> None:
         """Put car i at rest at a pose and locate it there, its race distance advanced as if it had driven there."""
         self.world.place_car(i, x, y, yaw)
-        geo = self._locate([i])[0]
-        self.races[i].distance += self.track.wrap_ds(geo["proj"].s - self._s[i])
-        self._s[i] = geo["proj"].s
-        self.geometry[i] = geo
+        loc = self._locate([i])[0]
+        self.races[i].distance += self.track.wrap_ds(loc.s - self._s[i])
+        self._s[i] = loc.s
+        self.geometry[i] = loc
 
     def place_cars(self, poses: dict) -> None:
         """Put cars at rest at {car index: (x, y, yaw)}, located as if they had driven there, and publish the race
@@ -247,16 +247,18 @@ class RaceCore:
     def publish(self, touched: list[set], events: list) -> RaceState:
         """The step's `RaceState` (every car as the rules left it, ranked once), kept as `state`."""
         poses, speeds = self.world.poses.tolist(), self.world.drive_speed.tolist()
-        ranks = self.ranks()
+        ranks, names, commands, geometry, stopped = self.ranks(), self.car_names, self.commands, self.geometry, self._stopped
         cars = []
         for i, race in enumerate(self.races):
-            geo = self.last_geometry(i)
-            proj = geo["proj"]
+            loc = geometry[i]
+            located = loc is not None
+            if not located:
+                loc = stopped[i]
             x, y, yaw = poses[i]
-            cars.append(CarState(i, self.car_names[i], x, y, yaw, speeds[i], self.commands[i],
-                                 self.geometry[i] is not None, geo["x"], geo["y"], proj.s, proj.lateral, proj.width,
-                                 proj.segment, geo["wheels_on"], ranks[i], tuple(sorted(touched[i])),
-                                 tuple(events[i]), race, proj.heading, proj.left_width, proj.right_width))
+            cars.append(CarState(i, names[i], x, y, yaw, speeds[i], commands[i], located, loc.x, loc.y, loc.s,
+                                 loc.lateral, loc.width, loc.segment, loc.wheels_on, ranks[i],
+                                 tuple(sorted(touched[i])) if touched[i] else (), tuple(events[i]), race,
+                                 loc.heading, loc.left_width, loc.right_width))
         self.state = RaceState(self.steps, self.sim_time, self.dt, self.track, self.rules, tuple(cars),
                                np.asarray(self.world.obstacle_poses, float).reshape(-1, 3), self.num_learners)
         return self.state

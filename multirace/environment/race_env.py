@@ -361,32 +361,46 @@ class RaceEnv(ParallelEnv):
         return global_state(self)
 
     def _params(self, i: int, touched: set, table: tuple) -> dict:
-        """The 27 DeepRacer reward params of car i, in DeepRacer's units."""
+        """The 27 DeepRacer reward params of car i, in DeepRacer's units (its object params: the boxes and every
+        other car on track, from `_object_table`)."""
         core, track = self.core, self.track
-        geo = core.last_geometry(i)  # a parked car: where it was when its run ended
-        race, proj = core.races[i], geo["proj"]
+        loc = core.last_geometry(i)  # a parked car: where it was when its run ended
+        race = core.races[i]
         steer, speed = core.commands[i]
-        objects = self._objects_for(i, table)
+        columns, in_camera, closest = table
+        owners = columns[0]
+        if i in owners:  # leave car i itself out of every column
+            k = owners.index(i)
+            xs, ys, left, speeds, heading, from_centre, along = [c[:k] + c[k + 1:] for c in columns[1:]]
+        else:
+            xs, ys, left, speeds, heading, from_centre, along = [list(c) for c in columns[1:]]
         return {
-            "all_wheels_on_track": geo["wheels_on"] == 4,
-            "x": geo["x"],
-            "y": geo["y"],
-            "heading": math.degrees(geo["yaw"]),
-            "distance_from_center": abs(proj.lateral),
-            "projection_distance": proj.s,
+            "all_wheels_on_track": loc.wheels_on == 4,
+            "x": loc.x,
+            "y": loc.y,
+            "heading": math.degrees(loc.yaw),
+            "distance_from_center": abs(loc.lateral),
+            "projection_distance": loc.s,
             "progress": race.lap_progress(track.length) if race.racing else 100.0 * (race.status == "finished"),
             "steps": core.steps,
             "speed": float(speed),
             "steering_angle": math.degrees(steer),
-            "track_width": proj.width,
+            "track_width": loc.width,
             "track_length": track.length,
             "waypoints": track.waypoints,
-            "closest_waypoints": list(track.closest_waypoints(proj)),
-            "is_left_of_center": proj.lateral > 0,
+            "closest_waypoints": list(track.closest_waypoints(loc)),
+            "is_left_of_center": loc.lateral > 0,
             "is_reversed": track.reverse,
-            **objects,
+            "closest_objects": closest[i],
+            "objects_location": list(zip(xs, ys)),
+            "objects_left_of_center": left,
+            "object_in_camera": in_camera[i],
+            "objects_speed": speeds,
+            "objects_heading": heading,
+            "objects_distance_from_center": from_centre,
+            "objects_distance": along,
             "is_crashed": bool(touched),
-            "is_offtrack": geo["wheels_on"] == 0,
+            "is_offtrack": loc.wheels_on == 0,
             "sim_time": core.sim_time,
         }
 
@@ -396,41 +410,16 @@ class RaceEnv(ParallelEnv):
         (car index or -1, x, y, left_of_centre, speed, heading_deg, distance_from_centre, s),
         then per learning car `object_in_camera` and `closest_objects` (see `objects.objects_seen`).
         """
-        core = self.core
-        rows = list(core.obstacle_rows)
-        for j, geo in enumerate(core.geometry):
-            if geo is None:
-                continue
-            proj = geo["proj"]
-            rows.append((j, geo["x"], geo["y"], proj.lateral > 0, float(self.world.drive_speed[j]),
-                         math.degrees(geo["yaw"]), abs(proj.lateral), proj.s))
+        core, speeds = self.core, self.world.drive_speed.tolist()
+        rows = core.obstacle_rows + [(j, loc.x, loc.y, loc.lateral > 0, speeds[j], math.degrees(loc.yaw),
+                                      abs(loc.lateral), loc.s) for j, loc in enumerate(core.geometry) if loc is not None]
         columns = tuple(list(column) for column in zip(*rows)) if rows else ([],) * 8
-        car_s = [core.last_geometry(i)["proj"].s for i in range(self.num_cars)]
+        car_s = [core.last_geometry(i).s for i in range(self.num_cars)]
         in_camera, closest = objects_seen(np.array(columns[0], np.int64), np.array(columns[1], float),
                                           np.array(columns[2], float), np.array(columns[7], float),
                                           self.world.poses[:self.num_cars], np.array(car_s), self.track.length,
                                           math.tan(self.camera.hfov / 2), CAMERA_RANGE)
         return columns, in_camera.tolist(), closest.tolist()
-
-    def _objects_for(self, i: int, table: tuple) -> dict:
-        """DeepRacer's object params for car i: the boxes and every other car on track."""
-        columns, in_camera, closest = table
-        owners = columns[0]
-        if i in owners:  # leave car i itself out of every column
-            k = owners.index(i)
-            xs, ys, left, speed, heading, from_centre, along = (c[:k] + c[k + 1:] for c in columns[1:])
-        else:
-            xs, ys, left, speed, heading, from_centre, along = (list(c) for c in columns[1:])
-        return {
-            "closest_objects": closest[i],
-            "objects_location": list(zip(xs, ys)),
-            "objects_left_of_center": left,
-            "object_in_camera": in_camera[i],
-            "objects_speed": speed,
-            "objects_heading": heading,
-            "objects_distance_from_center": from_centre,
-            "objects_distance": along,
-        }
 
     def ranks(self) -> list[int]:
         """Current position (1 = leading) of every car, learning cars then bots."""
@@ -444,7 +433,7 @@ class RaceEnv(ParallelEnv):
     def _info(self, params: dict, car: CarState, sim_time: float) -> dict:
         """A car's info: its reward params (the same dict, extended) plus its published race state."""
         race, names = car.race, self.car_names
-        touched = sorted(names[o[1]] if o[0] == "car" else f"obstacle_{o[1]}" for o in car.touched)
+        touched = sorted(names[o[1]] if o[0] == "car" else f"obstacle_{o[1]}" for o in car.touched) if car.touched else []
         params.update(
             lap=race.laps + (1 if race.racing else 0),
             laps_completed=race.laps,

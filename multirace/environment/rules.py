@@ -164,9 +164,20 @@ class RaceRules:
             race.penalty_time += self.crash_penalty
             race.penalties += 1
 
+    def uneventful(self, race: CarRace, wheels_on: int, s: float, hit_box: bool, track_length: float) -> bool:
+        """Is this step of a racing car one `judge` rules nothing on (no lap boundary crossed, its wheels on the
+        road, no box hit that resets it)? If so, records in `race` what `judge` records of such a step (where
+        the car was last on the road), so that most steps need no `StepMeasure` and no `Ruling`."""
+        if wheels_on == 0 or race.distance >= (race.laps + 1) * track_length or (hit_box and self.crash_resets):
+            return False
+        race.last_on_track_s = s
+        return True
+
     def judge(self, race: CarRace, step: StepMeasure, sim_time: float) -> Ruling:
         """Laps, off-track and crash resets for one racing car after a step; updates `race`."""
         ruling = Ruling()
+        if self.uneventful(race, step.wheels_on, step.s, step.obstacle_hit is not None, step.track_length):
+            return ruling
         # laps: every crossing of a lap boundary, timed by interpolation within the step
         while race.distance >= (race.laps + 1) * step.track_length:
             boundary = (race.laps + 1) * step.track_length
@@ -335,7 +346,7 @@ class Stewards:
 
     def judge(self, contacts, places: dict, sim_time: float) -> None:
         """Record this step's contacts (`world.Contact`s) as incidents; `places`: car -> (distance, lateral)."""
-        motions = self._motions(places)
+        motions = self._motions(places, contacts)
         for contact in contacts:
             pair = (contact.a, contact.b)
             incident = self._open.get(pair)
@@ -347,20 +358,21 @@ class Stewards:
             if incident["victim"] is not None:  # a push-off can follow until PUSH_OFF_WINDOW after its last touch
                 self.races[incident["victim"]].pushed = (sim_time + PUSH_OFF_WINDOW, incident["records"])
 
-    def _motions(self, places: dict) -> dict:
-        """Each car's `CarMotion`: where it is now, moving as it did over the step before this one (going into
-        the contact: this step's motion has the contact's push in it); at rest if it was put back on the
-        track since."""
-        motions, seen = {}, {}
+    def _motions(self, places: dict, contacts) -> dict:
+        """Each car's `CarMotion` (built only in a step with `contacts`): where it is now, moving as it did over
+        the step before this one (going into the contact: this step's motion has the contact's push in it); at
+        rest if it was put back on the track since. Remembers every car's motion over this step for the next."""
+        motions, seen, races, dt, last_seen = {}, {}, self.races, self.dt, self._seen
         for i, (distance, lateral) in places.items():
-            resets = self.races[i].resets
-            last = self._seen.get(i)
+            resets = races[i].resets
+            last = last_seen.get(i)
             speeds = (0.0, 0.0)
             if last is not None and last[2] == resets:
-                speeds = ((distance - last[0]) / self.dt, (lateral - last[1]) / self.dt)
+                speeds = ((distance - last[0]) / dt, (lateral - last[1]) / dt)
             seen[i] = (distance, lateral, resets, speeds)
-            before = last[3] if last is not None and last[2] == resets else speeds
-            motions[i] = CarMotion(distance, lateral, *before)
+            if contacts:
+                before = last[3] if last is not None and last[2] == resets else speeds
+                motions[i] = CarMotion(distance, lateral, *before)
         self._seen = seen
         return motions
 

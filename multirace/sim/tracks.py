@@ -19,6 +19,7 @@ import math
 import os
 import stat
 from pathlib import Path
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -196,6 +197,26 @@ class Projection:
         return self.left_width + self.right_width
 
 
+class CarLocation(NamedTuple):
+    """Where a car is on the track (`Track.locate_cars`): its reported point, its heading, the point's projection
+    on the centre line (the fields of a `Projection`) and its wheels on the road."""
+
+    x: float  # DeepRacer's reported point (ahead of the body centre)
+    y: float
+    yaw: float  # the car's heading, radians
+    s: float  # arc length of the point's foot on the centre line
+    lateral: float  # signed offset of the point, + left
+    segment: int  # centre-line segment it projects on
+    heading: float  # track direction at the foot point
+    left_width: float  # road extent left and right of the centre line there
+    right_width: float
+    wheels_on: int  # wheels on the road, 0-4
+
+    @property
+    def width(self) -> float:
+        return self.left_width + self.right_width
+
+
 class Track:
     """A closed DeepRacer track with its geometry precomputed."""
 
@@ -334,16 +355,16 @@ class Track:
         """
         return Projection(*_project_point(x, y, -1 if hint is None else hint, self._segments))
 
-    def locate_cars(self, poses: np.ndarray, hints: np.ndarray, offset: float, wheels: np.ndarray) -> list[tuple]:
-        """Where cars are on the track: per car (x, y) of its reported point, its Projection and wheels on track.
+    def locate_cars(self, poses: np.ndarray, hints: np.ndarray, offset: float, wheels: np.ndarray) -> list[CarLocation]:
+        """Where cars are on the track: a `CarLocation` per car.
 
         poses (n, 3) of (x, y, yaw) at the body centre; the reported point is
         `offset` metres ahead of it; hints (n,) segment hints (-1 for none);
         wheels (4, 2) the (forward, left) wheel contact points from the centre.
         """
         rows = _locate_cars(poses, hints, offset, wheels, self._segments).tolist()
-        return [(px, py, Projection(s, lateral, int(segment), heading, left, right), int(wheels_on))
-                for px, py, s, lateral, segment, heading, left, right, wheels_on in rows]
+        return [CarLocation(px, py, yaw, s, lateral, int(segment), heading, left, right, int(wheels_on))
+                for px, py, yaw, s, lateral, segment, heading, left, right, wheels_on in rows]
 
     def closest_waypoints(self, proj: Projection) -> tuple[int, int]:
         """DeepRacer's `closest_waypoints`: indices of the waypoints behind and ahead."""
@@ -432,7 +453,7 @@ def _foot(x, y, seg):
 
 @numba.njit(cache=True)
 def _locate_cars(poses, hints, offset, wheels, segments):
-    out = np.empty((poses.shape[0], 9))
+    out = np.empty((poses.shape[0], 10))
     for c in range(poses.shape[0]):
         x, y, yaw = poses[c, 0], poses[c, 1], poses[c, 2]
         cos_y, sin_y = math.cos(yaw), math.sin(yaw)
@@ -446,6 +467,6 @@ def _locate_cars(poses, hints, offset, wheels, segments):
             wx, wy = fx * cos_y - side * sin_y, fx * sin_y + side * cos_y
             if -right <= lateral + wx * nx + wy * ny <= left:
                 wheels_on += 1
-        out[c, 0], out[c, 1], out[c, 2], out[c, 3], out[c, 4] = px, py, s, lateral, segment
-        out[c, 5], out[c, 6], out[c, 7], out[c, 8] = heading, left, right, wheels_on
+        out[c, 0], out[c, 1], out[c, 2], out[c, 3], out[c, 4] = px, py, yaw, s, lateral
+        out[c, 5], out[c, 6], out[c, 7], out[c, 8], out[c, 9] = segment, heading, left, right, wheels_on
     return out
