@@ -209,10 +209,10 @@ class CommandSpace(ActionSpace):
 
     def command(self, action) -> tuple[float, float]:
         """The command itself for a driver's command; a continuous space's reading of anything else."""
-        if type(action) in (tuple, Command) and len(action) == 2 and all(type(value) is float for value in action):
+        if type(action) in (tuple, Command) and len(action) == 2:
             steer, speed = action
-            if math.isfinite(steer) and math.isfinite(speed) and self.low[0] <= steer <= self.high[0] \
-                    and self.low[1] <= speed <= self.high[1]:
+            if type(steer) is float and type(speed) is float and math.isfinite(steer) and math.isfinite(speed) \
+                    and self.low[0] <= steer <= self.high[0] and self.low[1] <= speed <= self.high[1]:
                 return action
         return super().command(action)
 

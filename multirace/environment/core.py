@@ -152,17 +152,21 @@ class RaceCore:
     # ------------------------------------------------------- measurement
     def _measure_all(self) -> None:
         """Locate every racing car (every car before the race records exist)."""
+        races = self.races
+        cars = [i for i in range(self.total_cars) if i >= len(races) or races[i].racing]
+        if len(cars) == self.total_cars:  # every car racing: the usual step
+            self.geometry = self._locate(cars)
+            return
         self.geometry = [None] * self.total_cars
-        cars = [i for i in range(self.total_cars) if i >= len(self.races) or self.races[i].racing]
         if cars:
-            for i, geo in zip(cars, self._locate(cars)):
-                self.geometry[i] = geo
+            for i, loc in zip(cars, self._locate(cars)):
+                self.geometry[i] = loc
 
     def _locate(self, cars: list[int]) -> list[CarLocation]:
         """Where these cars are: reported point, heading, projection and wheels on track."""
         races = self.races
-        hints = [races[i].segment_hint if i < len(races) else None for i in cars]
-        hints = np.array([-1 if hint is None else hint for hint in hints], np.int64)
+        hints = np.array([-1 if i >= len(races) or races[i].segment_hint is None else races[i].segment_hint
+                          for i in cars], np.int64)
         poses = self.world.poses if len(cars) == self.total_cars else self.world.poses[cars]
         located = self.track.locate_cars(poses, hints, self.car_spec.reported_point_offset, self._wheels)
         for i, loc in zip(cars, located):

@@ -294,7 +294,8 @@ class RaceEnv(ParallelEnv):
         """Every car's (steer rad, speed m/s) this step: the racing learners' actions (a `Command`: that command,
         whatever the action space) with DeepRacer's noise (or the episode's randomised dynamics), the bots' own
         commands; a car without one keeps its last command."""
-        spec, races = self.car_spec, self.core.races
+        spec, races, draw = self.car_spec, self.core.races, self._draw
+        randomised = draw is not None and self.randomization.dynamics_enabled
         commands = list(self.core.commands)
         noise = self._rng.standard_normal((self.num_cars, 2)).tolist()  # DeepRacer's action noise
         for i, agent in enumerate(self.possible_agents):
@@ -305,12 +306,13 @@ class RaceEnv(ParallelEnv):
                     steer, speed = space.command(action)
                 except ValueError as exc:
                     raise ValueError(f"step {self.steps + 1}, {agent}: {exc}") from None
-                if self._draw is not None and self.randomization.dynamics_enabled:
-                    steer, speed = apply_command(steer, speed, self._draw, self._randomizer_rng, i, spec)
+                if randomised:
+                    steer, speed = apply_command(steer, speed, draw, self._randomizer_rng, i, spec)
                     steer = math.radians(steer)
                 else:
-                    steer = math.radians(steer) + spec.steer_noise * noise[i][0]
-                    speed = speed + spec.speed_noise * noise[i][1]
+                    steer_noise, speed_noise = noise[i]
+                    steer = math.radians(steer) + spec.steer_noise * steer_noise
+                    speed = speed + spec.speed_noise * speed_noise
                 commands[i] = spec.clamp_command(steer, speed)
         for b, bot in enumerate(self.bots):
             i = self.num_cars + b
@@ -369,11 +371,11 @@ class RaceEnv(ParallelEnv):
         steer, speed = core.commands[i]
         columns, in_camera, closest = table
         owners = columns[0]
+        xs, ys, left, speeds, heading, from_centre, along = own = [column.copy() for column in columns[1:]]
         if i in owners:  # leave car i itself out of every column
             k = owners.index(i)
-            xs, ys, left, speeds, heading, from_centre, along = [c[:k] + c[k + 1:] for c in columns[1:]]
-        else:
-            xs, ys, left, speeds, heading, from_centre, along = [list(c) for c in columns[1:]]
+            for column in own:
+                del column[k]
         return {
             "all_wheels_on_track": loc.wheels_on == 4,
             "x": loc.x,
@@ -413,10 +415,10 @@ class RaceEnv(ParallelEnv):
         core, speeds = self.core, self.world.drive_speed.tolist()
         rows = core.obstacle_rows + [(j, loc.x, loc.y, loc.lateral > 0, speeds[j], math.degrees(loc.yaw),
                                       abs(loc.lateral), loc.s) for j, loc in enumerate(core.geometry) if loc is not None]
-        columns = tuple(list(column) for column in zip(*rows)) if rows else ([],) * 8
+        columns = tuple(map(list, zip(*rows))) if rows else ([],) * 8
         car_s = [core.last_geometry(i).s for i in range(self.num_cars)]
-        in_camera, closest = objects_seen(np.array(columns[0], np.int64), np.array(columns[1], float),
-                                          np.array(columns[2], float), np.array(columns[7], float),
+        xs, ys, along = np.array((columns[1], columns[2], columns[7]), float)
+        in_camera, closest = objects_seen(np.array(columns[0], np.int64), xs, ys, along,
                                           self.world.poses[:self.num_cars], np.array(car_s), self.track.length,
                                           math.tan(self.camera.hfov / 2), CAMERA_RANGE)
         return columns, in_camera.tolist(), closest.tolist()

@@ -257,11 +257,8 @@ class RaceRules:
 
     def ranking(self, cars: list[CarRace], track_length: float) -> list[int]:
         """Indices of `cars` in finishing order (forfeits last)."""
-        def key(i):
-            car = cars[i]
-            return (car.status == "forfeit",) + self.rank_key(car, track_length)
-
-        return sorted(range(len(cars)), key=key)
+        keys = [(car.status == "forfeit",) + self.rank_key(car, track_length) for car in cars]
+        return sorted(range(len(cars)), key=keys.__getitem__)
 
     def standings(self, cars: list[CarRace], track_length: float, sim_time: float) -> list[int]:
         """Indices of `cars` in the order the race stands now, penalties counted (the race view's panel).
