@@ -335,7 +335,10 @@ class World:
         velocities that carry them where it says (`dynamics.drive`)."""
         drive(self.poses, self.motion, self._set_velocity, rows, pushes, commands, self.grip, self.motor,
               self._params, self.physics_dt * self.substeps)
-        self.drive_speed[rows] = self.motion[rows, 0]
+        if len(rows) == self.num_cars:  # every car (none parked): whole columns copy faster than picked rows
+            self.drive_speed[:] = self.motion[:, 0]
+        else:
+            self.drive_speed[rows] = self.motion[rows, 0]
 
     def _command_kinematic(self, active: list[int], commands, pushes) -> None:
         """The kinematic bicycle: the velocity points along the heading the car will have half-way
