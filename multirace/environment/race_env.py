@@ -266,13 +266,13 @@ class RaceEnv(ParallelEnv):
         core = self.core
         touched = core.advance(self._commands_for(actions))
         params = self._params(touched, self._object_table())
-        races = core.races
+        races, agents = core.races, self.possible_agents
         racing = [i for i in range(self.num_cars) if races[i].racing]
-        rewards = dict.fromkeys(self.possible_agents, 0.0)
+        rewards = dict.fromkeys(agents, 0.0)
         if racing:  # one call for all cars: a reward file answers from its own process
-            values = self.reward_function.rewards([params[i] for i in racing], core.steps,
-                                                  [self.possible_agents[i] for i in racing])
-            rewards.update(zip((self.possible_agents[i] for i in racing), values))
+            racing_agents = [agents[i] for i in racing]
+            values = self.reward_function.rewards([params[i] for i in racing], core.steps, racing_agents)
+            rewards.update(zip(racing_agents, values))
         events = core.apply_rules(touched)  # self.rules.judge per car, then self.rules.time_up
 
         done = not any(race.racing for race in races)
@@ -281,9 +281,9 @@ class RaceEnv(ParallelEnv):
             core.end_unfinished("not_finished", f"step limit {self.max_steps} reached")
         state = core.publish(touched, events)
         observations = self._observe()
-        infos = {a: self._info(params[i], state.cars[i], state.time) for i, a in enumerate(self.possible_agents)}
-        terminations = {a: done for a in self.possible_agents}
-        truncations = {a: truncated for a in self.possible_agents}
+        infos = {a: self._info(params[i], state.cars[i], state.time) for i, a in enumerate(agents)}
+        terminations = dict.fromkeys(agents, done)
+        truncations = dict.fromkeys(agents, truncated)
         if done or truncated:
             self.agents = []
         return observations, rewards, terminations, truncations, infos
@@ -367,17 +367,18 @@ class RaceEnv(ParallelEnv):
         races, commands, steps, sim_time = core.races, core.commands, core.steps, core.sim_time
         length, waypoints, reverse = track.length, track.waypoints, track.reverse
         columns, in_camera, closest = table
-        owners, objects = columns[0], columns[1:]
+        owners, xs, ys, objects = columns[0], columns[1], columns[2], columns[3:]
         params = []
         for i in range(self.num_cars):
             loc = core.last_geometry(i)  # a parked car: where it was when its run ended
             race = races[i]
             steer, speed = commands[i]
-            xs, ys, left, speeds, heading, from_centre, along = own = [column.copy() for column in objects]
+            own = [list(zip(xs, ys))] + [column.copy() for column in objects]
             if i in owners:  # leave car i itself out of every column
                 k = owners.index(i)
                 for column in own:
                     del column[k]
+            locations, left, speeds, heading, from_centre, along = own
             params.append({
                 "all_wheels_on_track": loc.wheels_on == 4,
                 "x": loc.x,
@@ -396,7 +397,7 @@ class RaceEnv(ParallelEnv):
                 "is_left_of_center": loc.lateral > 0,
                 "is_reversed": reverse,
                 "closest_objects": closest[i],
-                "objects_location": list(zip(xs, ys)),
+                "objects_location": locations,
                 "objects_left_of_center": left,
                 "object_in_camera": in_camera[i],
                 "objects_speed": speeds,
