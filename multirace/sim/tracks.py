@@ -210,11 +210,8 @@ class CarLocation(NamedTuple):
     heading: float  # track direction at the foot point
     left_width: float  # road extent left and right of the centre line there
     right_width: float
+    width: float  # left_width + right_width
     wheels_on: int  # wheels on the road, 0-4
-
-    @property
-    def width(self) -> float:
-        return self.left_width + self.right_width
 
 
 class Track:
@@ -363,8 +360,8 @@ class Track:
         wheels (4, 2) the (forward, left) wheel contact points from the centre.
         """
         rows = _locate_cars(poses, hints, offset, wheels, self._segments).tolist()
-        return [CarLocation(px, py, yaw, s, lateral, int(segment), heading, left, right, int(wheels_on))
-                for px, py, yaw, s, lateral, segment, heading, left, right, wheels_on in rows]
+        return [CarLocation(px, py, yaw, s, lateral, int(segment), heading, left, right, width, int(wheels_on))
+                for px, py, yaw, s, lateral, segment, heading, left, right, width, wheels_on in rows]
 
     def closest_waypoints(self, proj: Projection) -> tuple[int, int]:
         """DeepRacer's `closest_waypoints`: indices of the waypoints behind and ahead."""
@@ -453,7 +450,7 @@ def _foot(x, y, seg):
 
 @numba.njit(cache=True)
 def _locate_cars(poses, hints, offset, wheels, segments):
-    out = np.empty((poses.shape[0], 10))
+    out = np.empty((poses.shape[0], 11))
     for c in range(poses.shape[0]):
         x, y, yaw = poses[c, 0], poses[c, 1], poses[c, 2]
         cos_y, sin_y = math.cos(yaw), math.sin(yaw)
@@ -468,5 +465,6 @@ def _locate_cars(poses, hints, offset, wheels, segments):
             if -right <= lateral + wx * nx + wy * ny <= left:
                 wheels_on += 1
         out[c, 0], out[c, 1], out[c, 2], out[c, 3], out[c, 4] = px, py, yaw, s, lateral
-        out[c, 5], out[c, 6], out[c, 7], out[c, 8], out[c, 9] = segment, heading, left, right, wheels_on
+        out[c, 5], out[c, 6], out[c, 7], out[c, 8] = segment, heading, left, right
+        out[c, 9], out[c, 10] = left + right, wheels_on
     return out
