@@ -253,7 +253,8 @@ class RaceEnv(ParallelEnv):
             self._renderer = make_renderer(self.renderer_name, self.camera, self.texture)
         self.core.start(self._rng)
         self.agents = list(self.possible_agents)
-        params = self._params([set()] * self.num_cars, self._object_table())
+        table = self._object_table()
+        params = [self._params(i, set(), table) for i in range(self.num_cars)]
         state = self.core.publish([set()] * self.total_cars, [()] * self.total_cars)
         observations = self._observe()
         infos = {a: self._info(params[i], state.cars[i], state.time) for i, a in enumerate(self.agents)}
@@ -265,7 +266,8 @@ class RaceEnv(ParallelEnv):
             raise RuntimeError("step() called on a finished episode; call reset() first")
         core = self.core
         touched = core.advance(self._commands_for(actions))
-        params = self._params(touched, self._object_table())
+        table = self._object_table()
+        params = [self._params(i, touched[i], table) for i in range(self.num_cars)]
         races, agents = core.races, self.possible_agents
         racing = [i for i in range(self.num_cars) if races[i].racing]
         rewards = dict.fromkeys(agents, 0.0)
@@ -360,55 +362,50 @@ class RaceEnv(ParallelEnv):
         ahead (`state.global_state`), for centralised critics; `state_space` gives its shape."""
         return global_state(self)
 
-    def _params(self, touched: list[set], table: tuple) -> list[dict]:
-        """Every learning car's 27 DeepRacer reward params, in DeepRacer's units (its object params: the boxes and
-        every other car on track, from `_object_table`)."""
+    def _params(self, i: int, touched: set, table: tuple) -> dict:
+        """The 27 DeepRacer reward params of car i, in DeepRacer's units (its object params: the boxes and every
+        other car on track, from `_object_table`)."""
         core, track = self.core, self.track
-        races, commands, steps, sim_time = core.races, core.commands, core.steps, core.sim_time
-        length, waypoints, reverse = track.length, track.waypoints, track.reverse
+        loc = core.last_geometry(i)  # a parked car: where it was when its run ended
+        race = core.races[i]
+        steer, speed = core.commands[i]
         columns, in_camera, closest = table
-        owners, xs, ys, objects = columns[0], columns[1], columns[2], columns[3:]
-        params = []
-        for i in range(self.num_cars):
-            loc = core.last_geometry(i)  # a parked car: where it was when its run ended
-            race = races[i]
-            steer, speed = commands[i]
-            own = [list(zip(xs, ys))] + [column.copy() for column in objects]
-            if i in owners:  # leave car i itself out of every column
-                k = owners.index(i)
-                for column in own:
-                    del column[k]
-            locations, left, speeds, heading, from_centre, along = own
-            params.append({
-                "all_wheels_on_track": loc.wheels_on == 4,
-                "x": loc.x,
-                "y": loc.y,
-                "heading": math.degrees(loc.yaw),
-                "distance_from_center": abs(loc.lateral),
-                "projection_distance": loc.s,
-                "progress": race.lap_progress(length) if race.racing else 100.0 * (race.status == "finished"),
-                "steps": steps,
-                "speed": float(speed),
-                "steering_angle": math.degrees(steer),
-                "track_width": loc.width,
-                "track_length": length,
-                "waypoints": waypoints,
-                "closest_waypoints": list(track.closest_waypoints(loc)),
-                "is_left_of_center": loc.lateral > 0,
-                "is_reversed": reverse,
-                "closest_objects": closest[i],
-                "objects_location": locations,
-                "objects_left_of_center": left,
-                "object_in_camera": in_camera[i],
-                "objects_speed": speeds,
-                "objects_heading": heading,
-                "objects_distance_from_center": from_centre,
-                "objects_distance": along,
-                "is_crashed": bool(touched[i]),
-                "is_offtrack": loc.wheels_on == 0,
-                "sim_time": sim_time,
-            })
-        return params
+        owners, xs, ys = columns[0], columns[1], columns[2]
+        own = [list(zip(xs, ys))] + [column.copy() for column in columns[3:]]
+        if i in owners:  # leave car i itself out of every column
+            k = owners.index(i)
+            for column in own:
+                del column[k]
+        locations, left, speeds, heading, from_centre, along = own
+        return {
+            "all_wheels_on_track": loc.wheels_on == 4,
+            "x": loc.x,
+            "y": loc.y,
+            "heading": math.degrees(loc.yaw),
+            "distance_from_center": abs(loc.lateral),
+            "projection_distance": loc.s,
+            "progress": race.lap_progress(track.length) if race.racing else 100.0 * (race.status == "finished"),
+            "steps": core.steps,
+            "speed": float(speed),
+            "steering_angle": math.degrees(steer),
+            "track_width": loc.width,
+            "track_length": track.length,
+            "waypoints": track.waypoints,
+            "closest_waypoints": list(track.closest_waypoints(loc)),
+            "is_left_of_center": loc.lateral > 0,
+            "is_reversed": track.reverse,
+            "closest_objects": closest[i],
+            "objects_location": locations,
+            "objects_left_of_center": left,
+            "object_in_camera": in_camera[i],
+            "objects_speed": speeds,
+            "objects_heading": heading,
+            "objects_distance_from_center": from_centre,
+            "objects_distance": along,
+            "is_crashed": bool(touched),
+            "is_offtrack": loc.wheels_on == 0,
+            "sim_time": core.sim_time,
+        }
 
     def _object_table(self) -> tuple:
         """Every object a car can see this step (boxes, then cars on track), as columns:
