@@ -28,7 +28,8 @@ def _half_extents(length, width, yaw):
 def may_touch(car_poses, car_velocity, box_poses, car_size, box_size, step_time, pad):
     """Whether any two bodies' padded bounding boxes can overlap over `step_time` seconds.
 
-    car_poses (n, 3) are the cars' (x, y, yaw) and car_velocity (n, 2) their velocities (held over the step);
+    car_poses (n, 3) are the cars' (x, y, yaw) and car_velocity (n, 2 or more) their x, y velocities (held over
+    the step; further columns are not read);
     box_poses (m, 3) the boxes' (at rest); car_size and box_size (length, width). Each body's axis-aligned
     box is grown by `pad` on every side; two boxes can overlap only if, along both axes, the gap between
     their centres is at most the sum of their half sizes and pads plus the relative speed along the axis

@@ -294,8 +294,11 @@ class World:
     def _may_touch(self, rows: np.ndarray) -> bool:
         """Whether any two bodies' padded bounding boxes can overlap during the step, moving at their set
         velocities (a conservative broad phase: it never misses a pair PyBullet would make)."""
-        return may_touch(self.poses[rows], self._set_velocity[rows, :2], self.obstacle_poses, self._car_size,
-                         self._obstacle_size, self.physics_dt * self.substeps, TOUCH_PAD)
+        poses, velocity = self.poses, self._set_velocity
+        if len(rows) < self.num_cars:  # some cars parked: only the others (with none, no copies)
+            poses, velocity = poses[rows], velocity[rows]
+        return may_touch(poses, velocity, self.obstacle_poses, self._car_size, self._obstacle_size,
+                         self.physics_dt * self.substeps, TOUCH_PAD)
 
     def _move_freely(self, rows: np.ndarray) -> None:
         """Move these cars as PyBullet moves a body that touches nothing (`broadphase.move_freely`)."""
