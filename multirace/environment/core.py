@@ -251,13 +251,13 @@ class RaceCore:
     def publish(self, touched: list[set], events: list) -> RaceState:
         """The step's `RaceState` (every car as the rules left it, ranked once), kept as `state`."""
         poses, speeds = self.world.poses.tolist(), self.world.drive_speed.tolist()
-        ranks, names, commands, geometry, stopped = self.ranks(), self.car_names, self.commands, self.geometry, self._stopped
+        ranks, names, commands, geometry = self.ranks(), self.car_names, self.commands, self.geometry
         cars = []
         for i, race in enumerate(self.races):
             loc = geometry[i]
             located = loc is not None
             if not located:
-                loc = stopped[i]
+                loc = self._stopped[i]
             x, y, yaw = poses[i]
             cars.append(CarState(i, names[i], x, y, yaw, speeds[i], commands[i], located, loc.x, loc.y, loc.s,
                                  loc.lateral, loc.width, loc.segment, loc.wheels_on, ranks[i],

@@ -415,7 +415,8 @@ class RaceEnv(ParallelEnv):
         """
         core, speeds = self.core, self.world.drive_speed.tolist()
         rows = core.obstacle_rows + [(j, loc.x, loc.y, loc.lateral > 0, speeds[j], math.degrees(loc.yaw),
-                                      abs(loc.lateral), loc.s) for j, loc in enumerate(core.geometry) if loc is not None]
+                                      abs(loc.lateral), loc.s)
+                                     for j, loc in enumerate(core.geometry) if loc is not None]
         columns = tuple(map(list, zip(*rows))) if rows else ([],) * 8
         car_s = [core.last_geometry(i).s for i in range(self.num_cars)]
         xs, ys, along = np.array((columns[1], columns[2], columns[7]), float)
@@ -436,7 +437,9 @@ class RaceEnv(ParallelEnv):
     def _info(self, params: dict, car: CarState, sim_time: float) -> dict:
         """A car's info: its reward params (the same dict, extended) plus its published race state."""
         race, names = car.race, self.car_names
-        touched = sorted(names[o[1]] if o[0] == "car" else f"obstacle_{o[1]}" for o in car.touched) if car.touched else []
+        touched = []
+        if car.touched:
+            touched = sorted(names[o[1]] if o[0] == "car" else f"obstacle_{o[1]}" for o in car.touched)
         params.update(
             lap=race.laps + (1 if race.racing else 0),
             laps_completed=race.laps,

@@ -167,7 +167,8 @@ class RaceRules:
     def uneventful(self, race: CarRace, wheels_on: int, s: float, hit_box: bool, track_length: float) -> bool:
         """Is this step of a racing car one `judge` rules nothing on (no lap boundary crossed, its wheels on the
         road, no box hit that resets it)? If so, records in `race` what `judge` records of such a step (where
-        the car was last on the road), so that most steps need no `StepMeasure` and no `Ruling`."""
+        the car was last on the road), so that most steps need no `StepMeasure` and no `Ruling`. `judge` asks
+        it first; a format that overrides `judge` overrides this too."""
         if wheels_on == 0 or race.distance >= (race.laps + 1) * track_length or (hit_box and self.crash_resets):
             return False
         race.last_on_track_s = s

@@ -363,7 +363,7 @@ class Track:
         return [CarLocation(px, py, yaw, s, lateral, int(segment), heading, left, right, width, int(wheels_on))
                 for px, py, yaw, s, lateral, segment, heading, left, right, width, wheels_on in rows]
 
-    def closest_waypoints(self, proj: Projection) -> tuple[int, int]:
+    def closest_waypoints(self, proj: Projection | CarLocation) -> tuple[int, int]:
         """DeepRacer's `closest_waypoints`: indices of the waypoints behind and ahead."""
         return proj.segment, proj.segment + 1
 
