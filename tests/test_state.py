@@ -60,3 +60,21 @@ def test_state_lateral_offset_sign_follows_the_road():
 def test_state_observation_keyword_is_checked():
     with pytest.raises(ValueError, match="observation"):
         multirace.parallel_env(observation="lidar")
+
+
+def test_the_ego_view_shows_the_cars_most_in_the_way_not_merely_the_nearest():
+    """In a pack, a car in line 0.6 m ahead is shown before one 0.1 m ahead but well clear to the side (which
+    a teacher that saw only the two nearest drove into, lapping a pack)."""
+    from multirace.environment.state import TRAFFIC_RANGE
+
+    env = multirace.parallel_env(num_cars=4, observation="state", action_space=CONTINUOUS, race="head_to_head")
+    env.reset(seed=0)
+    obs = env.move_cars({0: (5.0, 0.3), 1: (5.1, -0.25), 2: (5.4, -0.05), 3: (5.6, 0.3)}, clear=False)
+    traffic = obs["car_0"][11 + 2 * len(LOOKAHEAD):].reshape(3, 4)  # two ahead, one behind
+    first, second, behind = traffic
+    assert first[0] == 1.0 and first[1] * TRAFFIC_RANGE == pytest.approx(0.6, abs=0.05)  # car 3, in line
+    assert first[2] == pytest.approx(0.0, abs=0.02)
+    assert second[1] * TRAFFIC_RANGE == pytest.approx(0.4, abs=0.05)  # car 2, half a car width beyond touching
+    assert second[2] == pytest.approx(-0.35, abs=0.02)
+    assert behind[0] == 0.0  # nobody behind car 0
+    assert obs["car_3"][11 + 2 * len(LOOKAHEAD):].reshape(3, 4)[2][1] * TRAFFIC_RANGE == pytest.approx(0.2, abs=0.05)

@@ -8,8 +8,9 @@ Two views of the same step, read from the env's published `RaceState` (``env.rac
   to render and no CNN to train, then teaches a camera policy by DAgger).
   Its speed over the ground, slip and yaw rate, the command it is carrying
   out, where it sits on the road, the centre line ahead of it in its own frame
-  (which holds the heading error and the curvature to come), and the nearest
-  cars ahead and behind. A DeepRacer car measures none of these; the camera
+  (which holds the heading error and the curvature to come), and the cars
+  ahead and behind most in its way (the nearest along the track, a car that
+  sits clear to one side counting as farther: `in_the_way`). A DeepRacer car measures none of these; the camera
   policies that ship read only their sensors.
 - `global_state(env)`: every car's pose, motion, race distance, position on
   the road and the curvature ahead of it, for centralised critics
@@ -22,8 +23,9 @@ import math
 import numpy as np
 
 LOOKAHEAD = np.array([0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0])  # metres along the centre line
-TRAFFIC_AHEAD, TRAFFIC_BEHIND = 2, 1  # nearest cars ahead and behind in the ego view
+TRAFFIC_AHEAD, TRAFFIC_BEHIND = 2, 1  # cars ahead and behind in the ego view (those most in its way)
 TRAFFIC_RANGE = 5.0  # metres; cars farther along the track than this are not in the ego view
+SIDE_WEIGHT = 2.0  # a car ahead or behind counts this many metres farther per metre it sits clear to one side
 MAX_SPEED = 4.0  # m/s: speeds are scaled by this
 CURVATURE_AHEAD = (1.0, 2.0, 3.0)  # metres: the global state's heading change of the centre line to these points
 STATE_BOUND = 1e4  # every state value lies within +-this (the spaces' bounds)
@@ -53,18 +55,28 @@ def _motion(env, i: int) -> tuple[float, float, float]:
     return float(world.drive_speed[i]), 0.0, 0.0
 
 
+def in_the_way(gap: float, lateral: float, car_width: float) -> float:
+    """How much in the way a car `gap` metres ahead (or behind) and `lateral` metres aside is, as a distance:
+    the gap, plus `SIDE_WEIGHT` times how far it sits beyond a car's width to the side (0 where the two would
+    touch if one caught the other). In a pack, the car in line 0.45 m ahead comes before one alongside 0.5 m
+    to the side."""
+    return gap + SIDE_WEIGHT * max(0.0, abs(lateral) - car_width)
+
+
 def _traffic_features(state, i: int) -> list[float]:
-    """(present, gap / range, lateral difference, speed difference / max) of the nearest cars ahead, then behind."""
+    """(present, gap / range, lateral difference, speed difference / max) of the cars ahead, then behind, most
+    in the way first (`in_the_way`)."""
     ahead, behind = [], []
-    length = state.track.length
+    length, width = state.track.length, state.car_spec.width
     for along, lateral, speed in state.traffic(i):
         if along <= TRAFFIC_RANGE:
-            ahead.append((along, lateral, speed))
+            ahead.append((in_the_way(along, lateral, width), along, lateral, speed))
         elif length - along <= TRAFFIC_RANGE:
-            behind.append((length - along, lateral, speed))
+            behind.append((in_the_way(length - along, lateral, width), length - along, lateral, speed))
     own = state.cars[i].speed
     rows = []
-    for cars, count in ((sorted(ahead), TRAFFIC_AHEAD), (sorted(behind), TRAFFIC_BEHIND)):
+    for cars, count in (([car[1:] for car in sorted(ahead)], TRAFFIC_AHEAD),
+                        ([car[1:] for car in sorted(behind)], TRAFFIC_BEHIND)):
         for k in range(count):
             if k < len(cars):
                 gap, lateral, speed = cars[k]
