@@ -10,8 +10,9 @@ Two views of the same step, read from the env's published `RaceState` (``env.rac
   out, where it sits on the road, the centre line ahead of it in its own frame
   (which holds the heading error and the curvature to come), and the cars
   ahead and behind most in its way (the nearest along the track, a car that
-  sits clear to one side counting as farther: `in_the_way`). A DeepRacer car measures none of these; the camera
-  policies that ship read only their sensors.
+  sits clear to one side counting as farther: `in_the_way`). A DeepRacer car
+  measures none of these; the camera policies that ship read only their
+  sensors.
 - `global_state(env)`: every car's pose, motion, race distance, position on
   the road and the curvature ahead of it, for centralised critics
   (PettingZoo's `state()`).
