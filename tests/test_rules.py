@@ -163,15 +163,17 @@ def test_driving_on_between_off_tracks_is_not_a_reset_loop():
 
 @pytest.mark.parametrize("race", ["time_trial", "object_avoidance"])
 def test_uneventful_steps_are_exactly_those_judge_rules_nothing_on(race):
-    """The race core skips `judge` where `uneventful` says so: it must agree with `judge` on every kind of step."""
-    rules, length = make_rules(race, laps=2), 20.0
+    """The race core skips `judge` where `uneventful` says so: it must agree with the full rules (`judge` without
+    that fast path) on every kind of step."""
+    rules, full, length = make_rules(race, laps=2), make_rules(race, laps=2), 20.0
+    full.uneventful = lambda *args: False  # judge's own fast path off: every step through the full rules
     steps = [(wheels_on, distance, box) for wheels_on in (0, 2, 4) for distance in (5.0, 19.99, 20.0, 25.0, 40.5)
              for box in (None, (3.0, 1))]
     for wheels_on, distance, box in steps:
         measure = StepMeasure(prev_distance=distance - 0.1, dt=1 / 15, track_length=length, wheels_on=wheels_on,
                               s=distance % length, obstacle_hit=box)
         judged, quick = CarRace("a", distance=distance), CarRace("a", distance=distance)
-        ruling = rules.judge(judged, measure, sim_time=4.0)
+        ruling = full.judge(judged, measure, sim_time=4.0)
         uneventful = rules.uneventful(quick, wheels_on, measure.s, box is not None, length)
         nothing = not ruling.events and ruling.reset is None and ruling.end is None
         assert uneventful == nothing, (wheels_on, distance, box)
