@@ -164,8 +164,9 @@ def evaluate_agent(agent_path, tracks=None, grid=None, laps=2, seeds=1, referenc
             f"{row['collisions']} collisions")
     if heats > 0 and "heats" in parts:
         heat_tracks = heat_tracks or ["reinvent_base", *held_out_tracks(seen)[:1]]
-        if field is None and left_out(agent_path):
-            say(f"heats: no room in the field for {', '.join(left_out(agent_path))} (a race holds {MAX_CARS} cars)")
+        missing = left_out(agent_path) if field is None else []
+        if missing:
+            say(f"heats: no room in the field for {', '.join(missing)} (a race holds {MAX_CARS} cars)")
         report["heats"] = run_heats(agent_path, heat_tracks, range(1, heats + 1), field=field, progress=say)
     if scenarios > 0 and "scenarios" in parts:
         report["scenarios"] = run_scenarios(agent_path, range(scenarios), scenario_track, progress=say)

@@ -17,12 +17,14 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
+from ..environment.race_env import MAX_CARS
 from ..racing.entrant import TEACHER_PREFIX, teacher_spec
 from ..racing.overtakes import FIELDS, OvertakeRecorder
 from ..resources import agents_dir, list_agents
 
 FIELD_BOT = "bot:follow@1.0"
 HEAT_LAPS = 3
+FIELD_ROOM = MAX_CARS - 2  # shipped agents a default heat has room for beside the agent and FIELD_BOT
 STEP_BUDGET = 30.0  # seconds of CPU time per inference step: heats judge driving, not inference speed
 
 
@@ -30,12 +32,12 @@ def default_field(agent_path) -> list[str]:
     """The other shipped agents (by content, so a copy of a shipped file is not raced against itself) and
     `bot:follow@1.0`. A heat holds at most `MAX_CARS` cars: where the agent, the bot and the other shipped
     agents would be more, the first of those agents by name race (`left_out` names the others)."""
-    return _rivals(agent_path)[:_max_rivals()] + [FIELD_BOT]
+    return _rivals(agent_path)[:FIELD_ROOM] + [FIELD_BOT]
 
 
 def left_out(agent_path) -> list[str]:
     """The other shipped agents the default field has no room for (see `default_field`)."""
-    return _rivals(agent_path)[_max_rivals():]
+    return _rivals(agent_path)[FIELD_ROOM:]
 
 
 def _rivals(agent_path) -> list[str]:
@@ -44,13 +46,6 @@ def _rivals(agent_path) -> list[str]:
     own = hashlib.sha256(Path(teacher_spec(spec)[0] if spec.startswith(TEACHER_PREFIX) else spec).read_bytes()).digest()
     return [name for name in list_agents()
             if hashlib.sha256((agents_dir() / f"{name}.pt").read_bytes()).digest() != own]
-
-
-def _max_rivals() -> int:
-    """Shipped agents a default heat has room for beside the agent and `FIELD_BOT`."""
-    from ..environment.race_env import MAX_CARS
-
-    return MAX_CARS - 2
 
 
 def check_heats(tracks, field) -> None:
@@ -64,8 +59,6 @@ def check_heats(tracks, field) -> None:
             resolve_track_path(track)
         except TrackError as exc:
             raise ValueError(f"--heat-tracks: {exc}") from None
-    from ..environment.race_env import MAX_CARS
-
     if field is not None and len(field) + 1 > MAX_CARS:
         raise ValueError(f"--field: {len(field)} entrants and the agent make {len(field) + 1} cars; a heat holds "
                          f"at most {MAX_CARS}")
