@@ -24,6 +24,10 @@ class Driver:
     """A car's driver: `drive` turns the race state (and the car's observation, if it reads one) into a command."""
 
     name: str = "driver"
+    sensors = None  # what it reads beside the race state (a `sensors.suite.SensorSuite`); None: the state alone
+
+    def reset(self, env, car: int) -> None:
+        """Called when a race starts, with its env and the index of the car this driver drives."""
 
     def drive(self, state: RaceState, car: int, observation=None) -> tuple[float, float]:
         """(steering degrees, speed m/s) for car `car` of the race `state`."""

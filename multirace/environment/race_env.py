@@ -25,13 +25,14 @@ from pettingzoo.utils import OrderEnforcingWrapper, parallel_to_aec
 
 from .kernels import announce_compile
 from .bots import parse_bot
+from .drivers import Driver
 from .actions import DRIVER_COMMANDS, Command, load_action_space
 from ..sensors.camera import CameraSpec
 from ..sensors.renderers import make_renderer
 from ..sim.car import CarSpec
 from ..sensors.lidar_sensors import scanner
 from ..sensors.sensor import SensorView
-from ..sensors.suite import declared_sensors
+from ..sensors.suite import declared_sensors, race_suite
 from ..sim.objects import objects_seen
 from .randomize import Randomization, apply_command, apply_image
 from .reward_process import load_reward_function
@@ -86,6 +87,11 @@ class RaceEnv(ParallelEnv):
     ``LIDAR`` (or ``lidar=True``) or ``SECTOR_LIDAR`` a dict ``{"camera": image,
     "lidar": 64 float32 ranges}`` or ``{"camera": image, "lidar": 8 binary sectors}``.
 
+    `bots` are cars the env drives after the learning cars: scripted bot specs
+    (``"follow@1.0"``, `environment.bots`) or `drivers.Driver` objects; a
+    driver with `sensors` (an agent file's controller) gets its car's
+    observation of the last step, rendered for it, as a learner would.
+
     ``observation="state"`` gives each car its privileged state instead
     (`state.car_features`: float32 vectors; nothing is rendered), for RL
     teachers; `state()` is the global state of every car (`state.global_state`).
@@ -101,7 +107,7 @@ class RaceEnv(ParallelEnv):
                  observation="camera"):
         self.track: Track = track if isinstance(track, Track) else load_track(track, reverse=reverse)
         self.rules = make_rules(race, laps, obstacles)
-        self.bots = [parse_bot(b) for b in bots]
+        self.bots = [b if isinstance(b, Driver) else parse_bot(b) for b in bots]
         if positive_int(num_cars, "num_cars") + len(self.bots) > MAX_CARS:
             raise ValueError(f"num_cars: need 1 to {MAX_CARS} cars in all, got {num_cars} "
                              f"learning cars and {len(self.bots)} bots")
@@ -141,6 +147,11 @@ class RaceEnv(ParallelEnv):
         self.core = RaceCore(self.track, self.rules, self.car_spec, names + [bot.name for bot in self.bots],
                              self.num_cars, physics_hz, ACTION_HZ, dynamics)
         self.sensors = declared_sensors(sensor, lidar)  # the registry's sensors the cars carry (`sensors.suite`)
+        # bots that read sensors (agent files driving beside the learners): their cars and what they read
+        self._sensor_bots = np.array([self.num_cars + b for b, bot in enumerate(self.bots) if bot.sensors is not None],
+                                     np.int64)
+        self._bot_sensors = race_suite(self.bots[i - self.num_cars].sensors for i in self._sensor_bots)
+        self._bot_observations: dict = {}  # their observations after the last reset or step
         obs_space = self.sensors.space(self.camera)
         self.lidar = scanner(self.car_spec) if self.sensors.lidar else None  # its beams, for replays' echoes
         if observation not in ("camera", "state"):
@@ -249,9 +260,11 @@ class RaceEnv(ParallelEnv):
         if self.renderer_name == "fast" and palette != self.texture.palette:  # (un)tinted track colours
             self._texture = TrackTexture(self.track, palette)
             self._renderer = None
-        if self._renderer is None and self.observation == "camera":
+        if self._renderer is None and (self.observation == "camera" or len(self._sensor_bots)):
             self._renderer = make_renderer(self.renderer_name, self.camera, self.texture)
         self.core.start(self._rng)
+        for i, bot in enumerate(self.bots, start=self.num_cars):
+            bot.reset(self, i)
         self.agents = list(self.possible_agents)
         table = self._object_table()
         params = [self._params(i, set(), table) for i in range(self.num_cars)]
@@ -317,7 +330,7 @@ class RaceEnv(ParallelEnv):
         for b, bot in enumerate(self.bots):
             i = self.num_cars + b
             if races[i].racing:
-                steer, speed = bot.drive(self.race_state, i)
+                steer, speed = bot.drive(self.race_state, i, self._bot_observations.get(i))
                 commands[i] = spec.clamp_command(math.radians(steer), speed)
         return commands
 
@@ -341,17 +354,26 @@ class RaceEnv(ParallelEnv):
 
     # ----------------------------------------------------------- outputs
     def _observe(self) -> dict:
+        """The learning cars' observations (and, kept for their next commands, those of the bots that read
+        sensors)."""
+        if len(self._sensor_bots):
+            view = self._sensor_view(self._sensor_bots)
+            self._bot_observations = self._bot_sensors.observe(view, self._sensor_bots.tolist())
         if self.observation == "state":
             return {agent: car_features(self, i) for i, agent in enumerate(self.possible_agents)}
+        return self.sensors.observe(self._sensor_view(self._camera_cars), self.possible_agents)
+
+    def _sensor_view(self, cars: np.ndarray) -> SensorView:
+        """What the sensors of `cars` read this step: the world, this episode's camera jitter and image
+        perturbation (domain randomisation), the race state."""
         draw, randomization = self._draw, self.randomization
         jitter = perturb = None
         if draw is not None and randomization.camera_enabled:
-            jitter = np.array(draw.camera_jitter[:self.num_cars])
+            jitter = np.array(draw.camera_jitter)[cars]
         if draw is not None and randomization.perception_enabled:
             perturb = functools.partial(apply_image, rng=self._randomizer_rng, draw=draw)
-        view = SensorView(self.world, self._camera_cars, self.camera, self.car_spec, self._lidar_rng,
-                          self._renderer, jitter, perturb, self.race_state)
-        return self.sensors.observe(view, self.possible_agents)
+        return SensorView(self.world, cars, self.camera, self.car_spec, self._lidar_rng, self._renderer, jitter,
+                          perturb, self.race_state)
 
     def car_state(self, i: int) -> np.ndarray:
         """Car i's privileged ego state (`state.car_features`), what an RL teacher reads."""

@@ -101,7 +101,7 @@ def config_from_args(args):
             raise ValueError(f"--set {key}: {FLAG_OF_FIELD[key]} sets it too; give it once")
     config = make_config(args.config, **{key: value for key, value in flags.items() if key not in overrides},
                          **overrides)
-    for key in ("camera", "tracks", "bots"):
+    for key in ("camera", "tracks", "bots", "rivals"):
         setattr(config, key, tuple(getattr(config, key)))
     if config.robust:
         from .robust import apply_robust
@@ -150,6 +150,25 @@ def check_inputs(config) -> None:
         load_action_space(config.action_space)
     except (ValueError, OSError) as exc:
         raise ValueError(f"--action-space: {exc}") from None
+    if config.rivals:
+        check_rivals(config)
+
+
+def check_rivals(config) -> None:
+    """Refuse rivals that do not load, or more cars than a race holds."""
+    import numpy as np
+
+    from ..environment.race_env import MAX_CARS
+    from .rivals import RivalSeat
+
+    cars = config.cars_per_env + len(config.bots) + config.rival_cars
+    if config.rival_cars < 1 or cars > MAX_CARS:
+        raise ValueError(f"--set rival_cars: {config.rival_cars} rival cars beside {config.cars_per_env} learning "
+                         f"cars and {len(config.bots)} bots; a race holds 1 to {MAX_CARS} cars and rivals need a car")
+    try:
+        RivalSeat(config.rivals, np.random.default_rng(0))
+    except (ValueError, OSError) as exc:
+        raise ValueError(f"--set rivals: {exc}") from None
 
 
 def cmd_train(args) -> int:

@@ -55,6 +55,8 @@ class TrainConfig(RewardWeights):
     num_envs: int = 2  # worker processes (one env each); 2 uses both cores of this machine
     cars_per_env: int = 4  # learning cars per env, all driven by the shared policy (self-play)
     bots: tuple = ()  # scripted cars added to each env, e.g. ("follow@1.0",)
+    rivals: tuple = ()  # agent files or shipped agents' names that drive cars beside the learners, e.g. ("racer", "dagger_fast") (train/rivals.py)
+    rival_cars: int = 2  # with rivals: cars per env driven by them, each by one drawn at random at every race start
     bots_ahead: float = 0.0  # > 0: the bots start this many metres ahead of the learning cars (2 m apart), so every episode begins with cars to pass; 0: behind them on the grid
     bots_ahead_spread: float = 0.0  # with bots_ahead: each bot starts up to this many metres further ahead, drawn per episode, so the passes happen all round the lap
     episode_steps: int = 1500  # env steps before the env is reset to the start grid (100 s at 15 Hz)

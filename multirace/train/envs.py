@@ -70,6 +70,7 @@ def env_settings(config) -> dict:
             "terminate_off_track": bool(config.terminate_off_track), "randomize": config.randomize,
             "terminate_collision": config.terminate_collision, **dataclasses.asdict(RewardWeights.of(config)),
             "bots_ahead": config.bots_ahead, "bots_ahead_spread": config.bots_ahead_spread,
+            "rivals": tuple(config.rivals), "rival_cars": config.rival_cars,
             "expert_labels": config.expert_coef > 0, "expert": config.expert, "deepracer_log": config.deepracer_log,
             "track_sampling": config.track_sampling}
 
@@ -81,11 +82,15 @@ class TrainEnv:
     def __init__(self, runs, num_cars=4, bots=(), action_space=None, reward="progress", camera=(120, 160),
                  sensor=None, episode_steps=1500, terminate_off_track=True, randomize=None, shared=None, worker=0,
                  terminate_collision=False, bots_ahead=0.0, bots_ahead_spread=0.0, expert_labels=False, expert="",
-                 deepracer_log=False, observation="camera", pool=1, track_sampling="uniform", **weights):
+                 deepracer_log=False, observation="camera", pool=1, track_sampling="uniform", rivals=(), rival_cars=0,
+                 **weights):
         self.runs = list(runs)  # [(track name/path or Track rows, reverse)]
         self.sampler = RunSampler(len(self.runs), track_sampling)  # which run each episode races on
         self.num_cars = int(num_cars)
         self.bots = tuple(bots)
+        self.rivals = tuple(rivals)  # agent files / shipped agents' names driving `rival_cars` cars (`rivals.py`)
+        self.rival_cars = int(rival_cars) if self.rivals else 0
+        self._seats = None  # the rival seats (built on first use, in the worker, and shared by every run's env)
         self.action_space = action_space
         self.reward = reward
         self.named_reward = NAMED_REWARDS.get(reward)  # None: a reward file
@@ -129,10 +134,19 @@ class TrainEnv:
                 track = Track(track, name=f"generated_{k}", source="<trackgen>", reverse=reverse)
             reward = self._reward_file() if self.named_reward is None else self.named_reward.env_reward()
             self._envs[k] = RaceEnv(track=track, reverse=reverse, num_cars=self.num_cars, race="time_trial",
-                                    laps=100000, bots=self.bots, action_space=self.action_space,
+                                    laps=100000, bots=self.bots + self._rival_seats(), action_space=self.action_space,
                                     reward_function=reward, camera=self.camera, sensor=self.sensor,
                                     max_steps=self.episode_steps, observation=self.observation)
         return self._envs[k]
+
+    def _rival_seats(self) -> tuple:
+        """The rival cars' drivers (`rivals.RivalSeat`), their agents loaded once per worker."""
+        if self._seats is None:
+            from .rivals import RivalSeat
+
+            self._seats = tuple(RivalSeat(self.rivals, np.random.default_rng([self.worker, 11, k]), f"rival_{k}")
+                                for k in range(self.rival_cars))
+        return self._seats
 
     def _reward_file(self):
         """The reward file, loaded once for every track this env switches between (it runs in one process)."""
@@ -173,9 +187,10 @@ class TrainEnv:
         self.env.randomization = self._episode_randomization()
         obs, infos = self.env.reset(seed=None if seed is None else int(seed))
         if self.bots_ahead > 0:  # every episode starts with slower cars to pass: bots on the centre line ahead
-            extra = self._rng.uniform(0.0, self.bots_ahead_spread, len(self.bots))
+            bots = len(self.env.bots)  # the scripted bots, then the rivals
+            extra = self._rng.uniform(0.0, self.bots_ahead_spread, bots)
             obs = self.env.move_cars({self.num_cars + b: (self.bots_ahead + BOT_SPACING * b + extra[b], 0.0)
-                                      for b in range(len(self.bots))})
+                                      for b in range(bots)})
         obs = self._pooled(obs)
         track = self.env.track
         self.track_length = track.length
