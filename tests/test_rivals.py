@@ -8,7 +8,7 @@ from multirace.environment.race_env import RaceEnv
 from multirace.train.cli import check_rivals
 from multirace.train.config import make_config
 from multirace.train.envs import TrainEnv
-from multirace.train.rivals import RivalSeat
+from multirace.train.rivals import RivalSeat, race_opponents
 
 
 def test_a_rival_laps_from_its_own_camera_beside_a_state_learner():
@@ -72,3 +72,11 @@ def test_bad_rivals_are_refused_before_training(settings, message):
     config = make_config("fast", **settings)
     with pytest.raises(ValueError, match=message):
         check_rivals(config)
+
+
+
+def test_race_opponents_keep_bots_and_load_agents():
+    opponents = race_opponents(("weave@1.2", "dagger_small"))
+    assert opponents[0] == "weave@1.2" and opponents[1].name == "dagger_small"
+    with pytest.raises(FileNotFoundError, match="no_such_agent"):
+        race_opponents(("no_such_agent",))

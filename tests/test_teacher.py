@@ -49,6 +49,22 @@ def test_a_teachers_evaluation_in_traffic_counts_the_collisions_it_caused(teache
     assert row["resets"] == row["off_tracks"] + row["collisions_caused"]
 
 
+def test_a_teachers_evaluation_can_race_agent_files(teacher):
+    """`eval_bots` may name agents (rivals): they drive in the evaluation race from their own cameras."""
+    out, _ = teacher
+    from multirace.racing.runner import RaceConfig, run_race
+    from multirace.racing.teacher_net import TeacherController, TeacherDriver
+    from multirace.train.rivals import race_opponents
+
+    config = RaceConfig(track="reinvent_base", laps=1, seed=1, race="head_to_head",
+                        bots=race_opponents(("follow@1.0", "racer")))
+    result = run_race([TeacherController(TeacherDriver(load_teacher(out), "teacher"))], config)
+    racer = next(car for car in result["cars"] if car["name"] == "racer")
+    assert racer["laps"] == 1 and racer["status"] == "finished"
+    row = evaluate_teacher(load_teacher(out), "reinvent_base", laps=1, seed=1, bots=("follow@1.0", "racer"))
+    assert row["laps"] == 1 and row["resets"] == row["off_tracks"] + row["collisions_caused"]
+
+
 def test_teacher_file_is_checked(tmp_path):
     bad = tmp_path / "bad.teacher.pt"
     bad.write_bytes(b"not a torch file")

@@ -152,6 +152,13 @@ def check_inputs(config) -> None:
         raise ValueError(f"--action-space: {exc}") from None
     if config.rivals:
         check_rivals(config)
+    if config.eval_bots:
+        from .rivals import race_opponents
+
+        try:
+            race_opponents(config.eval_bots)
+        except (ValueError, OSError) as exc:
+            raise ValueError(f"--set eval_bots: {exc}") from None
 
 
 def check_rivals(config) -> None:

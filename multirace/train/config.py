@@ -117,7 +117,7 @@ class TrainConfig(RewardWeights):
     eval_track: str | None = None  # track of the evaluation (default: the first training track)
     eval_tracks: tuple = ()  # further tracks each evaluation races, in each of `reverse`'s directions (laps, off-tracks and time summed: the kept policy is the one clean on most of them)
     eval_laps: int = 3  # laps of the evaluation time trial
-    eval_bots: tuple = ()  # bots to race in the evaluation (head-to-head, collisions caused count like off-tracks)
+    eval_bots: tuple = ()  # bots (or agent files / shipped agents' names, as rivals) to race in the evaluation (head-to-head, collisions caused count like off-tracks)
     eval_randomize: object = None  # domain randomisation of every evaluation run (None: the clean world; "mild", "strong" or a dict, as `randomize`), its seed fixed, so the kept policy is judged as `multirace evaluate --randomize` judges agents
     keep_best: bool = True  # write the best-evaluated policy (laps, then off-tracks, then time) as the agent file
     stop_on_success: bool = False  # end training at the first evaluation that finishes every lap with no off-track

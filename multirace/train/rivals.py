@@ -7,11 +7,13 @@ drawn at random. The race env renders the seat's camera (and LIDAR, if its
 agents read one) as it would a learner's, and the agent drives from it as it
 does in a race. The learners meet the agents they will race in heats and
 leagues, camera cars that weave, brake and run wide, not only scripted bots.
+`race_opponents` lets a training run's evaluations race them too.
 """
 from __future__ import annotations
 
 import numpy as np
 
+from ..environment.bots import parse_bot
 from ..environment.drivers import Driver
 from ..sensors.suite import race_suite
 
@@ -45,3 +47,19 @@ class RivalSeat(Driver):
     def drive(self, state, car, observation=None) -> tuple[float, float]:
         """The drawn agent's command from its car's observation."""
         return self.driver.drive(state, car, observation)
+
+
+def race_opponents(specs) -> tuple:
+    """The cars a training evaluation races against (`eval_bots`): scripted bot specs (``weave@1.2``) as they
+    are, agent files and shipped agents' names (``racer``) as their controllers, driving from their own cameras
+    (`RaceEnv`'s driver bots)."""
+    from ..racing.runner import make_controller
+
+    opponents = []
+    for spec in specs:
+        try:
+            parse_bot(spec)
+            opponents.append(spec)
+        except ValueError:
+            opponents.append(make_controller(spec, step_budget=RIVAL_STEP_BUDGET))
+    return tuple(opponents)

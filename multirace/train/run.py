@@ -303,8 +303,9 @@ def evaluate_time_trial(agent_path, track: str, laps: int = 3, seed: int = 0, re
 
     if bots:
         from .evaluate import race_agent
+        from .rivals import race_opponents
 
-        row = race_agent(agent_path, track, reverse=reverse, laps=laps, seed=seed, bots=tuple(bots),
+        row = race_agent(agent_path, track, reverse=reverse, laps=laps, seed=seed, bots=race_opponents(bots),
                          race="head_to_head", step_budget=5.0, randomize=randomize)
         return {**row, "resets": row["resets"] + row["collisions_caused"]}
     result = run_race([AgentController(agent_path, step_budget=5.0)],

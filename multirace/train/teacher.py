@@ -24,6 +24,7 @@ from .config import TrainConfig
 from .envs import INFO_KEYS, TrainEnv, env_settings
 from .ppo import Policy, RewardScale, anneal_learning_rate, check_reward_file, collect_actor_rollout, \
     collect_rollout, ppo_update, training_runs
+from .rivals import race_opponents
 from .robust import RobustKnobs
 from .rollout import Rollout, expert_actions
 from ..racing.teacher_net import StatePolicyNet, TeacherController, TeacherDriver, load_teacher, save_teacher
@@ -38,7 +39,8 @@ def evaluate_teacher(net: StatePolicyNet, track: str, laps: int = 3, seed: int =
     from ..racing.runner import RaceConfig, run_race
 
     controller = TeacherController(TeacherDriver(net, "teacher"))
-    result = run_race([controller], RaceConfig(track=track, reverse=reverse, laps=laps, seed=seed, bots=tuple(bots),
+    result = run_race([controller], RaceConfig(track=track, reverse=reverse, laps=laps, seed=seed,
+                                               bots=race_opponents(bots),
                                                race="head_to_head" if bots else "time_trial",
                                                randomize=randomize))
     car = next(c for c in result["cars"] if c["car"] == "car_0")
