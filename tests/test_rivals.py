@@ -1,6 +1,8 @@
 """Agent files as rivals beside the learners: cars the race env drives from their own cameras (train/rivals.py)."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -80,3 +82,18 @@ def test_race_opponents_keep_bots_and_load_agents():
     assert opponents[0] == "weave@1.2" and opponents[1].name == "dagger_small"
     with pytest.raises(FileNotFoundError, match="no_such_agent"):
         race_opponents(("no_such_agent",))
+
+
+def test_training_infos_give_the_gap_to_the_car_ahead():
+    """`gap_ahead` (what `distill_traffic` weighs labels by): metres along the track to the nearest car ahead."""
+    env = TrainEnv([("reinvent_base", False)], num_cars=1, bots=("follow@0.5",), bots_ahead=1.5, observation="state",
+                   action_space=str(Path(__file__).parents[1] / "agents" / "action_space_racer.json"))
+    try:
+        env.reset(seed=0)
+        _, _, _, _, infos = env.step({"car_0": np.array([0.0, 0.5], np.float32)})
+        race_env = env.env
+        gap = race_env.races[1].distance - race_env.races[0].distance
+        assert infos["car_0"]["gap_ahead"] == pytest.approx(gap, abs=0.3)  # reported points, not body centres
+        assert 1.0 < infos["car_0"]["gap_ahead"] < 2.5
+    finally:
+        env.close()

@@ -401,3 +401,26 @@ def test_steering_balance_draws_hard_turns_in_proportion_to_their_weight():
     per_action = steering_weight(discrete, 2.0)
     for index, (steer, _) in enumerate(discrete.actions):
         assert per_action(index) == pytest.approx(1.0 + 2.0 * abs(steer) / 30.0)
+
+
+def test_traffic_labels_are_drawn_more_often_when_asked():
+    """`distill_traffic`: a label whose car had another car or box less than `distill_traffic_gap` metres ahead
+    is drawn (1 + distill_traffic) times as often as one in free air; steering balance multiplies in."""
+    from multirace.environment.actions import load_action_space
+    from multirace.train.distill import steering_weight, traffic_factors
+    from multirace.train.imitate import Dataset
+
+    config = make_config("fast", distill_traffic=3.0, distill_traffic_gap=2.0)
+    infos = [[{"gap_ahead": 1.5}, {"gap_ahead": 2.5}], [{"gap_ahead": float("inf")}, {}]]
+    assert traffic_factors(infos, config).tolist() == [4.0, 1.0, 1.0, 1.0]
+    data = Dataset(1000, (2, 2, 1), (2,), np.float32, np.random.default_rng(0), weighted=True)
+    for k in range(1000):  # one label in ten behind a car
+        near = k % 10 == 0
+        data.add(np.zeros((2, 2, 1), np.uint8), np.array([1.0 if near else 0.0, 2.0], np.float32),
+                 4.0 if near else 1.0)
+    _, labels = data.batch(20_000)
+    assert abs(float((labels[:, 0] == 1.0).float().mean()) - 4 / 13) < 0.02  # 100 x 4 of 900 + 100 x 4
+    both = Dataset(10, (2, 2, 1), (2,), np.float32, np.random.default_rng(0),
+                   weight=steering_weight(load_action_space(SPACE), 4.0), weighted=True)
+    both.add(np.zeros((2, 2, 1), np.uint8), np.array([-30.0, 1.0], np.float32), 4.0)
+    assert both.weights[0] == 20.0

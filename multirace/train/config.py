@@ -100,6 +100,8 @@ class TrainConfig(RewardWeights):
     init_blend: float = 1.0  # with privileged and an --init agent: the student evaluated, kept and shipped is this share of the trained weights plus the rest of the init agent's (weight-space ensembling, WiSE-FT: Wortsman et al. 2022); 1.0: the trained weights alone
     distill_overlap: bool = False  # with privileged: the student's fit on the labels gathered so far runs on a thread while the workers gather the next rollout's (driven by the student from before that fit: one iteration stale); False: the workers wait for each fit
     distill_samples: int = 60000  # with privileged: labelled images kept (beyond: new ones replace random old ones)
+    distill_traffic: float = 0.0  # with privileged: > 0: the student's fit draws a label with weight (1 + distill_traffic) x its other weight where a car or box was less than distill_traffic_gap metres ahead (braking and passing are rare among free laps); 0: no boost
+    distill_traffic_gap: float = 2.0  # metres along the track: the reach of distill_traffic
     distill_balance: float = 0.0  # with privileged: > 0: the student's fit draws a label with weight 1 + distill_balance x |its steering| / the widest steering (hard turns are rare among straights: steering-balanced sampling, as end-to-end driving datasets do); 0: uniform draws
     # ---- budget, logging, outputs
     minutes: float = 10.0  # wall-clock budget, including evaluations and checkpoints
@@ -198,7 +200,8 @@ RANGES = {  # setting: (lowest, highest), inclusive; None: no bound
     "value_warmup": (0, None), "minutes": (1e-6, None), "lr": (1e-12, None), "gamma": (0, 1), "gae_lambda": (0, 1),
     "clip": (1e-6, None), "pool_fraction": (0, 1), "checkpoint_every": (0, None), "eval_every": (0, None),
     "snapshot_every": (1e-6, None), "worker_spin_wait": (0, 1), "nature_temperature": (1e-6, None), "max_grad_norm": (1e-12, None),
-    "distill_speed_scale": (0.1, 1.0), "init_blend": (0, 1), "distill_balance": (0, None),
+    "distill_speed_scale": (0.1, 1.0), "init_blend": (0, 1), "distill_balance": (0, None), "distill_traffic": (0, None),
+    "distill_traffic_gap": (0, None),
 }
 
 

@@ -92,9 +92,10 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
         loss_fn = imitation_loss(space)
         label_shape, label_dtype = ((), np.int64) if space.discrete else ((2,), np.float32)
         data = Dataset(config.distill_samples, obs_shape, label_shape, label_dtype, rng, vectors, obs_dtype,
-                       weight=steering_weight(space, config.distill_balance))
+                       weight=steering_weight(space, config.distill_balance), weighted=config.distill_traffic > 0)
         view = Rollout(1, E * A, obs_shape, vectors, space, obs_dtype)  # only its net_input(): (E, A, ...) -> (N, ...)
         labels = expert_actions(infos, space.discrete).numpy()
+        factors = traffic_factors(infos, config)
         fitter = StudentFit(net, optimiser, loss_fn, data, config, pool > 1)
         while run.keep_going(0):
             t0 = time.perf_counter()
@@ -108,13 +109,14 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
                 x = view.net_input(obs)
                 known = labels >= 0 if space.discrete else ~np.isnan(labels).any(-1)
                 for k in np.flatnonzero(known):
-                    fitter.add({key: x[key][k] for key in x} if vectors else x[k], labels[k])
+                    fitter.add({key: x[key][k] for key in x} if vectors else x[k], labels[k], factors[k])
                 with torch.no_grad():
                     mine = np.asarray(greedy_actions(space, driver(x, pooled=pool > 1)))
                 teacher_drives = (rng.random(E * A) < beta) & known
                 actions = np.where(teacher_drives.reshape(-1, *([1] * (mine.ndim - 1))), labels, mine)
                 obs, _, _, _, infos = vec.step(actions.reshape(E, A, *actions.shape[1:]))
                 labels = expert_actions(infos, space.discrete).numpy()
+                factors = traffic_factors(infos, config)
                 episodes += finished_episodes(infos, np.ones((E, A), bool))
             run.agent_steps += T * E * A
             run.sample_time += time.perf_counter() - t0
@@ -141,6 +143,13 @@ def blend_weights(out, start: dict, net, share: float) -> None:
     state = net.state_dict()
     out.load_state_dict({key: share * value + (1.0 - share) * start[key] if value.is_floating_point() else value
                          for key, value in state.items()})
+
+
+def traffic_factors(infos, config: TrainConfig) -> np.ndarray:
+    """Per car (flat, as the labels): 1 + `distill_traffic` where a car or box was less than
+    `distill_traffic_gap` metres ahead of it (the situations whose labels the fit should draw more), else 1."""
+    gaps = np.array([info.get("gap_ahead", np.inf) for env_infos in infos for info in env_infos])
+    return np.where(gaps < config.distill_traffic_gap, 1.0 + config.distill_traffic, 1.0)
 
 
 def steering_weight(space, balance: float):
@@ -179,13 +188,13 @@ class StudentFit:
             torch.set_num_threads(1)  # one for the fit, the other core for the learner's sampling and the workers
             self.running = self.pool.submit(self._fit)
 
-    def add(self, observation, label) -> None:
-        """A labelled input of the rollout being gathered."""
+    def add(self, observation, label, factor: float = 1.0) -> None:
+        """A labelled input of the rollout being gathered (`factor`: its draw weight's factor)."""
         if self.overlap:
             self.pending.append(({key: value.clone() for key, value in observation.items()}
-                                 if isinstance(observation, dict) else observation.clone(), np.array(label)))
+                                 if isinstance(observation, dict) else observation.clone(), np.array(label), factor))
         else:
-            self.data.add(observation, label)
+            self.data.add(observation, label, factor)
 
     def finish(self, rate: float) -> float:
         """The fit's mean loss: the overlapped one's (then the rollout's labels join the dataset and the driver
@@ -197,8 +206,8 @@ class StudentFit:
             torch.set_num_threads(self.threads)
             return loss
         loss = self.running.result() if self.running is not None else None
-        for observation, label in self.pending:
-            self.data.add(observation, label)
+        for observation, label, factor in self.pending:
+            self.data.add(observation, label, factor)
         self.pending.clear()
         if self.running is None:  # the first rollout: nothing was fitted beside it, so fit now
             self._set_rate(rate)

@@ -59,7 +59,7 @@ from .track_sampling import RunSampler
 
 BOT_SPACING = 2.0  # metres between bots started ahead of the learning cars (bots_ahead)
 INFO_KEYS = ("train_done", "time_limit", "ep_return", "ep_length", "ep_laps", "ep_caused", "off_track", "collisions",
-             "caused", "perturbation", "expert_action", "deepracer")
+             "caused", "perturbation", "expert_action", "deepracer", "gap_ahead")
 
 
 def env_settings(config) -> dict:
@@ -226,7 +226,8 @@ class TrainEnv:
 
     def _small(self, info, done, episode, caused=0, time_limit=False):
         small = {"train_done": done, "time_limit": time_limit, "off_track": bool(info.get("off_track", False)),
-                 "collisions": len(info.get("collisions", ())), "caused": caused, "perturbation": self.perturbation}
+                 "collisions": len(info.get("collisions", ())), "caused": caused, "perturbation": self.perturbation,
+                 "gap_ahead": self._gap_ahead(info)}
         if episode is not None:
             small.update(episode)
         return small
@@ -237,6 +238,13 @@ class TrainEnv:
         new = record[self._collisions_seen[i]:]
         self._collisions_seen[i] = len(record)
         return sum(1 for c in new if c["caused"])
+
+    def _gap_ahead(self, info) -> float:
+        """Metres along the track from the car's reported point to the nearest car or box ahead (inf: none)."""
+        along = info["objects_distance"]
+        if not along:
+            return math.inf
+        return (along[info["closest_objects"][1]] - info["projection_distance"]) % self.env.track.length
 
     def _closing_in(self, info) -> float:
         """How close the car runs to the car or box next to it: 0 (clear) rising to 1 (touching).

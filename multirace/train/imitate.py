@@ -102,20 +102,22 @@ class Dataset:
     """Aggregated (observation, label) pairs with a size cap (random replacement when full).
 
     An observation is an image, or with `vector_inputs` ({key: size}: the sensors beside the camera) the
-    env's {"camera", key, ...} dict. With `weight` (label -> a weight > 0) batches draw each sample in
-    proportion to its label's weight; without, uniformly.
+    env's {"camera", key, ...} dict. With `weight` (label -> a weight > 0) and/or `weighted` (each `add` gives
+    its sample's own factor), batches draw each sample in proportion to its weight; without, uniformly.
     """
 
     def __init__(self, capacity: int, obs_shape, label_shape, label_dtype, rng: np.random.Generator,
-                 vector_inputs: dict | None = None, obs_dtype=np.uint8, weight=None):
+                 vector_inputs: dict | None = None, obs_dtype=np.uint8, weight=None, weighted: bool = False):
         self.images = np.zeros((capacity, *obs_shape), obs_dtype)  # uint8 images, or int16 pooled ones
         self.vectors = {key: np.zeros((capacity, size), np.float32) for key, size in (vector_inputs or {}).items()}
         self.labels = np.zeros((capacity, *label_shape), label_dtype)
         self.size, self.capacity, self.seen, self.rng = 0, capacity, 0, rng
         self.weight = weight
-        self.weights = np.zeros(capacity) if weight else None
+        self.weighted = bool(weight) or weighted
+        self.weights = np.zeros(capacity) if self.weighted else None
 
-    def add(self, observation, label) -> None:
+    def add(self, observation, label, factor: float = 1.0) -> None:
+        """Keep a labelled observation (`factor`: its draw weight's factor, with `weighted`)."""
         if self.size < self.capacity:
             k = self.size
             self.size += 1
@@ -125,13 +127,13 @@ class Dataset:
         for key, values in self.vectors.items():
             values[k] = observation[key]
         self.labels[k] = label
-        if self.weight:
-            self.weights[k] = self.weight(label)
+        if self.weighted:
+            self.weights[k] = (self.weight(label) if self.weight else 1.0) * factor
         self.seen += 1
 
     def batch(self, n: int):
         """(net input, labels) of `n` random samples."""
-        if self.weight:
+        if self.weighted:
             cumulative = np.cumsum(self.weights[:self.size])
             idx = np.minimum(np.searchsorted(cumulative, self.rng.random(n) * cumulative[-1], side="right"),
                              self.size - 1)
