@@ -76,11 +76,10 @@ def test_bad_rivals_are_refused_before_training(settings, message):
         check_rivals(config)
 
 
-
 def test_race_opponents_keep_bots_and_load_agents():
     opponents = race_opponents(("weave@1.2", "dagger_small"))
     assert opponents[0] == "weave@1.2" and opponents[1].name == "dagger_small"
-    with pytest.raises(FileNotFoundError, match="no_such_agent"):
+    with pytest.raises(ValueError, match="bot:KIND@SPEED.*nor is 'no_such_agent' an agent file"):
         race_opponents(("no_such_agent",))
 
 

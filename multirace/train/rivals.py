@@ -60,6 +60,9 @@ def race_opponents(specs) -> tuple:
         try:
             parse_bot(spec)
             opponents.append(spec)
-        except ValueError:
-            opponents.append(make_controller(spec, step_budget=RIVAL_STEP_BUDGET))
+        except ValueError as not_a_bot:
+            try:
+                opponents.append(make_controller(spec, step_budget=RIVAL_STEP_BUDGET))
+            except FileNotFoundError:
+                raise ValueError(f"{not_a_bot}; nor is {spec!r} an agent file or a shipped agent's name") from None
     return tuple(opponents)
