@@ -43,7 +43,7 @@ class RaceConfig:
     obstacles: int | None = None
     max_steps: int | None = None
     renderer: str = "fast"
-    bots: tuple = ()  # cars the env drives itself, after the entrants: bot specs (`follow@0.8`) or `Driver`s (`RaceEnv`)
+    bots: tuple = ()  # cars the env drives after the entrants: bot specs (`follow@0.8`) or `Driver`s (RaceEnv)
     randomize: str | dict | None = None  # domain randomisation (see environment.randomize)
     camera: tuple = (120, 160)  # (height, width) of every entrant's camera
     grayscale: bool = True
