@@ -57,6 +57,8 @@ def test_training_envs_place_rivals_ahead_and_report_only_the_learners():
         race_env = env.env
         assert race_env.total_cars == 4 and race_env.car_names[3] == "rival_0"
         start = race_env.races[3].distance
+        assert start > race_env.races[2].distance > max(race_env.races[0].distance, race_env.races[1].distance) + 2.5
+        # the bot, then the rival, started ahead of the learners (bots_ahead 3 m, 2 m apart)
         for _ in range(60):
             obs, rewards, *_ = env.step({"car_0": 0, "car_1": 0})
         assert sorted(rewards) == ["car_0", "car_1"]
