@@ -16,6 +16,8 @@ import pytest
 from multirace.atomic import OutputError
 from multirace.racing.entrant import BotController
 from multirace.racing.runner import RaceConfig, make_controller, run_race
+from multirace.recording import replay_process
+from multirace.recording.arena import ArenaImage
 from multirace.recording.replay import ReplayRecorder
 from multirace.recording.replay_reader import read_chunks, replay_summary, view_origins
 
@@ -105,6 +107,27 @@ def test_a_long_replay_holds_every_step_and_every_camera_frame(tmp_path):
         np.testing.assert_allclose(poses[1:, 1:3], truth, atol=1e-5)
     images = recorded_images(path)
     assert len(frames.jpegs) == 4 * 100 and images == frames.jpegs  # the right frame at the right step
+
+
+def test_frames_the_shared_arena_has_no_room_for_reach_the_file_through_the_socket(tmp_path, monkeypatch):
+    # an arena of three grey frames (a fresh writer: the waiting one has the full-size arena): in a 4-car race
+    # most frames find it full and go in the messages themselves; every frame still reaches the file, at its step
+    monkeypatch.setattr(replay_process, "ARENA_BYTES", 3 * 120 * 160)
+    monkeypatch.setattr(replay_process, "_idle", [])
+    carried = []
+    carry = replay_process.WriterProcess.carry
+
+    def counted(self, image):
+        carried.append(carry(self, image))
+        return carried[-1]
+
+    monkeypatch.setattr(replay_process.WriterProcess, "carry", counted)
+    path, frames = tmp_path / "small.rrd", Frames(every=3)
+    run_race([make_controller(b) for b in BOTS], RaceConfig(race="reset_rule", laps=1000, max_steps=240),
+             recorders=[frames, ReplayRecorder(path, image_every=3)])
+    in_arena = sum(isinstance(where, ArenaImage) for where in carried)
+    assert 0 < in_arena < len(carried) == 4 * 80
+    assert recorded_images(path) == frames.jpegs
 
 
 def test_a_replay_does_not_change_the_race(tmp_path):

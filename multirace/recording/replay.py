@@ -30,8 +30,9 @@ images, the plots and the event log is sent with the recording, so
 ``rerun race.rrd`` opens on a useful screen.
 
 The race's process only gathers what each step shows into blocks of `SHIP_EVERY` rows (steps, times,
-poses, scalars, raw camera images, event texts, LIDAR echoes) and hands each block to the replay writer
-(`replay_writer`), a process of its own (`replay_process`): there the images are JPEG-encoded, the
+poses, scalars, camera images (copied into memory the writer shares), event texts, LIDAR echoes) and hands
+each block to the replay writer (`replay_writer`), a process of its own (`replay_process`): there the
+images are JPEG-encoded, the
 per-step data are sent in columns (`send_columns`) every `flush_every` steps and rerun's binary stream is
 written to a file beside the target, which becomes the target only when the race ends well and the writer
 has written it completely (`multirace.atomic`); a writer that fails is an `OutputError` naming the target.
@@ -108,6 +109,7 @@ class ReplayRecorder:
         self._prev = [self._race_state(car.race) for car in state.cars]
         self._ended = [not car.racing for car in state.cars]
         self._recorded = [not ended for ended in self._ended]  # whether a car's pose goes in the next row
+        self._everyone = [True] * n
         self._block_reset()
         cars = [{"id": self.ids[i], "name": car.name, "colour": list(CAR_COLOURS[i % len(CAR_COLOURS)])}
                 for i, car in enumerate(state.cars)]
@@ -126,7 +128,7 @@ class ReplayRecorder:
 
     def step(self, env, observations, rewards, infos) -> None:
         self._record_step(env, observations, rewards, infos)
-        if self._rows >= SHIP_EVERY:
+        if len(self._rows) >= SHIP_EVERY:
             self._ship()
 
     def finish(self, env, result) -> None:
@@ -170,41 +172,43 @@ class ReplayRecorder:
         return race.laps, race.resets, race.penalties, race.penalty_time, len(race.collisions), race.status
 
     def _block_reset(self) -> None:
-        """A block of `SHIP_EVERY` rows, one per step: its step and time, which cars are recorded, their poses
-        and scalars (NaN: none), and the images and log entries of those steps."""
-        rows, n = SHIP_EVERY, self.n
-        self._rows = 0
-        self._steps, self._times = np.empty(rows, np.int64), np.empty(rows, np.float64)
-        self._active, self._pose = np.empty((rows, n), bool), np.empty((rows, n, 3), np.float64)
-        self._scalars = np.empty((rows, len(SCALARS), n), np.float64)  # SCALARS' order
-        self._scalars_flat = self._scalars.reshape(rows, -1)  # the same memory, a row's scalars in one
+        """A block of up to `SHIP_EVERY` rows, one per step (`_record_step` lays a row out), and the images and
+        log entries of those steps."""
+        self._rows: list[list[float]] = []
         self._images, self._pictures, self._events, self._echoes = [], [], [], []
 
     def _ship(self) -> None:
-        """Hand the block to the writer (which sends its arrays as they are, maybe later) and start a new one."""
-        rows = self._rows
+        """Hand the block to the writer as arrays (each step's step and time, which cars are recorded, their
+        poses and SCALARS, NaN where a car has none) and start a new one."""
+        rows, n = len(self._rows), self.n
+        table = np.array(self._rows, np.float64).reshape(rows, 2 + 9 * n)  # (the shape also of an empty block)
+        cars = table[:, 2 + n:2 + 5 * n].reshape(rows, n, 4)
+        agents = table[:, 2 + 5 * n:2 + 8 * n].reshape(rows, n, 3)
+        scalars = np.stack([cars[..., 3], agents[..., 0], agents[..., 1], agents[..., 2], table[:, 2 + 8 * n:]],
+                           axis=1)  # SCALARS' order
         self._writer.send(("rows", {
-            "steps": self._steps[:rows], "times": self._times[:rows], "active": self._active[:rows],
-            "pose": self._pose[:rows], "scalars": self._scalars[:rows], "images": self._images,
-            "pictures": self._pictures, "events": self._events, "echoes": self._echoes}))
+            "steps": table[:, 0].astype(np.int64), "times": table[:, 1].copy(),
+            "active": table[:, 2:2 + n].astype(bool), "pose": np.ascontiguousarray(cars[..., :3]),
+            "scalars": scalars, "images": self._images, "pictures": self._pictures, "events": self._events,
+            "echoes": self._echoes}))
         self._block_reset()
 
     def _record_step(self, env, observations, rewards, infos) -> None:
-        row = self._rows
-        self._rows += 1
+        """Add the step's row to the block: its step and time; whether each car is recorded (while it races,
+        on the step its run ends, and on the grid at step 0); each car's x, y, yaw and speed; each agent's
+        progress, reward and rank; each car's standing. A list: cheaper to grow than arrays to fill."""
         state = env.race_state
         step, cars, agents = state.step, state.cars, self._agents
-        self._steps[row], self._times[row] = step, state.time
-        # a car is recorded while it races, on the step its run ends, and on the grid at step 0
-        self._active[row] = self._recorded if step else True
-        self._pose[row] = [car[2:5] for car in cars]  # (x, y, yaw): CarState's fields 2-4
         infos, rewards, nan = infos or {}, rewards or {}, math.nan
-        # the row's scalars flat, in SCALARS' order
-        self._scalars_flat[row] = ([car.speed for car in cars]
-                                   + [infos[a]["progress"] if a in infos else nan for a in agents]
-                                   + [rewards[a] if a in rewards else nan for a in agents]
-                                   + [infos[a]["rank"] if a in infos else nan for a in agents]
-                                   + env.standings()[:self.n])
+        row = [step, state.time, *(self._recorded if step else self._everyone)]
+        for car in cars:
+            row += car[2:6]  # x, y, yaw, speed: CarState's fields 2-5
+        for agent in agents:
+            info = infos.get(agent)
+            row += (nan, rewards.get(agent, nan), nan) if info is None else (
+                info["progress"], rewards.get(agent, nan), info["rank"])
+        row += env.standings()[:self.n]
+        self._rows.append(row)
         take_image = bool(self.image_every) and observations is not None and step % self.image_every == 0
         for i, car in enumerate(cars):
             if self._ended[i]:  # its run ended on an earlier step
@@ -228,7 +232,8 @@ class ReplayRecorder:
         image = np.asarray(observation)
         if image.ndim == 3 and image.shape[2] == 2:  # a stereo pair: its left camera
             image = image[..., 0]
-        self._images.append((self._rows - 1, car.index, np.array(image)))  # a copy: the agent may reuse the array
+        # (carried as a copy: the agent may reuse the array)
+        self._images.append((len(self._rows) - 1, car.index, self._writer.carry(image)))
 
     def _log_events(self, env, car, infos) -> None:
         """Text log entries for what changed in a car's race record this step."""

@@ -6,6 +6,9 @@ that carries the file's descriptor (SCM_RIGHTS); then messages go as frames on a
 pickle, and the bytes of the numpy arrays in it beside it, out of band, so that they are copied only
 once, by the kernel):
 
+- the camera images go through shared memory (`arena.ImageArena`, made with the writer and mapped by it):
+  `carry(image)` copies an image there and gives the small record of where it lies, which the message
+  carries instead of the image (an image the arena has no room for yet goes in the message itself);
 - `send(message)` does not wait for the writer: what the socket cannot take yet waits in memory and goes
   out with the next message (the race waits only when more than BACKLOG_BYTES wait), so the race keeps its
   core while the writer encodes images and builds columns on another;
@@ -41,19 +44,23 @@ import sys
 import weakref
 from collections import deque
 
+import numpy as np
+
 from ..atomic import OutputError, output_error
+from .arena import ArenaImage, ImageArena
 
 HEADER = struct.Struct("!QQ")  # the length of the pickle that follows, and how many buffers follow it
 LENGTH = struct.Struct("!Q")  # the length of each buffer (all of them before the pickle)
 BACKLOG_BYTES = 64 << 20  # bytes waiting for the writer beyond which the race waits for it
 SOCKET_BYTES = 4 << 20  # the socket's send buffer asked for (the system may give less): fewer, larger writes
+ARENA_BYTES = 8 << 20  # shared memory for the images on their way to the writer (about 400 grey frames)
 ANSWER_TIMEOUT = 300.0  # seconds the writer may go without reading or answering before it is taken for hung
 EXIT_WAIT = 5.0  # seconds a failed writer has to answer or end before it is ended
 BOOT = ("import json, signal, sys\n"
         "signal.signal(signal.SIGINT, signal.SIG_IGN)\n"
         "sys.path[:] = json.loads(sys.argv[1])\n"
         "from multirace.recording.replay_writer import serve\n"
-        "serve(int(sys.argv[2]))\n")
+        "serve(int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]))\n")
 _idle: list = []  # this process's writers that wait for a recording
 
 
@@ -63,10 +70,11 @@ def prepare() -> None:
         _idle.append(WriterProcess())
 
 
-def _end(process: subprocess.Popen, sock: socket.socket, pid: int) -> None:
-    """Close the socket and end the writer (it holds nothing a race still needs); a fork of the process
-    that started it only closes its copy of the socket."""
+def _end(process: subprocess.Popen, sock: socket.socket, arena: ImageArena, pid: int) -> None:
+    """Close the socket and the image arena and end the writer (it holds nothing a race still needs); a fork
+    of the process that started it only closes its copies of them."""
     sock.close()
+    arena.close()
     if os.getpid() == pid:
         if process.poll() is None:
             process.kill()
@@ -80,11 +88,19 @@ class WriterProcess:
     def __init__(self):
         ours, theirs = socket.socketpair()
         try:
-            self.process = subprocess.Popen([sys.executable, "-c", BOOT, json.dumps(sys.path), str(theirs.fileno())],
-                                            pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL,
-                                            stdout=subprocess.DEVNULL)
+            self.arena = ImageArena.create(ARENA_BYTES)
         except BaseException:
             ours.close()
+            theirs.close()
+            raise
+        try:
+            self.process = subprocess.Popen(
+                [sys.executable, "-c", BOOT, json.dumps(sys.path), str(theirs.fileno()), str(self.arena.fd),
+                 str(self.arena.size)], pass_fds=(theirs.fileno(), self.arena.fd), stdin=subprocess.DEVNULL,
+                stdout=subprocess.DEVNULL)
+        except BaseException:
+            ours.close()
+            self.arena.close()
             raise
         finally:
             theirs.close()
@@ -93,7 +109,7 @@ class WriterProcess:
         self.cpu_seconds = 0.0  # CPU time the writer spent on its last complete recording
         self._backlog: deque = deque()  # memoryviews not yet written, in order
         self._waiting = 0  # their bytes
-        self._stop = weakref.finalize(self, _end, self.process, ours, self._pid)
+        self._stop = weakref.finalize(self, _end, self.process, ours, self.arena, self._pid)
 
     @classmethod
     def begin(cls, file_fd: int, target) -> WriterProcess:
@@ -117,6 +133,12 @@ class WriterProcess:
     def usable(self) -> bool:
         """Whether this writer belongs to this process and runs (a fork's copy does not)."""
         return self._pid == os.getpid() and self._stop.alive and self.process.poll() is None
+
+    def carry(self, image: np.ndarray) -> ArenaImage | np.ndarray:
+        """`image` as a message takes it to the writer: where it lies in the shared arena, after a copy there,
+        or (no room there now) a copy of its own, sent through the socket."""
+        where = self.arena.put(np.ascontiguousarray(image))
+        return where if where is not None else np.array(image)
 
     def send(self, message) -> None:
         """Hand `message` to the writer (its arrays must not change afterwards: they are sent as they are,

@@ -3,7 +3,7 @@
 It runs in a process of its own (`replay_process`), fed by `replay.ReplayRecorder` (which describes the
 layout) with, for each replay: the file to write (its descriptor), ``("start", description)``,
 ``("rows", batch)`` as the race goes and ``("finish", result text or None)``. It JPEG-encodes the camera
-images as they come, logs events and LIDAR echoes at their step, builds the per-step columns of every
+images as they come (read from the shared `arena.ImageArena`, whose space it then gives back), logs events and LIDAR echoes at their step, builds the per-step columns of every
 `flush_every` rows (`send_columns`) and writes the recording to the file it was given; it answers
 ``("done", cpu seconds spent on it)`` once the file is complete, or ``("error", reason)``.
 
@@ -26,23 +26,28 @@ import traceback
 
 import cv2
 import numpy as np
+import pyarrow as pa
 import rerun as rr
 
 from . import blueprints
+from .arena import ArenaImage, ImageArena
 from .replay_process import answer, next_file, receive
 
+BLOB_TYPE = pa.list_(pa.field("item", pa.uint8(), nullable=False))  # rerun's `Blob` component
 TRACK_LINES = (("center", (235, 190, 40), 0.01), ("inner", (240, 240, 240), 0.025),
                ("outer", (240, 240, 240), 0.025))  # name, colour, radius
 
 
-def serve(sock_fd: int) -> None:
-    """Write the replays the race's process sends on the socket `sock_fd`, one after another, answering each.
+def serve(sock_fd: int, arena_fd: int, arena_bytes: int) -> None:
+    """Write the replays the race's process sends on the socket `sock_fd`, one after another, answering each;
+    their camera images come through the image arena in the open file `arena_fd` (`arena_bytes` long).
     After a failed replay, or when the race's process closes its end in the middle of one, this process ends
     at once (`os._exit`: rerun's exit hooks would wait to flush a recording nobody reads)."""
     sock = socket.socket(fileno=sock_fd)
+    arena = ImageArena(arena_fd, arena_bytes)
     while (file_fd := next_file(sock)) is not None:
         cpu = time.process_time()
-        outcome = _record(sock, file_fd)
+        outcome = _record(sock, file_fd, arena)
         if outcome != "done":
             if outcome is not None:  # (None: the race's end closed before `finish`, the race failed or ended)
                 answer(sock, outcome)
@@ -51,7 +56,7 @@ def serve(sock_fd: int) -> None:
         answer(sock, ("done", time.process_time() - cpu))
 
 
-def _record(sock: socket.socket, file_fd: int) -> str | tuple | None:
+def _record(sock: socket.socket, file_fd: int, arena: ImageArena) -> str | tuple | None:
     """Write one replay into the open file `file_fd`: "done", ("error", reason), or None where the race's
     end closed before ``finish``."""
     try:
@@ -60,7 +65,7 @@ def _record(sock: socket.socket, file_fd: int) -> str | tuple | None:
             while (message := receive(sock)) is not None:
                 kind, content = message
                 if kind == "start":
-                    writer = ReplayWriter(file, **content)
+                    writer = ReplayWriter(file, arena, **content)
                 elif kind == "rows":
                     writer.add(content)
                 else:
@@ -77,12 +82,13 @@ def _record(sock: socket.socket, file_fd: int) -> str | tuple | None:
 class ReplayWriter:
     """One recording: the static entities at once, then rows, images and log entries as they come."""
 
-    def __init__(self, file, application_id: str, jpeg_quality: int, flush_every: int, scalars: tuple, info: str,
+    def __init__(self, file, arena: ImageArena, application_id: str, jpeg_quality: int, flush_every: int, scalars: tuple, info: str,
                  cars: list, half_size: tuple, track: dict, obstacles, obstacle_size: tuple, layout: str,
                  cameras: bool):
         self.jpeg_quality, self.flush_every, self.scalars = jpeg_quality, flush_every, scalars
         self.ids, self.colours = [c["id"] for c in cars], [tuple(c["colour"]) for c in cars]
         self.z = half_size[2]
+        self.arena = arena
         self.rec = rec = rr.RecordingStream(application_id, make_default=False, make_thread_default=False)
         self._copy = _FileCopy(file)
         rec.save(self._copy.path)
@@ -110,11 +116,15 @@ class ReplayWriter:
 
     def add(self, batch: dict) -> None:
         """Take the rows of consecutive steps (and their images and log entries) from the race."""
-        received = self._first + self._rows
+        received, released = self._first + self._rows, None
         for row, car, image in batch["images"]:
+            if isinstance(image, ArenaImage):
+                image, released = self.arena.image(image), image.end
             jpeg = self._encode(image)
             if jpeg is not None:
                 self._frames[car].append((received + row, jpeg))
+        if released is not None:
+            self.arena.release(released)
         for step, race_time, entity, image in batch["pictures"]:
             jpeg = self._encode(image)
             if jpeg is not None:
@@ -186,26 +196,37 @@ class ReplayWriter:
         end = self._first + rows
         for i, cid in enumerate(self.ids):
             rows = np.flatnonzero(active[:, i])
+            car_index = index(rows)  # (the scalars' too, where they have a value at every row: the usual case)
             if len(rows):
                 x, y, yaw = poses[rows, i].T
                 half = yaw / 2
                 zero = np.zeros_like(half)
-                rec.send_columns(f"world/cars/{cid}", indexes=index(rows), columns=rr.Transform3D.columns(
+                rec.send_columns(f"world/cars/{cid}", indexes=car_index, columns=rr.Transform3D.columns(
                     translation=np.column_stack([x, y, np.full(len(rows), self.z)]),
                     quaternion=np.column_stack([zero, zero, np.sin(half), np.cos(half)])))
             for name, values in scalars.items():
                 with_value = rows[~np.isnan(values[rows, i])]
                 if len(with_value):
-                    rec.send_columns(f"plots/{name}/{cid}", indexes=index(with_value),
+                    rec.send_columns(f"plots/{name}/{cid}",
+                                     indexes=car_index if len(with_value) == len(rows) else index(with_value),
                                      columns=rr.Scalars.columns(scalars=values[with_value, i]))
             images = [(row - self._first, jpeg) for row, jpeg in self._frames[i] if row < end]
             self._frames[i] = [(row, jpeg) for row, jpeg in self._frames[i] if row >= end]
             if images:
                 rec.send_columns(f"cameras/{cid}", indexes=index([r for r, _ in images]),
-                                 columns=rr.EncodedImage.columns(blob=[b for _, b in images],
+                                 columns=rr.EncodedImage.columns(blob=_blob_column([b for _, b in images]),
                                                                  media_type=["image/jpeg"] * len(images)))
         self._first = end
         self._block_reset()
+
+
+def _blob_column(blobs: list[bytes]) -> pa.ListArray:
+    """Byte strings as the Arrow array of rerun's `Blob` component, built in one piece (rerun's own conversion
+    builds an array per blob, most of a flush's time)."""
+    offsets = np.zeros(len(blobs) + 1, np.int32)
+    np.cumsum([len(blob) for blob in blobs], out=offsets[1:])
+    data = pa.array(np.frombuffer(b"".join(blobs), np.uint8))
+    return pa.ListArray.from_arrays(pa.array(offsets), data, type=BLOB_TYPE)
 
 
 class _FileCopy:
