@@ -78,3 +78,51 @@ def test_the_ego_view_shows_the_cars_most_in_the_way_not_merely_the_nearest():
     assert second[2] == pytest.approx(-0.35, abs=0.02)
     assert behind[0] == 0.0  # nobody behind car 0
     assert obs["car_3"][11 + 2 * len(LOOKAHEAD):].reshape(3, 4)[2][1] * TRAFFIC_RANGE == pytest.approx(0.2, abs=0.05)
+
+
+def test_the_camera_view_lists_only_the_cars_the_front_camera_shows():
+    """``state_view="camera"``: a car alongside and a car behind are out of the front camera's field of view, so
+    out of the traffic rows, while the default view lists them; the car in line ahead is in both."""
+    from multirace.environment.state import TRAFFIC_RANGE
+
+    slots = {0: (5.0, 0.0), 1: (5.05, 0.3), 2: (6.0, 0.0), 3: (4.2, 0.0)}  # alongside, 1 m ahead, 0.8 m behind
+    rows = {}
+    for view in ("all", "camera"):
+        env = multirace.parallel_env(num_cars=4, observation="state", state_view=view, action_space=CONTINUOUS,
+                                     race="head_to_head")
+        env.reset(seed=0)
+        rows[view] = env.move_cars(slots, clear=False)["car_0"][11 + 2 * len(LOOKAHEAD):].reshape(3, 4)
+        np.testing.assert_array_equal(env.car_state(0, view), env.move_cars(slots, clear=False)["car_0"])
+        env.close()
+    first, second, behind = rows["all"]
+    assert first[0] == second[0] == behind[0] == 1.0
+    assert first[1] * TRAFFIC_RANGE < 0.15 and first[2] == pytest.approx(0.3, abs=0.02)  # car 1, alongside
+    assert behind[1] * TRAFFIC_RANGE == pytest.approx(0.8, abs=0.05)
+    first, second, behind = rows["camera"]
+    assert first[0] == 1.0 and first[1] * TRAFFIC_RANGE == pytest.approx(1.0, abs=0.05)  # car 2 only
+    assert second[0] == 0.0 and behind[0] == 0.0
+
+
+def test_a_car_shows_in_the_camera_from_any_part_of_its_body():
+    """`in_camera_view`: a car whose centre lies just outside the field of view but whose nose is inside it
+    shows; one entirely outside does not; nor does a car ahead of the body centre but behind the lens."""
+    from types import SimpleNamespace
+
+    from multirace.environment.state import in_camera_view
+    from multirace.sensors.camera import CameraSpec
+    from multirace.sim.car import CarSpec
+
+    camera, spec = CameraSpec(), CarSpec()
+    me = SimpleNamespace(x=0.0, y=0.0, yaw=0.0)
+    edge = math.tan(camera.hfov / 2)  # sideways metres per metre ahead of the lens at the field's edge
+    lens = camera.forward
+
+    def car(ahead, aside, yaw=0.0):
+        return SimpleNamespace(x=lens + ahead, y=aside, yaw=yaw)
+
+    assert in_camera_view(camera, me, car(1.0, 0.0), spec)
+    centre_out = edge * 1.0 + 0.05  # centre 5 cm outside the edge; the near side of the body 5 cm inside
+    assert in_camera_view(camera, me, car(1.0, centre_out), spec)
+    assert not in_camera_view(camera, me, car(1.0, edge * 1.5 + spec.width), spec)
+    assert not in_camera_view(camera, me, car(-spec.length / 2 - 0.01, 0.0), spec)  # its nose just behind the lens
+    assert in_camera_view(camera, me, car(0.05, 0.0), spec), "a car filling the view, corners outside it"

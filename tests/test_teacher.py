@@ -424,3 +424,36 @@ def test_traffic_labels_are_drawn_more_often_when_asked():
                    weight=steering_weight(load_action_space(SPACE), 4.0), weighted=True)
     both.add(np.zeros((2, 2, 1), np.uint8), np.array([-30.0, 1.0], np.float32), 4.0)
     assert both.weights[0] == 20.0
+
+
+def test_a_camera_view_teacher_keeps_its_view_in_its_file_and_labels_from_it(teacher, tmp_path):
+    """``teacher_view="camera"``: the teacher trains on the traffic its front camera shows, its file says so, and
+    as DAgger's expert it labels a student's car from that view (a car alongside, out of the camera's field, is
+    not in it); older files, without a view, read every car near them; a view that does not exist is refused."""
+    from multirace.environment.race_env import RaceEnv
+    from multirace.train.experts import expert_commands, make_expert
+
+    start, _ = teacher
+    config = make_config("fast", tracks=("reinvent_base",), action_space=SPACE, max_iterations=1, seed=3,
+                         eval_every=1e9, progress=False, teacher_init=str(start), teacher_view="camera")
+    out = tmp_path / "cam.teacher.pt"
+    train_teacher(config, out, seconds=1e9, log=None)
+    assert load_teacher(out).view == "camera" and load_teacher(start).view == "all"
+    import torch
+
+    older = torch.load(start, weights_only=True)
+    del older["view"]
+    torch.save(older, tmp_path / "older.teacher.pt")
+    assert load_teacher(tmp_path / "older.teacher.pt").view == "all"
+    expert = make_expert(f"teacher:{out}", 1.0)
+    env = RaceEnv(track="reinvent_base", num_cars=2, action_space=SPACE, observation="state")
+    try:
+        env.reset(seed=0)
+        env.move_cars({0: (5.0, 0.0), 1: (5.05, 0.3)}, clear=False)
+        label = expert_commands(expert, env, [0])[0]
+        assert label == expert.drive_many(env.car_state(0, "camera")[None])[0]
+        assert label != expert.drive_many(env.car_state(0, "all")[None])[0]
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match="teacher_view"):
+        make_config("fast", teacher_view="lidar")

@@ -40,7 +40,7 @@ from .core import RaceCore
 from .race_state import CarState, RaceState
 from .formats import make_rules
 from .rules import CarRace
-from .state import CAR_FEATURES, GLOBAL_PER_CAR, STATE_BOUND, car_features, global_state
+from .state import CAR_FEATURES, GLOBAL_PER_CAR, STATE_BOUND, STATE_VIEWS, car_features, global_state
 from ..sim.texture import DEFAULT_PALETTE, TrackTexture
 from ..sim.tracks import Track, load_track
 from ..sim.world import World
@@ -94,7 +94,9 @@ class RaceEnv(ParallelEnv):
 
     ``observation="state"`` gives each car its privileged state instead
     (`state.car_features`: float32 vectors; nothing is rendered), for RL
-    teachers; `state()` is the global state of every car (`state.global_state`).
+    teachers, listing the cars near it (``state_view="all"``) or only those
+    its front camera shows (``state_view="camera"``); `state()` is the global
+    state of every car (`state.global_state`).
     """
 
     metadata = {"name": "multirace_v0", "render_modes": ["human", "rgb_array"], "render_fps": ACTION_HZ,
@@ -104,7 +106,7 @@ class RaceEnv(ParallelEnv):
                  obstacles=None, bots=(), action_space=None, reward_function=None, camera=(120, 160),
                  grayscale=True, lidar=False, renderer="fast", randomize=None, render_mode=None, max_steps=None,
                  physics_hz=60, car_names=None, max_cycles=None, sensor=None, dynamics="dynamic",
-                 observation="camera"):
+                 observation="camera", state_view="all"):
         self.track: Track = track if isinstance(track, Track) else load_track(track, reverse=reverse)
         self.rules = make_rules(race, laps, obstacles)
         self.bots = [b if isinstance(b, Driver) else parse_bot(b) for b in bots]
@@ -157,6 +159,9 @@ class RaceEnv(ParallelEnv):
         if observation not in ("camera", "state"):
             raise ValueError(f"observation: expected 'camera' or 'state', got {observation!r}")
         self.observation = observation
+        if state_view not in STATE_VIEWS:
+            raise ValueError(f"state_view: expected one of {', '.join(STATE_VIEWS)}, got {state_view!r}")
+        self.state_view = state_view
         if observation == "state":  # privileged state vectors instead of sensors: nothing is rendered
             obs_space = spaces.Box(-STATE_BOUND, STATE_BOUND, (CAR_FEATURES,), np.float32)
         self.observation_spaces = {a: obs_space for a in self.possible_agents}
@@ -360,7 +365,7 @@ class RaceEnv(ParallelEnv):
             view = self._sensor_view(self._sensor_bots)
             self._bot_observations = self._bot_sensors.observe(view, self._sensor_bots.tolist())
         if self.observation == "state":
-            return {agent: car_features(self, i) for i, agent in enumerate(self.possible_agents)}
+            return {agent: car_features(self, i, self.state_view) for i, agent in enumerate(self.possible_agents)}
         return self.sensors.observe(self._sensor_view(self._camera_cars), self.possible_agents)
 
     def _sensor_view(self, cars: np.ndarray) -> SensorView:
@@ -375,9 +380,10 @@ class RaceEnv(ParallelEnv):
         return SensorView(self.world, cars, self.camera, self.car_spec, self._lidar_rng, self._renderer, jitter,
                           perturb, self.race_state)
 
-    def car_state(self, i: int) -> np.ndarray:
-        """Car i's privileged ego state (`state.car_features`), what an RL teacher reads."""
-        return car_features(self, i)
+    def car_state(self, i: int, view: str = "all") -> np.ndarray:
+        """Car i's privileged ego state (`state.car_features`, listing the traffic of `view`), what an RL
+        teacher reads."""
+        return car_features(self, i, view)
 
     def state(self) -> np.ndarray:
         """PettingZoo's global state: every car's pose, motion, race distance, road position and the curvature

@@ -12,7 +12,10 @@ Two views of the same step, read from the env's published `RaceState` (``env.rac
   ahead and behind most in its way (the nearest along the track, a car that
   sits clear to one side counting as farther: `in_the_way`). A DeepRacer car
   measures none of these; the camera policies that ship read only their
-  sensors.
+  sensors. With ``view="camera"`` the cars it lists are only those its
+  front camera shows (`in_camera_view`): a teacher that knows no more of
+  the traffic than a camera student can see, so that what it does, the
+  student can learn (a car being passed, alongside, is out of both views).
 - `global_state(env)`: every car's pose, motion, race distance, position on
   the road and the curvature ahead of it, for centralised critics
   (PettingZoo's `state()`).
@@ -30,6 +33,9 @@ SIDE_WEIGHT = 2.0  # a car ahead or behind counts this many metres farther per m
 MAX_SPEED = 4.0  # m/s: speeds are scaled by this
 CURVATURE_AHEAD = (1.0, 2.0, 3.0)  # metres: the global state's heading change of the centre line to these points
 STATE_BOUND = 1e4  # every state value lies within +-this (the spaces' bounds)
+STATE_VIEWS = ("all", "camera")  # the traffic in the ego view: every car near, or those the front camera shows
+OUTLINE = ((1, 1), (1, 0), (1, -1), (0, 1), (0, -1), (-1, 1), (-1, 0), (-1, -1))  # a body's outline points
+# that `in_camera_view` tries, in half-lengths along the body and half-widths aside
 CAR_FEATURES = 11 + 2 * len(LOOKAHEAD) + 4 * (TRAFFIC_AHEAD + TRAFFIC_BEHIND)
 GLOBAL_PER_CAR = 13 + len(CURVATURE_AHEAD)
 
@@ -64,12 +70,36 @@ def in_the_way(gap: float, lateral: float, car_width: float) -> float:
     return gap + SIDE_WEIGHT * max(0.0, abs(lateral) - car_width)
 
 
-def _traffic_features(state, i: int) -> list[float]:
+def in_camera_view(camera, me, other, spec) -> bool:
+    """Whether car `other` shows in car `me`'s front camera (`camera`, a `CameraSpec`): some point of its body
+    outline (corners and edge midpoints) ahead of the lens and within the horizontal field of view. Other cars
+    in front of it are not taken to hide it."""
+    cos, sin = math.cos(me.yaw), math.sin(me.yaw)
+    lens_x, lens_y = me.x + camera.forward * cos, me.y + camera.forward * sin
+    tan_half = math.tan(camera.hfov / 2)
+    other_cos, other_sin = math.cos(other.yaw), math.sin(other.yaw)
+    half_length, half_width = spec.length / 2, spec.width / 2
+    for along, aside in OUTLINE:
+        ox, oy = along * half_length, aside * half_width
+        dx = other.x + ox * other_cos - oy * other_sin - lens_x
+        dy = other.y + ox * other_sin + oy * other_cos - lens_y
+        forward = dx * cos + dy * sin
+        if forward > 0 and abs(dy * cos - dx * sin) < forward * tan_half:
+            return True
+    return False
+
+
+def _traffic_features(state, i: int, camera=None) -> list[float]:
     """(present, gap / range, lateral difference, speed difference / max) of the cars ahead, then behind, most
-    in the way first (`in_the_way`)."""
+    in the way first (`in_the_way`); with `camera` (a `CameraSpec`), only the cars car i's camera shows."""
     ahead, behind = [], []
     length, width = state.track.length, state.car_spec.width
-    for along, lateral, speed in state.traffic(i):
+    traffic = state.traffic(i)
+    if camera is not None:
+        me = state.cars[i]
+        others = [car for car in state.cars if car.located and car.index != i]  # `traffic`'s cars, in its order
+        traffic = [seen for seen, car in zip(traffic, others) if in_camera_view(camera, me, car, state.car_spec)]
+    for along, lateral, speed in traffic:
         if along <= TRAFFIC_RANGE:
             ahead.append((in_the_way(along, lateral, width), along, lateral, speed))
         elif length - along <= TRAFFIC_RANGE:
@@ -87,8 +117,9 @@ def _traffic_features(state, i: int) -> list[float]:
     return rows
 
 
-def car_features(env, i: int) -> np.ndarray:
-    """Car i's privileged ego view (`CAR_FEATURES` float32 values; see the module docstring)."""
+def car_features(env, i: int, view: str = "all") -> np.ndarray:
+    """Car i's privileged ego view (`CAR_FEATURES` float32 values; see the module docstring); `view`
+    ("all" or "camera", `STATE_VIEWS`): which of the cars near it that view lists."""
     state = env.race_state
     car = state.cars[i]
     if not car.located:  # a parked car: nothing to see
@@ -105,7 +136,8 @@ def car_features(env, i: int) -> np.ndarray:
     values = [forward / MAX_SPEED, left, yaw_rate / 3.0, car.speed / MAX_SPEED,
               steer / env.car_spec.max_steer, speed / MAX_SPEED, car.lateral / half, car.left_width,
               car.right_width, math.sin(error), math.cos(error)]
-    values += (ahead_x / LOOKAHEAD).tolist() + (ahead_y / LOOKAHEAD).tolist() + _traffic_features(state, i)
+    camera = env.camera if view == "camera" else None
+    values += (ahead_x / LOOKAHEAD).tolist() + (ahead_y / LOOKAHEAD).tolist() + _traffic_features(state, i, camera)
     return np.clip(np.asarray(values, np.float32), -STATE_BOUND, STATE_BOUND)
 
 

@@ -2,7 +2,8 @@
 
 The net is a Gaussian policy MLP over a car's privileged state (`environment.state.car_features`).
 A teacher file is a torch weights-only archive: {"weights", "features", "hidden", "action_space",
-"training"}; loading it runs no code. `TeacherDriver` drives a car from that state: DAgger's expert
+"view", "training"} (``view``: the traffic its state lists, `state.STATE_VIEWS`; "all" where absent);
+loading it runs no code. `TeacherDriver` drives a car from that state: DAgger's expert
 (``teacher:PATH`` as an expert spec); `TeacherController` races one (the entrant ``teacher:PATH``).
 """
 from __future__ import annotations
@@ -17,7 +18,7 @@ from torch import nn
 
 from ..environment.actions import load_action_space
 from ..environment.drivers import Driver
-from ..environment.state import CAR_FEATURES, car_features
+from ..environment.state import CAR_FEATURES, STATE_VIEWS, car_features
 from .entrant import TEACHER_PREFIX, Controller, file_sha256, teacher_spec
 
 
@@ -30,8 +31,11 @@ class StatePolicyNet(nn.Module):
 
     vector_inputs: dict = {}  # it reads the state vector alone, no sensors beside a camera (`rollout.batch_input`)
 
-    def __init__(self, space, features: int = CAR_FEATURES, hidden: int = 128):
+    def __init__(self, space, features: int = CAR_FEATURES, hidden: int = 128, view: str = "all"):
         super().__init__()
+        if view not in STATE_VIEWS:
+            raise ValueError(f"teacher view: expected one of {', '.join(STATE_VIEWS)}, got {view!r}")
+        self.view = view  # the traffic its state lists (`state.car_features`)
         if space.discrete:
             raise ValueError("the privileged teacher drives a continuous action space (steering and speed "
                              "ranges); give --action-space a continuous model_metadata.json")
@@ -68,7 +72,7 @@ def save_teacher(path, net: StatePolicyNet, space, training: dict) -> Path:
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     torch.save({"weights": net.state_dict(), "features": net.features, "hidden": net.hidden,
-                "action_space": space.to_metadata(), "training": training}, tmp)
+                "action_space": space.to_metadata(), "view": net.view, "training": training}, tmp)
     tmp.replace(path)
     return path
 
@@ -78,7 +82,7 @@ def load_teacher(path) -> StatePolicyNet:
     try:
         saved = torch.load(path, map_location="cpu", weights_only=True)
         space = load_action_space(saved["action_space"])
-        net = StatePolicyNet(space, int(saved["features"]), int(saved["hidden"]))
+        net = StatePolicyNet(space, int(saved["features"]), int(saved["hidden"]), str(saved.get("view", "all")))
         net.load_state_dict(saved["weights"])
         net.training_notes = dict(saved.get("training") or {})
     except (OSError, KeyError, RuntimeError, ValueError, TypeError, pickle.UnpicklingError, EOFError) as exc:
@@ -106,8 +110,13 @@ class TeacherDriver(Driver):
         """The driver of a teacher file."""
         return cls(load_teacher(path), f"{TEACHER_PREFIX}{Path(path).name}", speed_scale)
 
+    @property
+    def view(self) -> str:
+        """The traffic the state vectors it reads list (`state.STATE_VIEWS`)."""
+        return self.net.view
+
     def drive(self, state, car, observation=None) -> tuple[float, float]:
-        """The teacher's command from `observation`, its car's privileged state vector."""
+        """The teacher's command from `observation`, its car's privileged state vector (of its `view`)."""
         return self.drive_many(observation[None])[0]
 
     def drive_many(self, observations: np.ndarray) -> list[tuple[float, float]]:
@@ -130,4 +139,4 @@ class TeacherController(Controller):
         return cls(TeacherDriver.load(path, scale), file_sha256(Path(path)))
 
     def act(self, observation, info) -> tuple[float, float]:
-        return self.driver.drive(None, self.car, car_features(self.env, self.car))
+        return self.driver.drive(None, self.car, car_features(self.env, self.car, self.driver.view))

@@ -26,6 +26,7 @@ import json
 import math
 
 from ..environment.rewards import RewardWeights
+from ..environment.state import STATE_VIEWS
 from ..racing.nets import SHALLOW, TINY
 from ..resources import agents_dir
 from ..sensors.suite import SensorSuite, declared_sensors
@@ -91,6 +92,7 @@ class TrainConfig(RewardWeights):
     teacher_minibatch: int = 512  # the teacher's samples per gradient step
     teacher_norm_reward: bool = True  # the teacher divides rewards by a running std of the return (as norm_reward)
     teacher_init: str = ""  # with privileged: the teacher starts from this teacher file's weights (an RL fine-tune, e.g. in traffic); "" = from nothing
+    teacher_view: str = "all"  # with privileged: the traffic in the teacher's state, "all" (the cars near it) or "camera" (only those its front camera shows: what a camera student can learn to do; environment.state)
     student_network: str = TINY  # with privileged: the camera student's network (nets.NETWORKS)
     distill_lr: float = 1e-3  # with privileged: the student's Adam learning rate
     distill_anneal_lr: bool = False  # with privileged: the student's learning rate falls linearly over its budget to 10 % (as anneal_lr)
@@ -139,6 +141,8 @@ class TrainConfig(RewardWeights):
         if self.update_precision not in PRECISIONS:
             raise ValueError(f"--set update_precision: expected one of {', '.join(PRECISIONS)}, "
                              f"got {self.update_precision!r}")
+        if self.teacher_view not in STATE_VIEWS:
+            raise ValueError(f"--set teacher_view: expected one of {', '.join(STATE_VIEWS)}, got {self.teacher_view!r}")
         if self.track_sampling not in TRACK_SAMPLINGS:
             raise ValueError(f"--set track_sampling: expected one of {', '.join(TRACK_SAMPLINGS)}, "
                              f"got {self.track_sampling!r}")

@@ -83,7 +83,7 @@ class TrainEnv:
                  sensor=None, episode_steps=1500, terminate_off_track=True, randomize=None, shared=None, worker=0,
                  terminate_collision=False, bots_ahead=0.0, bots_ahead_spread=0.0, expert_labels=False, expert="",
                  deepracer_log=False, observation="camera", pool=1, track_sampling="uniform", rivals=(), rival_cars=0,
-                 **weights):
+                 state_view="all", **weights):
         self.runs = list(runs)  # [(track name/path or Track rows, reverse)]
         self.sampler = RunSampler(len(self.runs), track_sampling)  # which run each episode races on
         self.num_cars = int(num_cars)
@@ -108,6 +108,7 @@ class TrainEnv:
         self.deepracer_log = bool(deepracer_log)  # each step's info carries the car's sim-trace row, formatted here
         self._sim_traces: list[CarSimTrace] = []  # each car's sim-trace rows (new at every reset)
         self.observation = observation  # "camera" (the sensors) or "state" (privileged vectors, for RL teachers)
+        self.state_view = state_view  # with "state": the traffic those vectors list ("all" or "camera")
         self.pool = int(pool)  # > 1: camera images go out as int16 sums of pool x pool pixel blocks (`nets.pool_image`)
         self.randomize = randomize
         self.shared = shared  # optional {"scale": mp.Value, "nature": mp.Array} written by the learner
@@ -136,7 +137,8 @@ class TrainEnv:
             self._envs[k] = RaceEnv(track=track, reverse=reverse, num_cars=self.num_cars, race="time_trial",
                                     laps=100000, bots=self.bots + self._rival_seats(), action_space=self.action_space,
                                     reward_function=reward, camera=self.camera, sensor=self.sensor,
-                                    max_steps=self.episode_steps, observation=self.observation)
+                                    max_steps=self.episode_steps, observation=self.observation,
+                                    state_view=self.state_view)
         return self._envs[k]
 
     def _rival_seats(self) -> tuple:

@@ -32,5 +32,5 @@ def expert_command(expert: Driver, env, car: int = 0) -> tuple[float, float]:
 def expert_commands(expert: Driver, env, cars) -> list[tuple[float, float]]:
     """`expert_command` for each of the env's `cars`; a teacher's net runs once for all of them."""
     if isinstance(expert, TeacherDriver):
-        return expert.drive_many(np.stack([env.car_state(car) for car in cars]))
+        return expert.drive_many(np.stack([env.car_state(car, expert.view) for car in cars]))
     return [expert.drive(env.race_state, car, None) for car in cars]

@@ -56,10 +56,12 @@ def train_teacher(config: TrainConfig, out, seconds: float, log=print) -> dict:
     policy = Policy(space)
     runs = training_runs(config)
     check_reward_file(config, runs)
-    net = StatePolicyNet(space, hidden=config.teacher_hidden)  # a discrete space is refused before any env starts
+    # (a discrete space is refused here, before any env starts)
+    net = StatePolicyNet(space, hidden=config.teacher_hidden, view=config.teacher_view)
     if config.teacher_init:
         _start_from(net, config.teacher_init)
-    settings = {**env_settings(config), "observation": "state", "expert_labels": False, "deepracer_log": False}
+    settings = {**env_settings(config), "observation": "state", "state_view": config.teacher_view,
+                "expert_labels": False, "deepracer_log": False}
     from ..environment.vector import SubprocVectorEnv
 
     vec = SubprocVectorEnv([functools.partial(TrainEnv, runs, worker=w, **settings) for w in range(config.num_envs)],
@@ -116,7 +118,8 @@ def train_teacher(config: TrainConfig, out, seconds: float, log=print) -> dict:
 
 
 def _start_from(net: StatePolicyNet, path) -> None:
-    """Load a teacher file's weights into `net` (`teacher_init`); its action space and sizes must be the run's."""
+    """Load a teacher file's weights into `net` (`teacher_init`); its action space and sizes must be the run's
+    (its view need not: a teacher of every car near it may learn to race from the camera's view)."""
     start = load_teacher(path)
     if (start.hidden, list(start.space.low), list(start.space.high)) != (
             net.hidden, list(net.space.low), list(net.space.high)):
