@@ -32,10 +32,10 @@ images, the plots and the event log is sent with the recording, so
 The race's process only gathers what each step shows into blocks of `SHIP_EVERY` rows (steps, times,
 poses, scalars, camera images (copied into memory the writer shares), event texts, LIDAR echoes) and hands
 each block to the replay writer (`replay_writer`), a process of its own (`replay_process`): there the
-images are JPEG-encoded, the
-per-step data are sent in columns (`send_columns`) every `flush_every` steps and rerun's binary stream is
-written to a file beside the target, which becomes the target only when the race ends well and the writer
-has written it completely (`multirace.atomic`); a writer that fails is an `OutputError` naming the target.
+images are JPEG-encoded, the per-step data are sent in columns (`send_columns`) every `flush_every` steps
+and rerun's binary stream is written to a file beside the target, which becomes the target only when the
+race ends well and the writer has written it completely (`multirace.atomic`); a writer that fails is an
+`OutputError` naming the target.
 """
 from __future__ import annotations
 
