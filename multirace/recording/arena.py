@@ -66,7 +66,7 @@ class ImageArena:
         end = start + nbytes
         if end - RELEASED.unpack_from(self._map)[0] > size:
             return None
-        self._map[HEADER_BYTES + offset:HEADER_BYTES + offset + nbytes] = image  # (a slice of the map: the fastest copy)
+        self._map[HEADER_BYTES + offset:HEADER_BYTES + offset + nbytes] = image  # (a slice of the map: fastest)
         self._written = end
         return ArenaImage(start, image.shape, image.dtype.str, end)
 

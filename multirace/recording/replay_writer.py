@@ -3,9 +3,10 @@
 It runs in a process of its own (`replay_process`), fed by `replay.ReplayRecorder` (which describes the
 layout) with, for each replay: the file to write (its descriptor), ``("start", description)``,
 ``("rows", batch)`` as the race goes and ``("finish", result text or None)``. It JPEG-encodes the camera
-images as they come (read from the shared `arena.ImageArena`, whose space it then gives back), logs events and LIDAR echoes at their step, builds the per-step columns of every
-`flush_every` rows (`send_columns`) and writes the recording to the file it was given; it answers
-``("done", cpu seconds spent on it)`` once the file is complete, or ``("error", reason)``.
+images as they come (read from the shared `arena.ImageArena`, whose space it then gives back), logs events
+and LIDAR echoes at their step, builds the per-step columns of every `flush_every` rows (`send_columns`)
+and writes the recording to the file it was given; it answers ``("done", cpu seconds spent on it)`` once
+the file is complete, or ``("error", reason)``.
 
 rerun's file sink (`save`) encodes and writes the recording as it comes, with one manifest at the end,
 into a pipe whose bytes a thread here writes to the file (`_FileCopy`): a write that fails (a full disk)
@@ -82,9 +83,9 @@ def _record(sock: socket.socket, file_fd: int, arena: ImageArena) -> str | tuple
 class ReplayWriter:
     """One recording: the static entities at once, then rows, images and log entries as they come."""
 
-    def __init__(self, file, arena: ImageArena, application_id: str, jpeg_quality: int, flush_every: int, scalars: tuple, info: str,
-                 cars: list, half_size: tuple, track: dict, obstacles, obstacle_size: tuple, layout: str,
-                 cameras: bool):
+    def __init__(self, file, arena: ImageArena, application_id: str, jpeg_quality: int, flush_every: int,
+                 scalars: tuple, info: str, cars: list, half_size: tuple, track: dict, obstacles,
+                 obstacle_size: tuple, layout: str, cameras: bool):
         self.jpeg_quality, self.flush_every, self.scalars = jpeg_quality, flush_every, scalars
         self.ids, self.colours = [c["id"] for c in cars], [tuple(c["colour"]) for c in cars]
         self.z = half_size[2]
