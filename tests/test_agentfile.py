@@ -2,9 +2,11 @@
 from __future__ import annotations
 
 import copy
+import gc
 import json
 import os
 import pickle
+import time
 from pathlib import Path
 
 import numpy as np
@@ -294,6 +296,37 @@ def test_bad_agents_forfeit_in_a_real_race(tmp_path, good):
     assert cars["tester"]["file_sha256"] == cars["slow"]["file_sha256"] and len(cars["tester"]["file_sha256"]) == 64
     assert all(car["position"] >= 3 for car in result["cars"] if car["status"] == "forfeit")
 
+
+def test_a_slow_garbage_collection_is_not_the_agents_inference_time(good):
+    """A collection of the process's heap (long in a league worker or a test run) that an allocation inside
+    the inference would set off is held until after the timed call, so it forfeits nobody."""
+    controller = AgentController(good)
+    infer = controller.agent.outputs
+    inside = [False]
+
+    def allocating_inference(obs):  # the agent's own inference, plus enough new lists to reach gc's threshold
+        inside[0] = True
+        try:
+            garbage = [[] for _ in range(5 * gc.get_threshold()[0])]
+            return infer(obs)
+        finally:
+            inside[0] = False
+            del garbage
+
+    def slow_collection(phase, info):
+        if phase == "start" and inside[0]:
+            end = time.thread_time() + 0.2  # CPU time of this thread, as the budget counts
+            while time.thread_time() < end:
+                pass
+
+    controller.agent.outputs = allocating_inference
+    gc.callbacks.append(slow_collection)
+    try:
+        commands = [controller.drive(None, 0, {"camera": np.zeros((120, 160, 1), np.uint8)}) for _ in range(6)]
+    finally:
+        gc.callbacks.remove(slow_collection)
+    assert len(commands) == 6 and all(np.isfinite(commands).ravel())
+    assert max(controller.step_times) < controller.step_budget
 
 def test_cli_agent_inspect(tmp_path, good, capsys):
     assert cli_main(["agent", "inspect", str(good)]) == 0

@@ -40,6 +40,7 @@ output, within the time budget). Every error names the file and the field.
 """
 from __future__ import annotations
 
+import gc
 import hashlib
 import io
 import json
@@ -607,13 +608,11 @@ def smoke_test(agent: Agent, step_budget: float | None, runs: int = 5) -> None:
     torch.set_num_threads(1)
     try:
         for _ in range(max(1, runs)):
-            clock = inference_clock()
-            start = clock()
             try:
-                out = agent.outputs(blank)
+                out, elapsed = timed_inference(agent, blank)
             except Exception as exc:
                 raise AgentFileError(f"{source}: smoke inference failed ({type(exc).__name__}: {exc})") from None
-            fastest = min(fastest, clock() - start)
+            fastest = min(fastest, elapsed)
             if step_budget is None or fastest <= step_budget:
                 break
     finally:
@@ -709,6 +708,22 @@ def inference_clock():
     return time.thread_time if torch.get_num_threads() == 1 else time.process_time
 
 
+def timed_inference(agent: Agent, obs) -> tuple[np.ndarray, float]:
+    """The agent's outputs for `obs` and the seconds of `inference_clock` they took. The garbage collector
+    is held off for the call: a collection of the whole process's heap (a long-lived league worker's, a
+    test run's) would otherwise count against whichever agent's allocation set it off."""
+    clock = inference_clock()
+    collecting = gc.isenabled()
+    gc.disable()
+    try:
+        start = clock()
+        out = agent.outputs(obs)
+        return out, clock() - start
+    finally:
+        if collecting:
+            gc.enable()
+
+
 # --------------------------------------------------------------- controller
 class AgentController(Controller):
     """Drives a car with an agent file's policy, from the sensors its metadata declares.
@@ -771,13 +786,10 @@ class AgentController(Controller):
             obs = self.agent.reads(observation)
         except ValueError as exc:
             raise Forfeit(str(exc)) from None
-        clock = inference_clock()
-        start = clock()
         try:
-            out = self.agent.outputs(obs)
+            out, elapsed = timed_inference(self.agent, obs)
         except Exception as exc:
             raise Forfeit(f"inference raised {type(exc).__name__}: {exc}") from None
-        elapsed = clock() - start
         self.step_times.append(elapsed)
         expected = num_outputs_for(self.agent.action_space)
         if out.shape != (1, expected):
