@@ -182,6 +182,14 @@ def cmd_agent_export(args) -> int:
     return 0
 
 
+def cmd_agent_blend(args) -> int:
+    from .racing.blend import blend_agents
+
+    path = blend_agents(args.first, args.second, args.share, args.out, name=args.name)
+    print(f"wrote {path}: {args.share:g} x {args.first} + {1 - args.share:g} x {args.second}")
+    return 0
+
+
 def cmd_agent_import(args) -> int:
     from .deepracer.importer import import_model
 
@@ -313,7 +321,7 @@ def _add_race_parser(sub) -> None:
 
 def _add_agent_parser(sub) -> None:
     """The `agent` subcommand."""
-    agent = sub.add_parser("agent", help="list, inspect, export and import agent files",
+    agent = sub.add_parser("agent", help="list, inspect, blend, export and import agent files",
                            description="Tools for agent files (.pt: weights + model_metadata).")
     agent_sub = agent.add_subparsers(dest="agent_command", required=True)
     listing = agent_sub.add_parser("list", help="the agents shipped with multirace: figures and paths",
@@ -333,6 +341,17 @@ def _add_agent_parser(sub) -> None:
     export.add_argument("file", type=agent_argument, help="agent file (.pt) or a shipped agent's name")
     export.add_argument("--out", required=True, metavar="MODEL.tar.gz", type=output_file, help="archive to write")
     export.set_defaults(func=cmd_agent_export)
+    blend = agent_sub.add_parser("blend", help="write a weight-space blend of two agent files (WiSE-FT)",
+                                 description="Write SHARE x FIRST's weights + (1 - SHARE) x SECOND's as an agent "
+                                             "file: two fine-tunes of one start (a fast time-trial agent and a "
+                                             "cautious traffic student, say) blended to keep some of each. Both "
+                                             "must be the same network on the same sensors and action space.")
+    blend.add_argument("first", type=agent_argument, help="agent file (.pt) or a shipped agent's name")
+    blend.add_argument("second", type=agent_argument, help="agent file (.pt) or a shipped agent's name")
+    blend.add_argument("--share", required=True, type=SHARE, help="share of FIRST's weights (0-1)")
+    blend.add_argument("--out", required=True, metavar="FILE.pt", type=output_file, help="agent file to write")
+    blend.add_argument("--name", default=None, help="agent name in the metadata (default: file stem)")
+    blend.set_defaults(func=cmd_agent_blend)
     imported = agent_sub.add_parser("import", help="turn a DeepRacer model into an agent file",
                                     description="Read a car archive (.tar.gz), a folder, a frozen .pb with its "
                                                 "model_metadata.json, or a training checkpoint folder (model/ with "

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from ..environment.actions import load_action_space
+from ..racing.blend import blend_weights
 from ..racing.nets import build_net
 from .config import TrainConfig
 from .experts import TEACHER_PREFIX
@@ -137,12 +138,6 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
             fitter.close()
     return run.finish(shipped, optimiser, None, space, image_shape)
 
-
-def blend_weights(out, start: dict, net, share: float) -> None:
-    """`out`'s weights <- `share` x `net`'s + (1 - share) x the `start` state's (same architecture)."""
-    state = net.state_dict()
-    out.load_state_dict({key: share * value + (1.0 - share) * start[key] if value.is_floating_point() else value
-                         for key, value in state.items()})
 
 
 def traffic_factors(infos, config: TrainConfig) -> np.ndarray:
