@@ -12,7 +12,6 @@ from pathlib import Path
 from .agentfile import AgentFileError, load_agent, save_agent
 
 
-
 def blend_weights(out, start: dict, net, share: float) -> None:
     """`out`'s weights <- `share` x `net`'s + (1 - share) x the `start` state's (same architecture)."""
     state = net.state_dict()
