@@ -32,7 +32,7 @@ def test_params_at_known_poses():
     # centred on the line at s = 5 m, facing along the track: the reported point is 5 m + offset along
     x, y, heading = track.point_at(5.0)
     place(env, 0, x - offset * math.cos(heading), y - offset * math.sin(heading), heading)
-    params = env._params(0, set(), env._object_table())
+    params = env._reward_params([set()] * env.num_cars)[0]
     assert params["x"] == pytest.approx(x, abs=1e-6) and params["y"] == pytest.approx(y, abs=1e-6)
     assert params["distance_from_center"] == pytest.approx(0.0, abs=1e-6)
     assert params["heading"] == pytest.approx(math.degrees(heading), abs=1e-6)
@@ -47,20 +47,20 @@ def test_params_at_known_poses():
     # 0.2 m to the left of the centre line
     x, y, _ = track.point_at(5.0, lateral=0.2)
     place(env, 0, x - offset * math.cos(heading), y - offset * math.sin(heading), heading)
-    params = env._params(0, set(), env._object_table())
+    params = env._reward_params([set()] * env.num_cars)[0]
     assert params["distance_from_center"] == pytest.approx(0.2, abs=1e-3)
     assert params["is_left_of_center"] is True
     # half a car off the right border: some wheels off, still not off track
     half = track.project(x, y).right_width
     x, y, _ = track.point_at(5.0, lateral=-half)
     place(env, 0, x - offset * math.cos(heading), y - offset * math.sin(heading), heading)
-    params = env._params(0, set(), env._object_table())
+    params = env._reward_params([set()] * env.num_cars)[0]
     assert not params["all_wheels_on_track"] and not params["is_offtrack"]
     assert params["is_left_of_center"] is False
     # a metre outside: off track
     x, y, _ = track.point_at(5.0, lateral=-1.0)
     place(env, 0, x, y, heading + 0.5)
-    params = env._params(0, set(), env._object_table())
+    params = env._reward_params([set()] * env.num_cars)[0]
     assert params["is_offtrack"] and not params["all_wheels_on_track"]
     assert params["heading"] == pytest.approx(math.degrees(heading + 0.5), abs=1e-6)
 

@@ -49,6 +49,7 @@ ACTION_HZ = 15
 MAX_CARS = 8
 MIN_AVERAGE_SPEED = 0.4  # m/s; sets the default step limit of a race
 CAMERA_RANGE = 8.0  # m; objects farther ahead do not count as `object_in_camera`
+_NO_ACTION = object()  # `_commands_for`: an agent without an action this step
 
 
 def parallel_env(**config) -> "RaceEnv":
@@ -271,8 +272,7 @@ class RaceEnv(ParallelEnv):
         for i, bot in enumerate(self.bots, start=self.num_cars):
             bot.reset(self, i)
         self.agents = list(self.possible_agents)
-        table = self._object_table()
-        params = [self._params(i, set(), table) for i in range(self.num_cars)]
+        params = self._reward_params([set()] * self.num_cars)
         state = self.core.publish([set()] * self.total_cars, [()] * self.total_cars)
         observations = self._observe()
         infos = {a: self._info(params[i], state.cars[i], state.time) for i, a in enumerate(self.agents)}
@@ -284,8 +284,7 @@ class RaceEnv(ParallelEnv):
             raise RuntimeError("step() called on a finished episode; call reset() first")
         core = self.core
         touched = core.advance(self._commands_for(actions))
-        table = self._object_table()
-        params = [self._params(i, touched[i], table) for i in range(self.num_cars)]
+        params = self._reward_params(touched)
         races, agents = core.races, self.possible_agents
         racing = [i for i in range(self.num_cars) if races[i].racing]
         rewards = dict.fromkeys(agents, 0.0)
@@ -316,22 +315,23 @@ class RaceEnv(ParallelEnv):
         randomised = draw is not None and self.randomization.dynamics_enabled
         commands = list(self.core.commands)
         noise = self._rng.standard_normal((self.num_cars, 2)).tolist()  # DeepRacer's action noise
+        steer_noise, speed_noise, clamp = spec.steer_noise, spec.speed_noise, spec.clamp_command
         for i, agent in enumerate(self.possible_agents):
-            if races[i].racing and agent in actions:
-                action = actions[agent]
-                space = DRIVER_COMMANDS if type(action) is Command else self.actions
-                try:
-                    steer, speed = space.command(action)
-                except ValueError as exc:
-                    raise ValueError(f"step {self.steps + 1}, {agent}: {exc}") from None
-                if randomised:
-                    steer, speed = apply_command(steer, speed, draw, self._randomizer_rng, i, spec)
-                    steer = math.radians(steer)
-                else:
-                    steer_noise, speed_noise = noise[i]
-                    steer = math.radians(steer) + spec.steer_noise * steer_noise
-                    speed = speed + spec.speed_noise * speed_noise
-                commands[i] = spec.clamp_command(steer, speed)
+            action = actions.get(agent, _NO_ACTION)
+            if action is _NO_ACTION or not races[i].racing:
+                continue
+            space = DRIVER_COMMANDS if type(action) is Command else self.actions
+            try:
+                steer, speed = space.command(action)
+            except ValueError as exc:
+                raise ValueError(f"step {self.steps + 1}, {agent}: {exc}") from None
+            if randomised:
+                steer, speed = apply_command(steer, speed, draw, self._randomizer_rng, i, spec)
+                steer = math.radians(steer)
+            else:
+                steer = math.radians(steer) + steer_noise * noise[i][0]
+                speed = speed + speed_noise * noise[i][1]
+            commands[i] = clamp(steer, speed)
         for b, bot in enumerate(self.bots):
             i = self.num_cars + b
             if races[i].racing:
@@ -390,68 +390,69 @@ class RaceEnv(ParallelEnv):
         ahead (`state.global_state`), for centralised critics; `state_space` gives its shape."""
         return global_state(self)
 
-    def _params(self, i: int, touched: set, table: tuple) -> dict:
-        """The 27 DeepRacer reward params of car i, in DeepRacer's units (its object params: the boxes and every
-        other car on track, from `_object_table`)."""
+    def _reward_params(self, touched: list[set]) -> list[dict]:
+        """The 27 DeepRacer reward params of every learning car, in DeepRacer's units (its object params: the boxes
+        and every other car on track, from `_object_table`); a parked car reads where its run ended."""
         core, track = self.core, self.track
-        loc = core.last_geometry(i)  # a parked car: where it was when its run ended
-        race = core.races[i]
-        steer, speed = core.commands[i]
-        columns, in_camera, closest = table
-        owners, xs, ys = columns[0], columns[1], columns[2]
-        own = [list(zip(xs, ys))] + [column.copy() for column in columns[3:]]
-        if i in owners:  # leave car i itself out of every column
-            k = owners.index(i)
-            for column in own:
-                del column[k]
-        locations, left, speeds, heading, from_centre, along = own
-        return {
-            "all_wheels_on_track": loc.wheels_on == 4,
-            "x": loc.x,
-            "y": loc.y,
-            "heading": math.degrees(loc.yaw),
-            "distance_from_center": abs(loc.lateral),
-            "projection_distance": loc.s,
-            "progress": race.lap_progress(track.length) if race.racing else 100.0 * (race.status == "finished"),
-            "steps": core.steps,
-            "speed": float(speed),
-            "steering_angle": math.degrees(steer),
-            "track_width": loc.width,
-            "track_length": track.length,
-            "waypoints": track.waypoints,
-            "closest_waypoints": list(track.closest_waypoints(loc)),
-            "is_left_of_center": loc.lateral > 0,
-            "is_reversed": track.reverse,
-            "closest_objects": closest[i],
-            "objects_location": locations,
-            "objects_left_of_center": left,
-            "object_in_camera": in_camera[i],
-            "objects_speed": speeds,
-            "objects_heading": heading,
-            "objects_distance_from_center": from_centre,
-            "objects_distance": along,
-            "is_crashed": bool(touched),
-            "is_offtrack": loc.wheels_on == 0,
-            "sim_time": core.sim_time,
-        }
+        owners, columns, in_camera, closest = self._object_table()
+        length, waypoints, reverse = track.length, track.waypoints, track.reverse
+        steps, sim_time = core.steps, core.sim_time
+        every_params = []
+        for i in range(self.num_cars):
+            loc = core.last_geometry(i)
+            race = core.races[i]
+            steer, speed = core.commands[i]
+            locations, left, speeds, heading, from_centre, along = [column.copy() for column in columns]
+            if i in owners:  # leave car i itself out of every column
+                k = owners.index(i)
+                del locations[k], left[k], speeds[k], heading[k], from_centre[k], along[k]
+            every_params.append({
+                "all_wheels_on_track": loc.wheels_on == 4,
+                "x": loc.x,
+                "y": loc.y,
+                "heading": math.degrees(loc.yaw),
+                "distance_from_center": abs(loc.lateral),
+                "projection_distance": loc.s,
+                "progress": race.lap_progress(length) if race.racing else 100.0 * (race.status == "finished"),
+                "steps": steps,
+                "speed": float(speed),
+                "steering_angle": math.degrees(steer),
+                "track_width": loc.width,
+                "track_length": length,
+                "waypoints": waypoints,
+                "closest_waypoints": list(track.closest_waypoints(loc)),
+                "is_left_of_center": loc.lateral > 0,
+                "is_reversed": reverse,
+                "closest_objects": closest[i],
+                "objects_location": locations,
+                "objects_left_of_center": left,
+                "object_in_camera": in_camera[i],
+                "objects_speed": speeds,
+                "objects_heading": heading,
+                "objects_distance_from_center": from_centre,
+                "objects_distance": along,
+                "is_crashed": bool(touched[i]),
+                "is_offtrack": loc.wheels_on == 0,
+                "sim_time": sim_time,
+            })
+        return every_params
 
     def _object_table(self) -> tuple:
-        """Every object a car can see this step (boxes, then cars on track), as columns:
-
-        (car index or -1, x, y, left_of_centre, speed, heading_deg, distance_from_centre, s),
-        then per learning car `object_in_camera` and `closest_objects` (see `objects.objects_seen`).
+        """Every object a car can see this step (boxes, then cars on track): the car index of each (-1 for a box),
+        the columns (locations (x, y), left_of_centre, speed, heading_deg, distance_from_centre, s), then per
+        learning car `object_in_camera` and `closest_objects` (see `objects.objects_seen`).
         """
         core, speeds = self.core, self.world.drive_speed.tolist()
         rows = core.obstacle_rows + [(j, loc.x, loc.y, loc.lateral > 0, speeds[j], math.degrees(loc.yaw),
                                       abs(loc.lateral), loc.s)
                                      for j, loc in enumerate(core.geometry) if loc is not None]
-        columns = tuple(map(list, zip(*rows))) if rows else ([],) * 8
+        owners, xs, ys, left, speed, heading, from_centre, along = map(list, zip(*rows)) if rows else ([],) * 8
         car_s = [core.last_geometry(i).s for i in range(self.num_cars)]
-        xs, ys, along = np.array((columns[1], columns[2], columns[7]), float)
-        in_camera, closest = objects_seen(np.array(columns[0], np.int64), xs, ys, along,
+        in_camera, closest = objects_seen(np.array(owners, np.int64), *np.array((xs, ys, along), float),
                                           self.world.poses[:self.num_cars], np.array(car_s), self.track.length,
                                           math.tan(self.camera.hfov / 2), CAMERA_RANGE)
-        return columns, in_camera.tolist(), closest.tolist()
+        columns = (list(zip(xs, ys)), left, speed, heading, from_centre, along)
+        return owners, columns, in_camera.tolist(), closest.tolist()
 
     def ranks(self) -> list[int]:
         """Current position (1 = leading) of every car, learning cars then bots."""

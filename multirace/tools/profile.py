@@ -23,7 +23,7 @@ STAGES = ("dynamics", "contacts", "rules", "params", "reward", "render", "other"
 _TIMED = {
     "dynamics": ("world", ("_pushes", "_command_dynamic", "_command_kinematic", "_may_touch", "_move_freely")),
     "rules": ("core", ("_measure_all", "_apply_contacts", "apply_rules", "publish")),
-    "params": ("env", ("_object_table", "_params", "_info")),
+    "params": ("env", ("_reward_params", "_info")),
     "reward": ("reward", ("rewards",)),
     "render": ("env", ("_observe",)),
 }
