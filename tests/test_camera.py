@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import multirace
-from multirace.sensors.camera import CameraSpec, camera_pose
+from multirace.sensors.camera import CameraSpec, Renderer, camera_pose, camera_poses, car_cameras
 from multirace.sensors.fast_renderer import FastRenderer
 from multirace.sensors.pybullet_renderer import PyBulletRenderer
 from multirace.sim.texture import Palette, TrackTexture
@@ -99,6 +99,32 @@ def test_camera_mount_is_deepracer_like():
     pose = camera_pose(spec, (0.0, 0.0, 0.0))
     assert pose.forward[2] == pytest.approx(-math.sin(math.radians(15)))
     assert np.allclose(pose.rotation @ pose.rotation.T, np.eye(3))
+
+
+@pytest.mark.parametrize("grayscale", [True, False])
+def test_render_cars_poses_and_draws_in_one_call_as_render_many_does(grayscale):
+    """`FastRenderer.render_cars` (poses and images in one compiled call) draws what `render_many` draws from
+    `car_cameras`' poses (the generic `Renderer.render_cars`), bit for bit: jittered or not, single cameras or
+    stereo pairs, whose eyes lie half the baseline to either side along the camera's right axis."""
+    env = multirace.parallel_env(num_cars=4, obstacles=2)
+    env.reset(seed=1)
+    world = env.world
+    spec = CameraSpec(grayscale=grayscale)
+    renderer = FastRenderer(spec, env.texture)
+    rng = np.random.default_rng(2)
+    cars = np.array([2, 0, 3])
+    for jitter in (None, rng.normal(0, [0.05, 0.05, 0.01], (3, 3))):
+        for stereo in (False, True):
+            fused = renderer.render_cars(world, cars, jitter, stereo)
+            assert np.array_equal(fused, Renderer.render_cars(renderer, world, cars, jitter, stereo))
+            assert fused.shape == (2 * len(cars) if stereo else len(cars), spec.height, spec.width, spec.channels)
+        eyes, rotations = camera_poses(spec, world.poses[cars], jitter)
+        pair_eyes, pair_rotations, pair_cars = car_cameras(spec, world.poses, cars, jitter, stereo=True)
+        offsets = rotations[:, 0, :] * (spec.stereo_baseline / 2)
+        assert np.array_equal(pair_eyes, np.concatenate([eyes - offsets, eyes + offsets]))
+        assert np.array_equal(pair_rotations, np.concatenate([rotations, rotations]))
+        assert pair_cars.tolist() == cars.tolist() * 2
+    env.close()
 
 
 def _warped(renderer, pose):

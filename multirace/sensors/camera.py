@@ -3,7 +3,9 @@
 A renderer turns the world's current state into a car's camera image,
 ``renderer.render(world, car, pose) -> uint8 (H, W, C)``, or the images of
 several cars at once from the batched poses of `camera_poses`
-(``renderer.render_many(world, cars, eyes, rotations)``). Two implement it:
+(``renderer.render_many(world, cars, eyes, rotations)``), or of the cameras
+on some cars straight from the world (``renderer.render_cars(world, cars)``,
+posed by `pose_cameras`, stereo pairs too). Two implement it:
 `pybullet_renderer.PyBulletRenderer` (TinyRenderer, the reference) and
 `fast_renderer.FastRenderer` (a perspective warp of the flat track, the default).
 
@@ -95,26 +97,54 @@ def camera_poses(spec: CameraSpec, car_poses: np.ndarray, jitter: np.ndarray | N
     `car_poses` is (n, 3) of (x, y, yaw); `jitter`, if given, (n, 3) of (yaw,
     pitch, height) offsets.
     """
-    if jitter is None:
-        jitter = np.zeros((len(car_poses), 3))
-    return _camera_poses(car_poses, jitter, spec.forward, spec.mount_height, spec.pitch)
+    eyes, rotations, _ = car_cameras(spec, car_poses, np.arange(len(car_poses)), jitter)
+    return eyes, rotations
+
+
+NO_JITTER = np.zeros((0, 3))  # `pose_cameras`' jitter of cameras as mounted
+
+
+def car_cameras(spec: CameraSpec, car_poses: np.ndarray, cars, jitter: np.ndarray | None = None,
+                stereo: bool = False):
+    """The cameras on `cars` (indices into `car_poses`, (N, 3) of (x, y, yaw)): eyes, rotations and the car of
+    each camera, as `pose_cameras` returns them; `jitter`, if given, (n, 3) of (yaw, pitch, height) offsets."""
+    return pose_cameras(car_poses, np.asarray(cars, np.int64), NO_JITTER if jitter is None else jitter, spec.forward,
+                        spec.mount_height, spec.pitch, spec.stereo_baseline, stereo)
 
 
 @numba.njit(cache=True)
-def _camera_poses(car_poses, jitter, forward, mount_height, pitch):
-    n = car_poses.shape[0]
-    eyes, rotations = np.empty((n, 3)), np.empty((n, 3, 3))
+def pose_cameras(car_poses, cars, jitter, forward, mount_height, pitch, stereo_baseline, stereo):
+    """Eyes (m, 3), rotations (m, 3, 3) (rows: right, down, forward) and the car each camera rides on (m,) of the
+    cameras on cars (n,); jitter (n, 3) offsets or (0, 3) for none. `stereo`: each camera's pair, half the
+    baseline to either side along its right axis and looking the same way, the n left cameras first, then the
+    n right ones (m = 2n); else m = n."""
+    n = cars.shape[0]
+    m = 2 * n if stereo else n
+    eyes, rotations, camera_cars = np.empty((m, 3)), np.empty((m, 3, 3)), np.empty(m, np.int64)
     for k in range(n):
-        x, y, yaw = car_poses[k, 0], car_poses[k, 1], car_poses[k, 2]
-        cam_yaw, cam_pitch = yaw + jitter[k, 0], pitch + jitter[k, 1]
+        car = cars[k]
+        x, y, yaw = car_poses[car, 0], car_poses[car, 1], car_poses[car, 2]
+        jitter_yaw = jitter_pitch = jitter_height = 0.0  # none: + 0.0, as zero offsets add
+        if jitter.shape[0]:
+            jitter_yaw, jitter_pitch, jitter_height = jitter[k, 0], jitter[k, 1], jitter[k, 2]
+        cam_yaw, cam_pitch = yaw + jitter_yaw, pitch + jitter_pitch
         eyes[k, 0], eyes[k, 1] = x + forward * math.cos(yaw), y + forward * math.sin(yaw)
-        eyes[k, 2] = mount_height + jitter[k, 2]
+        eyes[k, 2] = mount_height + jitter_height
         cp, sp = math.cos(cam_pitch), math.sin(cam_pitch)
         cy, sy = math.cos(cam_yaw), math.sin(cam_yaw)
         rotations[k, 0, 0], rotations[k, 0, 1], rotations[k, 0, 2] = sy, -cy, 0.0  # right
         rotations[k, 1, 0], rotations[k, 1, 1], rotations[k, 1, 2] = -sp * cy, -sp * sy, -cp  # down = forward x right
         rotations[k, 2, 0], rotations[k, 2, 1], rotations[k, 2, 2] = cp * cy, cp * sy, -sp  # forward
-    return eyes, rotations
+        camera_cars[k] = car
+    if stereo:
+        half = stereo_baseline / 2
+        for k in range(n):
+            for i in range(3):
+                offset = rotations[k, 0, i] * half
+                eyes[n + k, i], eyes[k, i] = eyes[k, i] + offset, eyes[k, i] - offset
+            rotations[n + k] = rotations[k]
+            camera_cars[n + k] = cars[k]
+    return eyes, rotations, camera_cars
 
 
 class Renderer:
@@ -133,12 +163,12 @@ class Renderer:
         return [self.render(world, car, CameraPose(eye=eye, rotation=rotation))
                 for car, eye, rotation in zip(cars, eyes, rotations)]
 
+    def render_cars(self, world, cars: np.ndarray, jitter: np.ndarray | None = None, stereo: bool = False):
+        """Images of the cameras on `cars` (jittered by `jitter`, (n, 3), if given; `stereo`: the n left cameras
+        of the pairs, then the n right ones), as `render_many` returns them."""
+        eyes, rotations, camera_cars = car_cameras(self.spec, world.poses, cars, jitter, stereo)
+        return self.render_many(world, camera_cars, eyes, rotations)
+
     def close(self) -> None:
         """Release what the renderer holds."""
 
-
-def stereo_poses(spec: CameraSpec, eyes: np.ndarray, rotations: np.ndarray):
-    """The stereo pair of each camera pose: eyes (2n, 3) and rotations (2n, 3, 3), the n left cameras
-    first, then the n right ones, each half the baseline to its side, looking the same way."""
-    offsets = rotations[:, 0, :] * (spec.stereo_baseline / 2)  # along each camera's right axis
-    return np.concatenate([eyes - offsets, eyes + offsets]), np.concatenate([rotations, rotations])

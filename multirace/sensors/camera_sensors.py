@@ -10,19 +10,14 @@ from __future__ import annotations
 import numpy as np
 from gymnasium import spaces
 
-from .camera import CameraSpec, camera_poses, observation_shape, stereo_poses
+from .camera import CameraSpec, observation_shape
 from .sensor import Sensor, SensorView
 
 
-def render_cameras(view: SensorView, stereo: bool) -> list[np.ndarray]:
-    """The cars' camera images (H, W, C) from the renderer, the stereo pairs' left images first, then the right
-    ones; perturbed by the episode's randomisation, if any."""
-    eyes, rotations = camera_poses(view.camera, view.world.poses[view.cars], view.camera_jitter)
-    cars = view.cars
-    if stereo:  # render the left cameras, then the right ones
-        eyes, rotations = stereo_poses(view.camera, eyes, rotations)
-        cars = np.concatenate([cars, cars])
-    images = view.renderer.render_many(view.world, cars, eyes, rotations)
+def render_cameras(view: SensorView, stereo: bool):
+    """The cars' camera images (H, W, C) from the renderer (a list, or one (n, H, W, C) array), the stereo
+    pairs' left images first, then the right ones; perturbed by the episode's randomisation, if any."""
+    images = view.renderer.render_cars(view.world, view.cars, view.camera_jitter, stereo)
     if view.perturb is not None:
         images = [view.perturb(image) for image in images]
     return images
@@ -37,9 +32,12 @@ class FrontCamera(Sensor):
     def space(self, camera: CameraSpec) -> spaces.Box:
         return spaces.Box(0, 255, observation_shape((camera.height, camera.width, camera.channels)), np.uint8)
 
-    def observe(self, view: SensorView) -> list[np.ndarray]:
+    def observe(self, view: SensorView):
+        """The cars' images, one per car: a list, or one array of them (grey: (n, H, W))."""
         images = render_cameras(view, stereo=False)
-        return [image[:, :, 0] for image in images] if view.camera.grayscale else images
+        if not view.camera.grayscale:
+            return images
+        return images[..., 0] if isinstance(images, np.ndarray) else [image[:, :, 0] for image in images]
 
 
 class StereoCameras(Sensor):

@@ -13,7 +13,8 @@ flat-coloured boxes, as in the PyBullet reference: a box's silhouette is the
 convex hull of its corners (clipped at the near plane), filled far to near so
 nearer boxes hide farther ones (`box_raster.draw_boxes`). Ground and boxes of
 all cameras are drawn in one compiled call (`render_scene`) into one
-(n, H, W, C) array. The camera's own car is never drawn.
+(n, H, W, C) array; `render_car_cameras` poses the cameras of some cars in
+that call too. The camera's own car is never drawn.
 """
 from __future__ import annotations
 
@@ -23,7 +24,7 @@ import numba
 import numpy as np
 
 from .box_raster import draw_boxes
-from .camera import NEAR_PLANE, CameraPose, CameraSpec, Renderer
+from .camera import NEAR_PLANE, NO_JITTER, CameraPose, CameraSpec, Renderer, pose_cameras
 from ..sim.texture import TrackTexture
 from ..sim.world import CAR_COLOURS, OBSTACLE_COLOUR, OBSTACLE_SIZE
 
@@ -58,13 +59,14 @@ class FastRenderer(Renderer):
             car_colours = np.array(CAR_COLOURS, np.uint8)
             obstacle_colour = np.array(OBSTACLE_COLOUR, np.uint8)
         # render_scene's inputs, its constants packed in few arrays (each argument costs time in every call):
-        # the bordered texture, (ppm, x0, y0, focal, cx, cy, near plane) and the colours, one value per channel
+        # the bordered texture, (ppm, x0, y0, focal, cx, cy, near plane, the camera's forward, mount height, pitch
+        # and stereo baseline) and the colours, one value per channel
         sky, floor = np.array(np.atleast_1d(self._sky), np.uint8), np.array(np.atleast_1d(self._floor), np.uint8)
-        self._texture_size = self._ground.shape[:2]
-        self._texels = bordered_texels(self._ground.reshape(*self._texture_size, -1), floor)
+        self._texels = bordered_texels(self._ground.reshape(*self._ground.shape[:2], -1), floor)
         self._image_shape = (spec.height, spec.width, spec.channels)
         x0, y0 = texture.origin
-        self._view = np.array((texture.ppm, x0, y0, self._focal, self._cx, self._cy, NEAR_PLANE), float)
+        self._view = np.array((texture.ppm, x0, y0, self._focal, self._cx, self._cy, NEAR_PLANE, spec.forward,
+                               spec.mount_height, spec.pitch, spec.stereo_baseline), float)
         self._colours = np.concatenate([sky[None], floor[None], obstacle_colour[None], car_colours])
         self._sizes: np.ndarray | None = None  # car and obstacle (length, width, height): the car's from the world
 
@@ -96,45 +98,70 @@ class FastRenderer(Renderer):
 
     def render_many(self, world, cars, eyes: np.ndarray, rotations: np.ndarray) -> np.ndarray:
         """Images (n, H, W, C) of several cameras at once, ground and boxes in one compiled call."""
+        images = np.empty((len(cars),) + self._image_shape, _UINT8)
+        render_scene(images, eyes, rotations, np.asarray(cars, dtype=np.int64), world.poses, world.parked,
+                     world.obstacle_poses, self._texels, self._view, self._box_sizes(world), self._colours)
+        return images
+
+    def render_cars(self, world, cars, jitter: np.ndarray | None = None, stereo: bool = False) -> np.ndarray:
+        """Images (n, H, W, C) of the cameras on `cars` (2n: the stereo pairs' left, then right cameras), posed
+        (`camera.pose_cameras`) and drawn in one compiled call."""
+        cars = np.asarray(cars, dtype=np.int64)
+        images = np.empty((2 * len(cars) if stereo else len(cars),) + self._image_shape, _UINT8)
+        render_car_cameras(images, cars, NO_JITTER if jitter is None else jitter, world.poses, world.parked,
+                           world.obstacle_poses, self._texels, self._view, self._box_sizes(world), self._colours)
+        return images
+
+    def _box_sizes(self, world) -> np.ndarray:
+        """The car's (from the world) and the obstacles' (length, width, height), (2, 3)."""
         if self._sizes is None:
             car = world.spec
             self._sizes = np.array(((car.length, car.width, car.height), OBSTACLE_SIZE), float)
-        images = np.empty((len(cars),) + self._image_shape, _UINT8)
-        render_scene(images, eyes, rotations, np.asarray(cars, dtype=np.int64), world.poses, world.parked,
-                     world.obstacle_poses, self._texels, *self._texture_size, self._view, self._sizes, self._colours)
-        return images
+        return self._sizes
 
 
 @numba.njit(cache=True)
-def render_scene(images, eyes, rotations, cars, car_poses, parked, obstacle_poses, flat_texels, rows, columns, view,
-                 sizes, colours):
-    """`cast_ground`, then `draw_boxes`: one call from Python per batch of cameras. view is (ppm, x0, y0, focal,
-    cx, cy, near plane); sizes (2, 3) the car's and the obstacles' (length, width, height); colours (3 + K, C)
-    the sky, the floor, the obstacles and the K car colours."""
+def render_car_cameras(images, cars, jitter, car_poses, parked, obstacle_poses, texels, view, sizes, colours):
+    """`render_scene` of the cameras on cars (n,) (`camera.pose_cameras`, jitter (n, 3) or (0, 3)): the stereo
+    pairs if `images` holds 2n images. view goes on with the camera's (forward, mount height, pitch, stereo
+    baseline)."""
+    stereo = images.shape[0] > cars.shape[0]
+    eyes, rotations, camera_cars = pose_cameras(car_poses, cars, jitter, view[7], view[8], view[9], view[10], stereo)
+    render_scene(images, eyes, rotations, camera_cars, car_poses, parked, obstacle_poses, texels, view, sizes,
+                 colours)
+
+
+@numba.njit(cache=True)
+def render_scene(images, eyes, rotations, cars, car_poses, parked, obstacle_poses, texels, view, sizes, colours):
+    """`cast_ground`, then `draw_boxes`: one call from Python per batch of cameras. texels is `bordered_texels`;
+    view begins (ppm, x0, y0, focal, cx, cy, near plane); sizes (2, 3) the car's and the obstacles' (length,
+    width, height); colours (3 + K, C) the sky, the floor, the obstacles and the K car colours."""
     ppm, x0, y0, focal, cx, cy, near = view[0], view[1], view[2], view[3], view[4], view[5], view[6]
-    cast_ground(images, flat_texels, rows, columns, eyes, rotations, ppm, x0, y0, focal, cx, cy, colours[0],
-                colours[1])
+    rows, columns = texels.shape[0] - 2, texels.shape[1] - 2
+    cast_ground(images, texels.reshape(texels.size), rows, columns, eyes, rotations, ppm, x0, y0, focal, cx, cy,
+                colours[0], colours[1])
     draw_boxes(images, eyes, rotations, cars, car_poses, parked, sizes[0], colours[3:], obstacle_poses, sizes[1],
                colours[2], focal, cx, cy, near)
 
 
 def bordered_texels(texels: np.ndarray, floor: np.ndarray) -> np.ndarray:
-    """The texture (rows, columns, C) with a one-texel border of the floor colour, flattened: the cast clamps
-    every texel index into this border, so ground beyond the texture is floor without a test per pixel."""
+    """The texture (rows, columns, C) with a one-texel border of the floor colour, (rows + 2, columns + 2, C):
+    the cast clamps every texel index into this border, so ground beyond the texture is floor without a test
+    per pixel."""
     rows, columns, channels = texels.shape
     bordered = np.empty((rows + 2, columns + 2, channels), np.uint8)
     bordered[:] = floor
     bordered[1:-1, 1:-1] = texels
-    return bordered.ravel()
+    return bordered
 
 
 @numba.njit(cache=True)
 def cast_ground(images, flat_texels, rows, columns, eyes, rotations, ppm, x0, y0, focal, cx, cy, sky, floor):
     """Fill images (n, H, W, C) with the sky above each camera's horizon and the ground texture below it.
 
-    flat_texels is `bordered_texels` of a (rows, columns, C) top-down texture whose texel (u, v) is centred at
-    world (x0 + u / ppm, y0 - v / ppm); rotations (n, 3, 3) have rows right, down, forward. The ray of pixel
-    (x, y) has the direction right (x - cx) / f + down (y - cy) / f + forward and meets the ground at
+    flat_texels is `bordered_texels` of a (rows, columns, C) top-down texture, flattened; its texel (u, v) is
+    centred at world (x0 + u / ppm, y0 - v / ppm); rotations (n, 3, 3) have rows right, down, forward. The ray
+    of pixel (x, y) has the direction right (x - cx) / f + down (y - cy) / f + forward and meets the ground at
     eye - eye_z / dir_z dir. Without roll (right_z = 0) dir_z, hence the depth, is the same along a row and
     the texel walks a straight line in equal steps; a rolled camera takes a division per pixel. The sky is
     filled a slice per channel and the ground's pixels written element by element (a view per row costs more

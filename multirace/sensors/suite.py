@@ -21,6 +21,7 @@ dict {key: value} (``{"camera": image, "lidar": ranges, "speed": [m/s]}``).
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 from gymnasium import spaces
 
@@ -38,11 +39,15 @@ class SensorSuite:
     lidar: str | None = None
     extras: tuple[str, ...] = ()
 
-    @property
+    @functools.cached_property  # read at every observation
     def entries(self) -> tuple[Sensor, ...]:
         """Its registry entries in observation order: the camera, the range sensor, the others."""
         kinds = (self.camera, self.lidar, *self.extras)
         return tuple(BY_KIND[kind] for kind in kinds if kind is not None)
+
+    def __reduce__(self):
+        """Pickled as its fields alone: unpickled, its `entries` are the registry's own again, not copies."""
+        return SensorSuite, (self.camera, self.lidar, self.extras)
 
     @property
     def names(self) -> list[str]:

@@ -1,5 +1,5 @@
 """Which bodies can touch within a step (the conservative test that decides whether PyBullet must run), and
-how cars move in a step that does not need it.
+how cars move in a step that does not need it (`drive_cars`: the whole step of the dynamic model in one call).
 
 Cars move by their motion model; PyBullet is only needed where two bodies can
 meet. The test mirrors PyBullet's own broad phase: each body is its
@@ -15,6 +15,9 @@ from __future__ import annotations
 import math
 
 import numba
+import numpy as np
+
+from .dynamics import drive
 
 
 @numba.njit(cache=True)
@@ -70,3 +73,29 @@ def move_freely(poses, velocity, rows, substeps, dt):
         elif yaw < -math.pi:
             yaw += 2 * math.pi
         poses[i, 0], poses[i, 1], poses[i, 2] = x, y, yaw
+
+
+@numba.njit(cache=True)
+def drive_cars(poses, motion, velocity, drive_speed, parked, stale, pushes, commands, grip, motor, params,
+               box_poses, car_size, box_size, substeps, dt, pad, shortcut):
+    """One action step of the cars not `parked` under the dynamic model, in one compiled call (each call from
+    Python costs per argument): their tyre model (`dynamics.drive`; `drive_speed` is their new forward speed), then,
+    with `shortcut`, if no two bodies can touch within the step (`may_touch`), their free move (`move_freely`),
+    marking them `stale`. Returns whether they moved; if not, PyBullet must step them at the velocities set."""
+    rows = np.flatnonzero(~parked)
+    step_time = dt * substeps
+    drive(poses, motion, velocity, rows, pushes, commands, grip, motor, params, step_time)
+    for i in rows:
+        drive_speed[i] = motion[i, 0]
+    if not shortcut:
+        return False
+    if rows.shape[0] == parked.shape[0]:  # none parked: no copies
+        touch = may_touch(poses, velocity, box_poses, car_size, box_size, step_time, pad)
+    else:
+        touch = may_touch(poses[rows], velocity[rows], box_poses, car_size, box_size, step_time, pad)
+    if touch:
+        return False
+    move_freely(poses, velocity, rows, substeps, dt)
+    for i in rows:
+        stale[i] = True
+    return True

@@ -35,8 +35,8 @@ import os
 import numpy as np
 
 from .car import CarSpec
-from .broadphase import may_touch, move_freely
-from .dynamics import DynamicsParams, drive
+from .broadphase import drive_cars, may_touch, move_freely
+from .dynamics import DynamicsParams
 
 
 def _import_pybullet():
@@ -132,6 +132,7 @@ class World:
         self.action_steps = 0  # action steps taken
         self.bullet_steps = 0  # action steps PyBullet was stepped in (the others moved the cars without it)
         self._pushes_pending = False  # PyBullet was stepped since the velocities were set: read its pushes
+        self._no_pushes = np.zeros((num_cars, 3))  # `_pushes` where PyBullet was not stepped (read only)
         self._stale = np.zeros(num_cars, dtype=bool)  # cars moved since PyBullet's body was last put in place
         self._car_size = np.array([spec.length, spec.width])
         self._obstacle_size = np.array(OBSTACLE_SIZE[:2])
@@ -143,8 +144,8 @@ class World:
         self.motor = np.ones(num_cars)  # per-car scale of the motor's force (randomisation)
         self._params = DynamicsParams(
             mass=spec.mass, yaw_inertia=spec.yaw_inertia, front_axle=spec.wheelbase / 2,
-            rear_axle=spec.wheelbase / 2, mu=spec.mu, rear_grip=spec.rear_grip, tyre_b=spec.tyre_b, tyre_c=spec.tyre_c, accel=spec.accel,
-            brake=spec.brake, top_speed=spec.top_speed, drive_time_constant=spec.drive_time_constant,
+            rear_axle=spec.wheelbase / 2, mu=spec.mu, rear_grip=spec.rear_grip, tyre_b=spec.tyre_b,
+            tyre_c=spec.tyre_c, accel=spec.accel, brake=spec.brake, top_speed=spec.top_speed, drive_time_constant=spec.drive_time_constant,
             kinematic_speed=spec.kinematic_speed, dt=spec.dynamics_dt).as_array()
 
     # --------------------------------------------------------------- set-up
@@ -253,21 +254,24 @@ class World:
         step, one per touching pair.
         """
         self.action_steps += 1
-        rows = np.flatnonzero(~self.parked)
-        active = rows.tolist()
-        pushes = self._pushes(active)
+        pushes = self._pushes()
         commands = np.asarray(commands, np.float64)
         if self.dynamics == "dynamic":
-            self._command_dynamic(rows, commands, pushes)
+            moved = self._command_dynamic(commands, pushes)
         else:
-            self._command_kinematic(active, commands, pushes)
-        if self.contact_shortcut and not self._may_touch(rows):
-            self._move_freely(rows)
+            rows = np.flatnonzero(~self.parked)
+            self._command_kinematic(rows.tolist(), commands, pushes)
+            moved = self.contact_shortcut and not self._may_touch(rows)
+            if moved:
+                self._move_freely(rows)
+        if moved:
             self._struck_by = {}  # as after a step without contacts
             return []
         self.bullet_steps += 1
         self._sync_bodies()
         cid = self.client
+        rows = np.flatnonzero(~self.parked)
+        active = rows.tolist()
         for i, (vx, vy, turn) in zip(active, self._set_velocity[rows].tolist()):
             pybullet.resetBaseVelocity(self.car_ids[i], (vx, vy, 0.0), (0.0, 0.0, turn), cid)
         contacts: dict[tuple, Contact] = {}
@@ -279,17 +283,18 @@ class World:
         self._pushes_pending = True
         return self._clear_pushed_strikers(list(contacts.values()))
 
-    def _pushes(self, active: list[int]) -> np.ndarray:
-        """What PyBullet's last step added to each active car's velocity (rows of x, y, yaw rate, world frame):
-        the contacts' pushes. Zero where PyBullet was not stepped since the velocities were last set."""
-        pushes = np.zeros((len(active), 3))
+    def _pushes(self) -> np.ndarray:
+        """What PyBullet's last step added to each car's velocity (rows of x, y, yaw rate, world frame; zero for
+        parked cars): the contacts' pushes. Zero where PyBullet was not stepped since the velocities were last
+        set (`_no_pushes`)."""
         if not self._pushes_pending:
-            return pushes
+            return self._no_pushes
         self._pushes_pending = False
-        for k, i in enumerate(active):
+        pushes = np.zeros((self.num_cars, 3))
+        for i in np.flatnonzero(~self.parked).tolist():
             (lvx, lvy, _), (_, _, wz) = pybullet.getBaseVelocity(self.car_ids[i], self.client)
-            pushes[k] = (lvx, lvy, wz)
-        return pushes - self._set_velocity[active]
+            pushes[i] = (lvx, lvy, wz)
+        return pushes - self._set_velocity
 
     def _may_touch(self, rows: np.ndarray) -> bool:
         """Whether any two bodies' padded bounding boxes can overlap during the step, moving at their set
@@ -333,15 +338,15 @@ class World:
         self._struck_by = struck_by
         return contacts
 
-    def _command_dynamic(self, rows: np.ndarray, commands: np.ndarray, pushes: np.ndarray) -> None:
-        """Run the tyre model for these cars (a push since the last step joins their motion) and set the
-        velocities that carry them where it says (`dynamics.drive`)."""
-        drive(self.poses, self.motion, self._set_velocity, rows, pushes, commands, self.grip, self.motor,
-              self._params, self.physics_dt * self.substeps)
-        if len(rows) == self.num_cars:  # every car (none parked): whole columns copy faster than picked rows
-            self.drive_speed[:] = self.motion[:, 0]
-        else:
-            self.drive_speed[rows] = self.motion[rows, 0]
+    def _command_dynamic(self, commands: np.ndarray, pushes: np.ndarray) -> bool:
+        """Run the tyre model for the cars not parked (a push since the last step joins their motion), set the
+        velocities that carry them where it says and, with `contact_shortcut`, move them there if no two
+        bodies can touch within the step, all in one compiled call (`broadphase.drive_cars`). Returns whether
+        it moved them (if not, PyBullet must)."""
+        return drive_cars(self.poses, self.motion, self._set_velocity, self.drive_speed, self.parked, self._stale,
+                          pushes, commands, self.grip, self.motor, self._params, self.obstacle_poses,
+                          self._car_size, self._obstacle_size, self.substeps, self.physics_dt, TOUCH_PAD,
+                          self.contact_shortcut)
 
     def _command_kinematic(self, active: list[int], commands, pushes) -> None:
         """The kinematic bicycle: the velocity points along the heading the car will have half-way
@@ -349,8 +354,10 @@ class World:
         step_time = self.physics_dt * self.substeps
         commands = [(float(steer), float(speed)) for steer, speed in commands]  # plain floats: fast maths
         yaws, drive_speed = self.poses[:, 2].tolist(), self.drive_speed.tolist()
-        for i, (push_x, push_y, _) in zip(active, pushes.tolist()):
+        pushes = pushes.tolist()
+        for i in active:
             # what a collision (or anything but our own command) changed since we set the velocity
+            push_x, push_y, _ = pushes[i]
             yaw = yaws[i]
             cos_y, sin_y = math.cos(yaw), math.sin(yaw)
             steer, target = commands[i]
