@@ -10,8 +10,7 @@ and the env's renderer and noise streams).
 """
 from __future__ import annotations
 
-import dataclasses
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 from gymnasium import spaces
@@ -20,9 +19,9 @@ from ..sim.car import CarSpec
 from .camera import CameraSpec
 
 
-@dataclasses.dataclass(frozen=True)
-class SensorView:
-    """What a sensor may read when the env observes: the world after the step and the env's sensor kit."""
+class SensorView(NamedTuple):
+    """What a sensor may read when the env observes: the world after the step and the env's sensor kit (a named
+    tuple: the env builds one every step)."""
 
     world: Any  # sim.world.World: poses, drive speeds, bodies
     cars: np.ndarray  # the camera cars (indices into the world's cars), one observation each
