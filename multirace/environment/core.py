@@ -13,6 +13,7 @@ it stopped.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -51,6 +52,7 @@ class RaceCore:
         self.state: RaceState | None = None
         self._s: list[float] = []  # each car's arc length when its distance was last advanced
         self._stopped: dict[int, CarLocation] = {}  # where each parked car was located last
+        self._hints = np.full(self.total_cars, -1, np.int64)  # the segment each car was last located on (-1: none)
         self._prev_distance: list[float] = []
         self._stewards: Stewards | None = None
 
@@ -61,6 +63,7 @@ class RaceCore:
         self.steps, self.sim_time = 0, 0.0
         self.commands = [(0.0, 0.0)] * self.total_cars
         self.races, self._stopped = [], {}
+        self._hints[:] = -1
         for i, (s, lateral) in enumerate(track.start_grid(self.total_cars)):
             # the grid slot is where DeepRacer's reported point (ahead of the body centre) starts
             self.world.place_car(i, *track.point_at(s - self.car_spec.reported_point_offset, lateral))
@@ -106,38 +109,45 @@ class RaceCore:
         self._measure_all()
         for i, loc in enumerate(self.geometry):
             if loc is not None:
-                races[i].distance += wrap_ds(loc.s - last_s[i])
+                race = races[i]
+                race.distance += wrap_ds(loc.s - last_s[i])
+                race.segment_hint = loc.segment
                 last_s[i] = loc.s
         return self._apply_contacts(contacts)
 
     def _apply_contacts(self, contacts) -> list[set]:
-        """Hand the step's contacts to the stewards (incidents, fault, penalties). Returns who each car touched."""
+        """Hand the step's contacts to the stewards (incidents, fault, penalties). Returns who each car touched
+        (without contacts, one empty set shared by all)."""
+        self._stewards.judge(contacts, self.geometry, self.sim_time)
+        if not contacts:
+            return [set()] * self.total_cars
         touched = [set() for _ in range(self.total_cars)]
         for contact in contacts:
             for me, other in ((contact.a, contact.b), (contact.b, contact.a)):
                 if me[0] == "car":
                     touched[me[1]].add(other)
-        races = self.races
-        places = {i: (races[i].distance, loc.lateral) for i, loc in enumerate(self.geometry) if loc is not None}
-        self._stewards.judge(contacts, places, self.sim_time)
         return touched
 
     def apply_rules(self, touched: list[set]) -> list[list[str]]:
         """Ask the rules about every car's step and carry out their rulings (and the race's time limit);
         returns each car's events."""
-        events = [self._apply_rules(i, touched[i]) for i in range(self.total_cars)]
-        if self.rules.time_up(self.sim_time):
-            self.end_unfinished(*self.rules.window_end())
+        rules, length, geometry = self.rules, self.track.length, self.geometry
+        events = []
+        for i, race in enumerate(self.races):
+            loc = geometry[i]
+            hit_box = sorted(o[1] for o in touched[i] if o[0] == "obstacle") if touched[i] else ()
+            if loc is None or not race.racing or rules.uneventful(race, loc.wheels_on, loc.s, bool(hit_box), length):
+                events.append([])
+            else:
+                events.append(self._judge(i, loc, hit_box))
+        if rules.time_up(self.sim_time):
+            self.end_unfinished(*rules.window_end())
         return events
 
-    def _apply_rules(self, i: int, touched: set) -> list[str]:
-        """Ask the rules about car i's step and carry out their ruling; returns the step's events."""
-        race, loc = self.races[i], self.geometry[i]
-        if loc is None or not race.racing:
-            return []
-        hit_box = sorted(o[1] for o in touched if o[0] == "obstacle") if touched else ()
-        if self.rules.uneventful(race, loc.wheels_on, loc.s, bool(hit_box), self.track.length):
-            return []
+    def _judge(self, i: int, loc: CarLocation, hit_box: list[int]) -> list[str]:
+        """Have the rules judge car i's eventful step (at `loc`, into the boxes `hit_box`) and carry out their
+        ruling; returns the step's events."""
+        race = self.races[i]
         measure = StepMeasure(prev_distance=self._prev_distance[i], dt=self.dt, track_length=self.track.length,
                               wheels_on=loc.wheels_on, s=loc.s,
                               obstacle_hit=self.obstacle_slots[hit_box[0]] if hit_box else None)
@@ -151,27 +161,27 @@ class RaceCore:
 
     # ------------------------------------------------------- measurement
     def _measure_all(self) -> None:
-        """Locate every racing car (every car before the race records exist)."""
-        races = self.races
-        cars = [i for i in range(self.total_cars) if i >= len(races) or races[i].racing]
-        if len(cars) == self.total_cars:  # every car racing: the usual step
-            self.geometry = self._locate(cars)
+        """Locate every racing car: every car not parked (`_stopped`)."""
+        stopped = self._stopped
+        if not stopped:  # every car racing: the usual step
+            self.geometry = self._locate(range(self.total_cars))
             return
+        cars = [i for i in range(self.total_cars) if i not in stopped]
         self.geometry = [None] * self.total_cars
         if cars:
             for i, loc in zip(cars, self._locate(cars)):
                 self.geometry[i] = loc
 
-    def _locate(self, cars: list[int]) -> list[CarLocation]:
-        """Where these cars are: reported point, heading, projection and wheels on track."""
-        races = self.races
-        hints = np.array([-1 if i >= len(races) or races[i].segment_hint is None else races[i].segment_hint
-                          for i in cars], np.int64)
-        poses = self.world.poses if len(cars) == self.total_cars else self.world.poses[cars]
-        located = self.track.locate_cars(poses, hints, self.car_spec.reported_point_offset, self._wheels)
-        for i, loc in zip(cars, located):
-            if i < len(races):
-                races[i].segment_hint = loc.segment
+    def _locate(self, cars: Sequence[int]) -> list[CarLocation]:
+        """Where these cars are: reported point, heading, projection and wheels on track. Each car's search hint
+        (`_hints`) moves to the segment it is found on (its race's `segment_hint` follows where its distance is
+        advanced)."""
+        offset, wheels = self.car_spec.reported_point_offset, self._wheels
+        if len(cars) == self.total_cars:  # every car: the hints are set in place
+            return self.track.locate_cars(self.world.poses, self._hints, offset, wheels)
+        hints = self._hints[cars]
+        located = self.track.locate_cars(self.world.poses[cars], hints, offset, wheels)
+        self._hints[cars] = hints
         return located
 
     def last_geometry(self, i: int) -> CarLocation:
@@ -200,6 +210,7 @@ class RaceCore:
         self.world.place_car(i, x, y, yaw)
         loc = self._locate([i])[0]
         self.races[i].distance += self.track.wrap_ds(loc.s - self._s[i])
+        self.races[i].segment_hint = loc.segment
         self._s[i] = loc.s
         self.geometry[i] = loc
 
@@ -250,21 +261,17 @@ class RaceCore:
 
     def publish(self, touched: list[set], events: list) -> RaceState:
         """The step's `RaceState` (every car as the rules left it, ranked once), kept as `state`."""
-        poses, speeds = self.world.poses.tolist(), self.world.drive_speed.tolist()
-        ranks, names, commands, geometry = self.ranks(), self.car_names, self.commands, self.geometry
-        cars = []
-        for i, race in enumerate(self.races):
-            loc = geometry[i]
+        cars, stopped = [], self._stopped
+        for i, name, (x, y, yaw), speed, command, loc, rank, near, car_events, race in zip(
+                range(self.total_cars), self.car_names, self.world.poses.tolist(), self.world.drive_speed.tolist(),
+                self.commands, self.geometry, self.ranks(), touched, events, self.races):
             located = loc is not None
-            if not located:
-                loc = self._stopped[i]
-            x, y, yaw = poses[i]
-            cars.append(CarState(i, names[i], x, y, yaw, speeds[i], commands[i], located, loc.x, loc.y, loc.s,
-                                 loc.lateral, loc.width, loc.segment, loc.wheels_on, ranks[i],
-                                 tuple(sorted(touched[i])) if touched[i] else (), tuple(events[i]), race,
-                                 loc.heading, loc.left_width, loc.right_width))
+            px, py, _, s, lateral, segment, heading, left, right, width, wheels_on = loc if located else stopped[i]
+            cars.append(tuple.__new__(CarState, (  # a named tuple of its full row: no Python __new__ call
+                i, name, x, y, yaw, speed, command, located, px, py, s, lateral, width, segment, wheels_on, rank,
+                tuple(sorted(near)) if near else (), tuple(car_events), race, heading, left, right)))
         self.state = RaceState(self.steps, self.sim_time, self.dt, self.track, self.rules, tuple(cars),
-                               np.asarray(self.world.obstacle_poses, float).reshape(-1, 3), self.num_learners)
+                               self.world.obstacle_poses, self.num_learners)
         return self.state
 
 

@@ -59,7 +59,7 @@ class CarRace:
     reason: str = ""
     finish_time: float | None = None  # race clock when the run ended
     last_on_track_s: float = 0.0  # arc length where the car was last on the road
-    segment_hint: int | None = None
+    segment_hint: int | None = None  # the segment the race core last located the car on
     last_reset_time: float | None = None  # sim time of the last reset
     quick_off_tracks: int = 0  # off-tracks in a row, each soon after the reset before it
     pushed: tuple | None = None  # (until sim time, incident records): an off-track by then was a push-off
@@ -331,20 +331,27 @@ def at_fault(a: CarMotion, b: CarMotion, striker: int | None, car_length: float,
 class Stewards:
     """The incidents of one race: debounced contacts judged by `at_fault`, penalties and push-offs.
 
-    `judge(contacts, places, sim_time)` every step with the world's contacts and every racing car's
-    (race distance, lateral offset); a pair touching again within `INCIDENT_GAP` of its last touch is the
-    same incident (recorded and penalised once; a car at fault found later in it is blamed then)."""
+    `judge(contacts, geometry, sim_time)` every step with the world's contacts and every car's location
+    (None: not racing); a pair touching again within `INCIDENT_GAP` of its last touch is the same incident
+    (recorded and penalised once; a car at fault found later in it is blamed then)."""
 
     def __init__(self, rules: RaceRules, races: list[CarRace], names: list[str], car_length: float,
                  track_length: float, dt: float):
         self.rules, self.races, self.names = rules, races, names
         self.car_length, self.track_length, self.dt = car_length, track_length, dt
         self._open: dict = {}  # pair -> {"last": sim time, "records": (record a, record b or None), "victim"}
-        self._seen: dict = {}  # car -> (distance, lateral, resets, (along, lateral speed)) at the last step
+        # (this step, the last, the one before): each car's (distance, lateral, resets), None while not racing
+        self._trail = ([None] * len(races),) * 3
 
-    def judge(self, contacts, places: dict, sim_time: float) -> None:
-        """Record this step's contacts (`world.Contact`s) as incidents; `places`: car -> (distance, lateral)."""
-        motions = self._motions(places, contacts)
+    def judge(self, contacts, geometry: list, sim_time: float) -> None:
+        """Record this step's contacts (`world.Contact`s) as incidents; `geometry`: each car's `CarLocation`
+        this step (None: not racing)."""
+        now = [None if loc is None else (race.distance, loc.lateral, race.resets)
+               for race, loc in zip(self.races, geometry)]
+        self._trail = (now,) + self._trail[:2]
+        if not contacts:
+            return
+        motions = self._motions()
         for contact in contacts:
             pair = (contact.a, contact.b)
             incident = self._open.get(pair)
@@ -356,22 +363,21 @@ class Stewards:
             if incident["victim"] is not None:  # a push-off can follow until PUSH_OFF_WINDOW after its last touch
                 self.races[incident["victim"]].pushed = (sim_time + PUSH_OFF_WINDOW, incident["records"])
 
-    def _motions(self, places: dict, contacts) -> dict:
-        """Each car's `CarMotion` (built only in a step with `contacts`): where it is now, moving as it did over
-        the step before this one (going into the contact: this step's motion has the contact's push in it); at
-        rest if it was put back on the track since. Remembers every car's motion over this step for the next."""
-        motions, seen, races, dt, last_seen = {}, {}, self.races, self.dt, self._seen
-        for i, (distance, lateral) in places.items():
-            resets = races[i].resets
-            last = last_seen.get(i)
-            speeds = (0.0, 0.0)
-            if last is not None and last[2] == resets:
-                speeds = ((distance - last[0]) / dt, (lateral - last[1]) / dt)
-            seen[i] = (distance, lateral, resets, speeds)
-            if contacts:
-                before = last[3] if last is not None and last[2] == resets else speeds
-                motions[i] = CarMotion(distance, lateral, *before)
-        self._seen = seen
+    def _motions(self) -> dict:
+        """Each racing car's `CarMotion`: where it is now, moving as it did over the step before this one (going
+        into the contact: this step's motion has the contact's push in it); at rest if it was put back on the
+        track since (or was not racing) then."""
+        (now, last, before), dt = self._trail, self.dt
+        motions = {}
+        for i, place in enumerate(now):
+            if place is None:
+                continue
+            distance, lateral, resets = place
+            prev, older = last[i], before[i]
+            along = across = 0.0
+            if prev is not None and older is not None and older[2] == prev[2] == resets:
+                along, across = (prev[0] - older[0]) / dt, (prev[1] - older[1]) / dt
+            motions[i] = CarMotion(distance, lateral, along, across)
         return motions
 
     def _record(self, contact, sim_time: float) -> tuple:

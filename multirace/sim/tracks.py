@@ -357,11 +357,11 @@ class Track:
 
         poses (n, 3) of (x, y, yaw) at the body centre; the reported point is
         `offset` metres ahead of it; hints (n,) segment hints (-1 for none);
-        wheels (4, 2) the (forward, left) wheel contact points from the centre.
+        wheels (4, 2) the (forward, left) wheel contact points from the centre. Each hint is set to the
+        segment its car is found on (the next step's hint).
         """
-        rows = _locate_cars(poses, hints, offset, wheels, self._segments).tolist()
-        return [CarLocation(px, py, yaw, s, lateral, int(segment), heading, left, right, width, int(wheels_on))
-                for px, py, yaw, s, lateral, segment, heading, left, right, width, wheels_on in rows]
+        rows = _locate_cars(poses, hints, offset, wheels, self._segments)
+        return [tuple.__new__(CarLocation, row) for row in rows]  # named tuples of full rows: no Python __new__ call
 
     def closest_waypoints(self, proj: Projection | CarLocation) -> tuple[int, int]:
         """DeepRacer's `closest_waypoints`: indices of the waypoints behind and ahead."""
@@ -450,7 +450,9 @@ def _foot(x, y, seg):
 
 @numba.njit(cache=True)
 def _locate_cars(poses, hints, offset, wheels, segments):
-    out = np.empty((poses.shape[0], 11))
+    """`Track.locate_cars`: a list of `CarLocation` rows (plain tuples, boxed by numba far cheaper than an array
+    turned into one); sets each hint to its car's segment."""
+    out = []
     for c in range(poses.shape[0]):
         x, y, yaw = poses[c, 0], poses[c, 1], poses[c, 2]
         cos_y, sin_y = math.cos(yaw), math.sin(yaw)
@@ -464,7 +466,6 @@ def _locate_cars(poses, hints, offset, wheels, segments):
             wx, wy = fx * cos_y - side * sin_y, fx * sin_y + side * cos_y
             if -right <= lateral + wx * nx + wy * ny <= left:
                 wheels_on += 1
-        out[c, 0], out[c, 1], out[c, 2], out[c, 3], out[c, 4] = px, py, yaw, s, lateral
-        out[c, 5], out[c, 6], out[c, 7], out[c, 8] = segment, heading, left, right
-        out[c, 9], out[c, 10] = left + right, wheels_on
+        hints[c] = segment
+        out.append((px, py, yaw, s, lateral, segment, heading, left, right, left + right, wheels_on))
     return out
