@@ -129,3 +129,16 @@ def test_switching_randomisation_off_restores_the_plain_track():
     env.randomization = Randomization.from_config(None)
     again = env.reset(seed=2)[0]["car_0"]
     assert not np.array_equal(tinted, plain) and np.array_equal(again, plain)
+
+
+def test_a_discrete_action_is_an_index_given_as_an_int_a_numpy_integer_or_a_one_element_array():
+    from multirace.environment.actions import load_action_space
+
+    space = load_action_space(None)
+    assert space.command(3) == space.command(np.int64(3)) == space.command(np.array([3])) == space.actions[3]
+    for bad in (True, np.bool_(False), 2.0, "3", np.array([1, 2])):
+        with pytest.raises(ValueError, match="expected an integer index"):
+            space.command(bad)
+    for bad in (-1, 10, np.int64(10)):
+        with pytest.raises(ValueError, match="out of range"):
+            space.command(bad)

@@ -95,14 +95,7 @@ class ActionSpace:
     def command(self, action) -> tuple[float, float]:
         """(steering degrees, speed m/s) for a policy action (index or [steer, speed])."""
         if self.discrete:
-            if isinstance(action, np.ndarray) and action.size == 1 and np.issubdtype(action.dtype, np.integer):
-                action = action.item()  # a one-element index array, as vectorised policies give
-            if isinstance(action, (bool, np.bool_)):
-                raise ValueError(f"action {action!r}: expected an integer index 0-{len(self.actions) - 1}")
-            try:
-                index = operator.index(action)
-            except TypeError:
-                raise ValueError(f"action {action!r}: expected an integer index 0-{len(self.actions) - 1}") from None
+            index = action if type(action) is int else self._index(action)  # a plain int: the usual action
             if not 0 <= index < len(self.actions):
                 raise ValueError(f"action {index}: out of range; this space has actions 0-{len(self.actions) - 1}")
             return self.actions[index]
@@ -114,6 +107,17 @@ class ActionSpace:
             raise ValueError(f"action {action!r}: steering and speed must be finite numbers")
         return (min(max(float(steer), self.low[0]), self.high[0]),
                 min(max(float(speed), self.low[1]), self.high[1]))
+
+    def _index(self, action) -> int:
+        """A discrete action given other than as an int (a numpy integer, a one-element index array) as an index."""
+        if isinstance(action, np.ndarray) and action.size == 1 and np.issubdtype(action.dtype, np.integer):
+            action = action.item()  # a one-element index array, as vectorised policies give
+        if isinstance(action, (bool, np.bool_)):
+            raise ValueError(f"action {action!r}: expected an integer index 0-{len(self.actions) - 1}")
+        try:
+            return operator.index(action)
+        except TypeError:
+            raise ValueError(f"action {action!r}: expected an integer index 0-{len(self.actions) - 1}") from None
 
     def greedy(self, output):
         """The greedy action for a policy net's output row: the argmax index, or the [steer, speed] mean."""

@@ -394,15 +394,16 @@ class RaceEnv(ParallelEnv):
         """The 27 DeepRacer reward params of every learning car, in DeepRacer's units (its object params: the boxes
         and every other car on track, from `_object_table`); a parked car reads where its run ended."""
         core, track = self.core, self.track
-        owners, columns, in_camera, closest = self._object_table()
+        locs = [core.last_geometry(i) for i in range(self.num_cars)]
+        owners, columns, seen = self._object_table(locs)
         length, waypoints, reverse = track.length, track.waypoints, track.reverse
-        steps, sim_time = core.steps, core.sim_time
+        steps, sim_time, races, commands = core.steps, core.sim_time, core.races, core.commands
         every_params = []
-        for i in range(self.num_cars):
-            loc = core.last_geometry(i)
-            race = core.races[i]
-            steer, speed = core.commands[i]
-            locations, left, speeds, heading, from_centre, along = [column.copy() for column in columns]
+        for i, loc in enumerate(locs):
+            race = races[i]
+            steer, speed = commands[i]
+            in_camera, *closest = seen[i]
+            locations, left, speeds, heading, from_centre, along = map(list.copy, columns)
             if i in owners:  # leave car i itself out of every column
                 k = owners.index(i)
                 del locations[k], left[k], speeds[k], heading[k], from_centre[k], along[k]
@@ -423,10 +424,10 @@ class RaceEnv(ParallelEnv):
                 "closest_waypoints": list(track.closest_waypoints(loc)),
                 "is_left_of_center": loc.lateral > 0,
                 "is_reversed": reverse,
-                "closest_objects": closest[i],
+                "closest_objects": closest,
                 "objects_location": locations,
                 "objects_left_of_center": left,
-                "object_in_camera": in_camera[i],
+                "object_in_camera": bool(in_camera),
                 "objects_speed": speeds,
                 "objects_heading": heading,
                 "objects_distance_from_center": from_centre,
@@ -437,22 +438,21 @@ class RaceEnv(ParallelEnv):
             })
         return every_params
 
-    def _object_table(self) -> tuple:
+    def _object_table(self, locs: list) -> tuple:
         """Every object a car can see this step (boxes, then cars on track): the car index of each (-1 for a box),
         the columns (locations (x, y), left_of_centre, speed, heading_deg, distance_from_centre, s), then per
-        learning car `object_in_camera` and `closest_objects` (see `objects.objects_seen`).
+        learning car (at `locs`) ``[object_in_camera, *closest_objects]`` (see `objects.objects_seen`).
         """
         core, speeds = self.core, self.world.drive_speed.tolist()
         rows = core.obstacle_rows + [(j, loc.x, loc.y, loc.lateral > 0, speeds[j], math.degrees(loc.yaw),
                                       abs(loc.lateral), loc.s)
                                      for j, loc in enumerate(core.geometry) if loc is not None]
         owners, xs, ys, left, speed, heading, from_centre, along = map(list, zip(*rows)) if rows else ([],) * 8
-        car_s = [core.last_geometry(i).s for i in range(self.num_cars)]
-        in_camera, closest = objects_seen(np.array(owners, np.int64), *np.array((xs, ys, along), float),
-                                          self.world.poses[:self.num_cars], np.array(car_s), self.track.length,
-                                          math.tan(self.camera.hfov / 2), CAMERA_RANGE)
+        seen = objects_seen(np.array((owners, xs, ys, along), float), self.world.poses[:self.num_cars],
+                            np.array([loc.s for loc in locs]), self.track.length, math.tan(self.camera.hfov / 2),
+                            CAMERA_RANGE)
         columns = (list(zip(xs, ys)), left, speed, heading, from_centre, along)
-        return owners, columns, in_camera.tolist(), closest.tolist()
+        return owners, columns, seen.tolist()
 
     def ranks(self) -> list[int]:
         """Current position (1 = leading) of every car, learning cars then bots."""
@@ -465,24 +465,25 @@ class RaceEnv(ParallelEnv):
 
     def _info(self, params: dict, car: CarState, sim_time: float) -> dict:
         """A car's info: its reward params (the same dict, extended) plus its published race state."""
-        race, names = car.race, self.car_names
-        touched = []
+        race, touched = car.race, []
         if car.touched:
+            names = self.car_names
             touched = sorted(names[o[1]] if o[0] == "car" else f"obstacle_{o[1]}" for o in car.touched)
-        params.update(
-            lap=race.laps + (1 if race.racing else 0),
-            laps_completed=race.laps,
-            lap_times=list(race.lap_times),
-            race_time=race.clock(sim_time) if race.racing else race.finish_time,
-            resets=race.resets,
-            penalties=race.penalties,
-            penalty_time=race.penalty_time,
-            off_track=params["is_offtrack"],
-            collisions=touched,
-            rank=car.rank,
-            status=race.status,
-            events=list(car.events),
-        )
+        racing = race.racing
+        params.update({
+            "lap": race.laps + (1 if racing else 0),
+            "laps_completed": race.laps,
+            "lap_times": list(race.lap_times),
+            "race_time": race.clock(sim_time) if racing else race.finish_time,
+            "resets": race.resets,
+            "penalties": race.penalties,
+            "penalty_time": race.penalty_time,
+            "off_track": params["is_offtrack"],
+            "collisions": touched,
+            "rank": car.rank,
+            "status": race.status,
+            "events": list(car.events),
+        })
         return params
 
     # ------------------------------------------------------------ render

@@ -13,18 +13,17 @@ import numpy as np
 
 
 @numba.njit(cache=True)
-def objects_seen(owners, xs, ys, along, car_poses, car_s, track_length, tan_half_fov, camera_range):
+def objects_seen(objects, car_poses, car_s, track_length, tan_half_fov, camera_range):
     """For each car i: whether any other object is in its camera view, and the closest ones.
 
-    owners (M,) is the car each object is (-1 for a box); xs, ys (M,) positions;
-    along (M,) arc length on the centre line; car_poses (n, 3) of (x, y, yaw) and
-    car_s (n,) of the cars. Returns in_camera (n,) and closest (n, 2): the
-    indices of the nearest object behind and ahead along the track, counted in
-    the object list without car i itself (as DeepRacer's params give them).
+    objects (4, M) are the objects' rows: the car each is (-1 for a box), x, y and arc length on the centre
+    line; car_poses (n, 3) of (x, y, yaw) and car_s (n,) of the cars. Returns (n, 3): per car, 1 if an
+    object is in camera view (else 0), then the indices of the nearest object behind and ahead along the
+    track, counted in the object list without car i itself (as DeepRacer's params give them).
     """
+    owners, xs, ys, along = objects[0], objects[1], objects[2], objects[3]
     n = car_poses.shape[0]
-    in_camera = np.zeros(n, np.bool_)
-    closest = np.zeros((n, 2), np.int64)
+    seen = np.zeros((n, 3), np.int64)
     for i in range(n):
         cos_i, sin_i = math.cos(car_poses[i, 2]), math.sin(car_poses[i, 2])
         best_ahead = best_behind = math.inf
@@ -35,11 +34,11 @@ def objects_seen(owners, xs, ys, along, car_poses, car_s, track_length, tan_half
             dx, dy = xs[j] - car_poses[i, 0], ys[j] - car_poses[i, 1]
             forward, sideways = dx * cos_i + dy * sin_i, dy * cos_i - dx * sin_i
             if 0 < forward < camera_range and abs(sideways) < forward * tan_half_fov:
-                in_camera[i] = True
+                seen[i, 0] = 1
             ahead = (along[j] - car_s[i]) % track_length
             if ahead < best_ahead:
-                best_ahead, closest[i, 1] = ahead, k
+                best_ahead, seen[i, 2] = ahead, k
             if track_length - ahead < best_behind:
-                best_behind, closest[i, 0] = track_length - ahead, k
+                best_behind, seen[i, 1] = track_length - ahead, k
             k += 1
-    return in_camera, closest
+    return seen
