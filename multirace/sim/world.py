@@ -145,7 +145,8 @@ class World:
         self._params = DynamicsParams(
             mass=spec.mass, yaw_inertia=spec.yaw_inertia, front_axle=spec.wheelbase / 2,
             rear_axle=spec.wheelbase / 2, mu=spec.mu, rear_grip=spec.rear_grip, tyre_b=spec.tyre_b,
-            tyre_c=spec.tyre_c, accel=spec.accel, brake=spec.brake, top_speed=spec.top_speed, drive_time_constant=spec.drive_time_constant,
+            tyre_c=spec.tyre_c, accel=spec.accel, brake=spec.brake, top_speed=spec.top_speed,
+            drive_time_constant=spec.drive_time_constant,
             kinematic_speed=spec.kinematic_speed, dt=spec.dynamics_dt).as_array()
 
     # --------------------------------------------------------------- set-up
@@ -284,8 +285,8 @@ class World:
         return self._clear_pushed_strikers(list(contacts.values()))
 
     def _pushes(self) -> np.ndarray:
-        """What PyBullet's last step added to each car's velocity (rows of x, y, yaw rate, world frame; zero for
-        parked cars): the contacts' pushes. Zero where PyBullet was not stepped since the velocities were last
+        """What PyBullet's last step added to each car's velocity (rows of x, y, yaw rate, world frame; a parked
+        car's row is not read): the contacts' pushes. Zero where PyBullet was not stepped since the velocities were last
         set (`_no_pushes`)."""
         if not self._pushes_pending:
             return self._no_pushes
