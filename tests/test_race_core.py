@@ -34,7 +34,7 @@ def test_the_race_state_agrees_with_the_infos_and_the_traffic():
             state = env.race_state
             assert isinstance(state, RaceState) and state.step == env.steps and state.time == env.sim_time
             assert [car.rank for car in state.cars] == env.ranks()
-            assert [car.race.segment_hint for car in state.cars] == [car.segment for car in state.cars]
+            assert env.core._hints.tolist() == [car.segment for car in state.cars]  # the next step's search hints
             length = env.track.length
             for i, agent in enumerate(env.possible_agents):
                 car, info = state.cars[i], infos[agent]
@@ -68,9 +68,9 @@ def test_a_parked_car_keeps_where_it_stopped():
             assert (car.point_x, car.point_y, car.s, car.lateral, car.segment) == (
                 stopped.point_x, stopped.point_y, stopped.s, stopped.lateral, stopped.segment)
             assert (infos["car_0"]["x"], infos["car_0"]["y"]) == (stopped.point_x, stopped.point_y)
-            assert car.race.segment_hint == stopped.segment
+            assert env.core._hints[0] == stopped.segment
             racing = env.race_state.cars[1]  # located alone now, its segment the next step's search hint
-            assert racing.racing and racing.s != stopped.s and racing.race.segment_hint == racing.segment
+            assert racing.racing and racing.s != stopped.s and env.core._hints[1] == racing.segment
             assert env.traffic(0) == [] and env.traffic(1) == []  # the parked car is in nobody's traffic
     finally:
         env.close()
@@ -83,7 +83,7 @@ def test_moving_cars_publishes_where_they_now_are():
         env.move_cars({1: (5.0, 0.0)})
         car = env.race_state.cars[1]
         assert car.s == pytest.approx(5.0 + env.car_spec.reported_point_offset, abs=0.05)
-        assert car.race.segment_hint == car.segment
+        assert env.core._hints[1] == car.segment
         assert env.traffic(0)[0][0] == pytest.approx((car.s - env.race_state.cars[0].s) % env.track.length)
     finally:
         env.close()

@@ -30,7 +30,7 @@ def _drive(env, plan, steps):
         actions = {}
         for i, (speed, lateral) in enumerate(plan(k)):
             steer, command = PurePursuit(speed=speed, lateral=lateral).command(
-                env.track, env.car_spec, env.world.poses[i], env.races[i].segment_hint)
+                env.track, env.car_spec, env.world.poses[i], env.race_state.cars[i].segment)
             actions[f"car_{i}"] = [steer, command]
         _, _, _, _, infos = env.step(actions)
         touching.append(bool(infos["car_0"]["collisions"]))

@@ -23,7 +23,7 @@ class Blind(BotController):
     def act(self, observation, info):
         env, i = self.env, self.car
         return self.bot.command(env.track, env.car_spec, env.world.poses[i], env.sim_time,
-                                env.races[i].segment_hint)
+                                env.race_state.cars[i].segment)
 
 
 class Capture:

@@ -39,7 +39,7 @@ def test_reset_rule_window_ends_a_crawling_car_at_240_seconds():
     driver = PurePursuit(speed=0.1)
     steps = 0
     while env.agents:
-        steer, speed = driver.command(env.track, env.car_spec, env.world.poses[0], env.races[0].segment_hint)
+        steer, speed = driver.command(env.track, env.car_spec, env.world.poses[0], env.race_state.cars[0].segment)
         env.step({"car_0": [steer, speed]})
         steps += 1
     race = env.races[0]
@@ -85,7 +85,7 @@ def test_object_avoidance_crash_resets_behind_the_box_in_the_other_lane():
     driver = PurePursuit(speed=1.0, lateral=track.lane_offset(lane, s_box))  # drive in the box's lane
     crash = None
     for _ in range(600):
-        steer, speed = driver.command(track, env.car_spec, env.world.poses[0], env.races[0].segment_hint)
+        steer, speed = driver.command(track, env.car_spec, env.world.poses[0], env.race_state.cars[0].segment)
         _, _, _, _, infos = env.step({"car_0": [steer, speed]})
         if "crashed" in infos["car_0"]["events"]:
             crash = infos["car_0"]
@@ -110,7 +110,7 @@ def test_head_to_head_finish_order_follows_laps_then_time():
         for i, agent in enumerate(env.possible_agents):
             lateral = env.track.lane_offset(i % 2, env.races[i].distance)
             steer, speed = PurePursuit(speed=speeds[i], lateral=lateral).command(
-                env.track, env.car_spec, env.world.poses[i], env.races[i].segment_hint)
+                env.track, env.car_spec, env.world.poses[i], env.race_state.cars[i].segment)
             actions[agent] = [steer, speed]
         env.step(actions)
     ranks = env.ranks()

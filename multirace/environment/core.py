@@ -74,7 +74,7 @@ class RaceCore:
             s = loc.s
             signed = s - track.length if s > track.length / 2 else s
             self.races.append(CarRace(name=self.car_names[i], distance=signed, start_distance=signed,
-                                      lap_start_distance=signed, last_on_track_s=s, segment_hint=loc.segment))
+                                      lap_start_distance=signed, last_on_track_s=s))
         self._stewards = Stewards(self.rules, self.races, self.car_names, self.car_spec.length, track.length, self.dt)
 
     def _place_obstacles(self, rng: np.random.Generator) -> None:
@@ -109,9 +109,7 @@ class RaceCore:
         self._measure_all()
         for i, loc in enumerate(self.geometry):
             if loc is not None:
-                race = races[i]
-                race.distance += wrap_ds(loc.s - last_s[i])
-                race.segment_hint = loc.segment
+                races[i].distance += wrap_ds(loc.s - last_s[i])
                 last_s[i] = loc.s
         return self._apply_contacts(contacts)
 
@@ -174,8 +172,7 @@ class RaceCore:
 
     def _locate(self, cars: Sequence[int]) -> list[CarLocation]:
         """Where these cars are: reported point, heading, projection and wheels on track. Each car's search hint
-        (`_hints`) moves to the segment it is found on (its race's `segment_hint` follows where its distance is
-        advanced)."""
+        (`_hints`) moves to the segment it is found on."""
         offset, wheels = self.car_spec.reported_point_offset, self._wheels
         if len(cars) == self.total_cars:  # every car: the hints are set in place
             return self.track.locate_cars(self.world.poses, self._hints, offset, wheels)
@@ -210,7 +207,6 @@ class RaceCore:
         self.world.place_car(i, x, y, yaw)
         loc = self._locate([i])[0]
         self.races[i].distance += self.track.wrap_ds(loc.s - self._s[i])
-        self.races[i].segment_hint = loc.segment
         self._s[i] = loc.s
         self.geometry[i] = loc
 

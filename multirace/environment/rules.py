@@ -59,7 +59,6 @@ class CarRace:
     reason: str = ""
     finish_time: float | None = None  # race clock when the run ended
     last_on_track_s: float = 0.0  # arc length where the car was last on the road
-    segment_hint: int | None = None  # the segment the race core last located the car on
     last_reset_time: float | None = None  # sim time of the last reset
     quick_off_tracks: int = 0  # off-tracks in a row, each soon after the reset before it
     pushed: tuple | None = None  # (until sim time, incident records): an off-track by then was a push-off
