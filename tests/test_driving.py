@@ -95,3 +95,26 @@ def test_off_track_resets_on_the_centre_line_with_a_penalty():
     proj = env.track.project(*env.world.poses[0][:2])
     assert abs(proj.lateral) < 0.1  # back on the centre line
     assert env.world.drive_speed[0] == 0.0
+
+
+def test_object_params_list_boxes_and_cars_on_track_and_point_at_the_nearest():
+    env = multirace.parallel_env(track="reinvent_base", num_cars=3, obstacles=1, max_steps=50)
+    env.reset(seed=0)
+    length = env.track.length
+    env.core.place_obstacle(0, 3.0, 0.0)  # on the centre line, 3 m past the start line
+    env.forfeit(2, "test: parked")  # a parked car is no longer an object on the track
+    _, _, _, _, infos = env.step({"car_0": 2, "car_1": 2})
+    first, second, parked = infos["car_0"], infos["car_1"], infos["car_2"]
+    # car_0 (on the line) sees the box and car_1 (0.75 m behind it); the parked car_2 is not listed
+    assert first["objects_distance"] == [3.0, pytest.approx(second["projection_distance"])]
+    assert first["objects_location"] == [pytest.approx(env.track.point_at(3.0)[:2]),
+                                         (second["x"], second["y"])]
+    assert first["closest_objects"] == [1, 0]  # behind: car_1; ahead: the box
+    assert first["object_in_camera"]  # the box, 3 m ahead
+    # car_1 has car_0 just ahead, and the box farther ahead is the nearest behind going round the lap
+    assert second["objects_distance"] == [3.0, pytest.approx(first["projection_distance"])]
+    assert second["closest_objects"] == [0, 1]
+    # the parked car reads where its run ended, the objects on track around it
+    assert len(parked["objects_location"]) == 3 and parked["objects_location"][1:] == [
+        (first["x"], first["y"]), (second["x"], second["y"])]
+    assert 0 < first["projection_distance"] < 3.0 < length - 1.0 < second["projection_distance"]

@@ -49,6 +49,9 @@ class RaceCore:
         self.geometry: list[CarLocation | None] = []
         self.obstacle_slots: list[tuple[float, int]] = []  # (arc length, lane) of every box
         self.obstacle_rows: list[tuple] = []  # every box as a row of `RaceEnv`'s object table
+        self.obstacle_points = np.zeros((0, 3))  # every box's (x, y, arc length)
+        self.points = np.zeros((self.total_cars, 3))  # each car's reported point and arc length where last located
+        self.located = np.ones(self.total_cars, bool)  # the cars `geometry` locates (not parked)
         self.state: RaceState | None = None
         self._s: list[float] = []  # each car's arc length when its distance was last advanced
         self._stopped: dict[int, CarLocation] = {}  # where each parked car was located last
@@ -64,6 +67,7 @@ class RaceCore:
         self.commands = [(0.0, 0.0)] * self.total_cars
         self.races, self._stopped = [], {}
         self._hints[:] = -1
+        self.located[:] = True
         for i, (s, lateral) in enumerate(track.start_grid(self.total_cars)):
             # the grid slot is where DeepRacer's reported point (ahead of the body centre) starts
             self.world.place_car(i, *track.point_at(s - self.car_spec.reported_point_offset, lateral))
@@ -81,6 +85,7 @@ class RaceCore:
         """Boxes spread around the lap, in alternating lanes, with seeded jitter."""
         count = self.rules.obstacles
         self.obstacle_slots, self.obstacle_rows = [], []
+        self.obstacle_points = np.zeros((count, 3))
         if not count:
             return
         track = self.track
@@ -89,12 +94,17 @@ class RaceCore:
         lane = int(rng.integers(2))
         for k in range(count):
             s = (first + k * spacing + rng.uniform(-0.1, 0.1) * spacing) % track.length
-            lateral = track.lane_offset(lane, s)
-            x, y, yaw = track.point_at(s, lateral)
-            self.world.place_obstacle(k, x, y, yaw)
             self.obstacle_slots.append((s, lane))
-            self.obstacle_rows.append((-1, x, y, lateral > 0, 0.0, math.degrees(yaw), abs(lateral), s))
+            self.obstacle_rows.append(())
+            self.place_obstacle(k, s, track.lane_offset(lane, s))
             lane = 1 - lane
+
+    def place_obstacle(self, k: int, s: float, lateral: float) -> None:
+        """Put box k at arc length s, `lateral` metres left of the centre line, facing along the track."""
+        x, y, yaw = self.track.point_at(s, lateral)
+        self.world.place_obstacle(k, x, y, yaw)
+        self.obstacle_rows[k] = (-1, x, y, lateral > 0, 0.0, math.degrees(yaw), abs(lateral), s)
+        self.obstacle_points[k] = (x, y, s)
 
     # -------------------------------------------------------------- step
     def advance(self, commands: list[tuple[float, float]]) -> list[set]:
@@ -161,10 +171,12 @@ class RaceCore:
     def _measure_all(self) -> None:
         """Locate every racing car: every car not parked (`_stopped`)."""
         stopped = self._stopped
-        if not stopped:  # every car racing: the usual step
+        if not stopped:  # every car racing (`located` stays all True from the start): the usual step
             self.geometry = self._locate(range(self.total_cars))
             return
         cars = [i for i in range(self.total_cars) if i not in stopped]
+        self.located[:] = False
+        self.located[cars] = True
         self.geometry = [None] * self.total_cars
         if cars:
             for i, loc in zip(cars, self._locate(cars)):
@@ -172,13 +184,13 @@ class RaceCore:
 
     def _locate(self, cars: Sequence[int]) -> list[CarLocation]:
         """Where these cars are: reported point, heading, projection and wheels on track. Each car's search hint
-        (`_hints`) moves to the segment it is found on."""
+        (`_hints`) moves to the segment it is found on, its `points` row to its point."""
         offset, wheels = self.car_spec.reported_point_offset, self._wheels
-        if len(cars) == self.total_cars:  # every car: the hints are set in place
-            return self.track.locate_cars(self.world.poses, self._hints, offset, wheels)
-        hints = self._hints[cars]
-        located = self.track.locate_cars(self.world.poses[cars], hints, offset, wheels)
-        self._hints[cars] = hints
+        if len(cars) == self.total_cars:  # every car: hints and points are set in place
+            return self.track.locate_cars(self.world.poses, self._hints, offset, wheels, self.points)
+        hints, points = self._hints[cars], self.points[cars]
+        located = self.track.locate_cars(self.world.poses[cars], hints, offset, wheels, points)
+        self._hints[cars], self.points[cars] = hints, points
         return located
 
     def last_geometry(self, i: int) -> CarLocation:
@@ -209,6 +221,7 @@ class RaceCore:
         self.races[i].distance += self.track.wrap_ds(loc.s - self._s[i])
         self._s[i] = loc.s
         self.geometry[i] = loc
+        self.located[i] = True
 
     def place_cars(self, poses: dict) -> None:
         """Put cars at rest at {car index: (x, y, yaw)}, located as if they had driven there, and publish the race

@@ -136,6 +136,7 @@ class RaceEnv(ParallelEnv):
         if not (16 <= height <= 1080 and 16 <= width <= 1920):
             raise ValueError(f"camera: size {height}x{width} out of range 16x16 .. 1080x1920")
         self.camera = CameraSpec(height=height, width=width, grayscale=bool(grayscale))
+        self._tan_half_fov = math.tan(self.camera.hfov / 2)  # the object table's `object_in_camera` cone
         if renderer not in ("fast", "pybullet"):
             raise ValueError(f"renderer: unknown renderer {renderer!r}; choose 'fast' or 'pybullet'")
         self.renderer_name = renderer
@@ -316,21 +317,22 @@ class RaceEnv(ParallelEnv):
         commands = list(self.core.commands)
         noise = self._rng.standard_normal((self.num_cars, 2)).tolist()  # DeepRacer's action noise
         steer_noise, speed_noise, clamp = spec.steer_noise, spec.speed_noise, spec.clamp_command
+        space = self.actions
         for i, agent in enumerate(self.possible_agents):
             action = actions.get(agent, _NO_ACTION)
             if action is _NO_ACTION or not races[i].racing:
                 continue
-            space = DRIVER_COMMANDS if type(action) is Command else self.actions
             try:
-                steer, speed = space.command(action)
+                steer, speed = (DRIVER_COMMANDS if type(action) is Command else space).command(action)
             except ValueError as exc:
                 raise ValueError(f"step {self.steps + 1}, {agent}: {exc}") from None
             if randomised:
                 steer, speed = apply_command(steer, speed, draw, self._randomizer_rng, i, spec)
                 steer = math.radians(steer)
             else:
-                steer = math.radians(steer) + steer_noise * noise[i][0]
-                speed = speed + speed_noise * noise[i][1]
+                steer_noise_i, speed_noise_i = noise[i]
+                steer = math.radians(steer) + steer_noise * steer_noise_i
+                speed = speed + speed_noise * speed_noise_i
             commands[i] = clamp(steer, speed)
         for b, bot in enumerate(self.bots):
             i = self.num_cars + b
@@ -395,62 +397,62 @@ class RaceEnv(ParallelEnv):
         and every other car on track, from `_object_table`); a parked car reads where its run ended."""
         core, track = self.core, self.track
         locs = [core.last_geometry(i) for i in range(self.num_cars)]
-        owners, columns, seen = self._object_table(locs)
+        owners, columns, seen = self._object_table()
         length, waypoints, reverse = track.length, track.waypoints, track.reverse
         steps, sim_time, races, commands = core.steps, core.sim_time, core.races, core.commands
         every_params = []
         for i, loc in enumerate(locs):
+            x, y, yaw, s, lateral, _, _, _, _, width, wheels_on = loc
             race = races[i]
             steer, speed = commands[i]
-            in_camera, *closest = seen[i]
+            in_camera, behind, ahead = seen[i]
             locations, left, speeds, heading, from_centre, along = map(list.copy, columns)
             if i in owners:  # leave car i itself out of every column
                 k = owners.index(i)
                 del locations[k], left[k], speeds[k], heading[k], from_centre[k], along[k]
             every_params.append({
-                "all_wheels_on_track": loc.wheels_on == 4,
-                "x": loc.x,
-                "y": loc.y,
-                "heading": math.degrees(loc.yaw),
-                "distance_from_center": abs(loc.lateral),
-                "projection_distance": loc.s,
+                "all_wheels_on_track": wheels_on == 4,
+                "x": x,
+                "y": y,
+                "heading": math.degrees(yaw),
+                "distance_from_center": abs(lateral),
+                "projection_distance": s,
                 "progress": race.lap_progress(length) if race.racing else 100.0 * (race.status == "finished"),
                 "steps": steps,
                 "speed": float(speed),
                 "steering_angle": math.degrees(steer),
-                "track_width": loc.width,
+                "track_width": width,
                 "track_length": length,
                 "waypoints": waypoints,
                 "closest_waypoints": list(track.closest_waypoints(loc)),
-                "is_left_of_center": loc.lateral > 0,
+                "is_left_of_center": lateral > 0,
                 "is_reversed": reverse,
-                "closest_objects": closest,
+                "closest_objects": [behind, ahead],
                 "objects_location": locations,
                 "objects_left_of_center": left,
-                "object_in_camera": bool(in_camera),
+                "object_in_camera": in_camera == 1,
                 "objects_speed": speeds,
                 "objects_heading": heading,
                 "objects_distance_from_center": from_centre,
                 "objects_distance": along,
                 "is_crashed": bool(touched[i]),
-                "is_offtrack": loc.wheels_on == 0,
+                "is_offtrack": wheels_on == 0,
                 "sim_time": sim_time,
             })
         return every_params
 
-    def _object_table(self, locs: list) -> tuple:
+    def _object_table(self) -> tuple:
         """Every object a car can see this step (boxes, then cars on track): the car index of each (-1 for a box),
         the columns (locations (x, y), left_of_centre, speed, heading_deg, distance_from_centre, s), then per
-        learning car (at `locs`) ``[object_in_camera, *closest_objects]`` (see `objects.objects_seen`).
+        learning car ``[object_in_camera, *closest_objects]`` (see `objects.objects_seen`).
         """
         core, speeds = self.core, self.world.drive_speed.tolist()
         rows = core.obstacle_rows + [(j, loc.x, loc.y, loc.lateral > 0, speeds[j], math.degrees(loc.yaw),
                                       abs(loc.lateral), loc.s)
                                      for j, loc in enumerate(core.geometry) if loc is not None]
         owners, xs, ys, left, speed, heading, from_centre, along = map(list, zip(*rows)) if rows else ([],) * 8
-        seen = objects_seen(np.array((owners, xs, ys, along), float), self.world.poses[:self.num_cars],
-                            np.array([loc.s for loc in locs]), self.track.length, math.tan(self.camera.hfov / 2),
-                            CAMERA_RANGE)
+        seen = objects_seen(core.obstacle_points, core.points, core.located, self.world.poses[:self.num_cars],
+                            self.track.length, self._tan_half_fov, CAMERA_RANGE)
         columns = (list(zip(xs, ys)), left, speed, heading, from_centre, along)
         return owners, columns, seen.tolist()
 

@@ -13,29 +13,36 @@ import numpy as np
 
 
 @numba.njit(cache=True)
-def objects_seen(objects, car_poses, car_s, track_length, tan_half_fov, camera_range):
-    """For each car i: whether any other object is in its camera view, and the closest ones.
+def objects_seen(boxes, points, located, car_poses, track_length, tan_half_fov, camera_range):
+    """For each of the first n cars (n = len(car_poses)): whether any other object is in its camera view, and the
+    closest ones.
 
-    objects (4, M) are the objects' rows: the car each is (-1 for a box), x, y and arc length on the centre
-    line; car_poses (n, 3) of (x, y, yaw) and car_s (n,) of the cars. Returns (n, 3): per car, 1 if an
-    object is in camera view (else 0), then the indices of the nearest object behind and ahead along the
-    track, counted in the object list without car i itself (as DeepRacer's params give them).
+    The objects are the boxes, boxes (B, 3) of (x, y, arc length on the centre line), then the cars `located`
+    (N,) this step, at their points (N, 3) of the same (the reported point where each was last located: a
+    parked car's last place); car_poses (n, 3) of (x, y, yaw). Returns (n, 3): per car i, 1 if an object is
+    in camera view (else 0), then the indices of the nearest object behind and ahead along the track, counted
+    in the object list without car i itself (as DeepRacer's params give them).
     """
-    owners, xs, ys, along = objects[0], objects[1], objects[2], objects[3]
-    n = car_poses.shape[0]
+    n, num_boxes = car_poses.shape[0], boxes.shape[0]
     seen = np.zeros((n, 3), np.int64)
     for i in range(n):
+        x_i, y_i, s_i = car_poses[i, 0], car_poses[i, 1], points[i, 2]
         cos_i, sin_i = math.cos(car_poses[i, 2]), math.sin(car_poses[i, 2])
         best_ahead = best_behind = math.inf
         k = 0  # position in the list without car i
-        for j in range(owners.shape[0]):
-            if owners[j] == i:
-                continue
-            dx, dy = xs[j] - car_poses[i, 0], ys[j] - car_poses[i, 1]
+        for j in range(num_boxes + points.shape[0]):
+            if j < num_boxes:
+                x, y, s = boxes[j, 0], boxes[j, 1], boxes[j, 2]
+            else:
+                car = j - num_boxes
+                if car == i or not located[car]:
+                    continue
+                x, y, s = points[car, 0], points[car, 1], points[car, 2]
+            dx, dy = x - x_i, y - y_i
             forward, sideways = dx * cos_i + dy * sin_i, dy * cos_i - dx * sin_i
             if 0 < forward < camera_range and abs(sideways) < forward * tan_half_fov:
                 seen[i, 0] = 1
-            ahead = (along[j] - car_s[i]) % track_length
+            ahead = (s - s_i) % track_length
             if ahead < best_ahead:
                 best_ahead, seen[i, 2] = ahead, k
             if track_length - ahead < best_behind:

@@ -352,15 +352,17 @@ class Track:
         """
         return Projection(*_project_point(x, y, -1 if hint is None else hint, self._segments))
 
-    def locate_cars(self, poses: np.ndarray, hints: np.ndarray, offset: float, wheels: np.ndarray) -> list[CarLocation]:
+    def locate_cars(self, poses: np.ndarray, hints: np.ndarray, offset: float, wheels: np.ndarray,
+                    points: np.ndarray) -> list[CarLocation]:
         """Where cars are on the track: a `CarLocation` per car.
 
         poses (n, 3) of (x, y, yaw) at the body centre; the reported point is
         `offset` metres ahead of it; hints (n,) segment hints (-1 for none);
         wheels (4, 2) the (forward, left) wheel contact points from the centre. Each hint is set to the
-        segment its car is found on (the next step's hint).
+        segment its car is found on (the next step's hint), and each row of points (n, 3) to its car's
+        reported point and arc length (x, y, s), the location's fields in an array.
         """
-        rows = _locate_cars(poses, hints, offset, wheels, self._segments)
+        rows = _locate_cars(poses, hints, offset, wheels, self._segments, points)
         return [tuple.__new__(CarLocation, row) for row in rows]  # named tuples of full rows: no Python __new__ call
 
     def closest_waypoints(self, proj: Projection | CarLocation) -> tuple[int, int]:
@@ -449,9 +451,9 @@ def _foot(x, y, seg):
 
 
 @numba.njit(cache=True)
-def _locate_cars(poses, hints, offset, wheels, segments):
+def _locate_cars(poses, hints, offset, wheels, segments, points):
     """`Track.locate_cars`: a list of `CarLocation` rows (plain tuples, boxed by numba far cheaper than an array
-    turned into one); sets each hint to its car's segment."""
+    turned into one); sets each hint to its car's segment and each row of points to its (x, y, s)."""
     out = []
     for c in range(poses.shape[0]):
         x, y, yaw = poses[c, 0], poses[c, 1], poses[c, 2]
@@ -467,5 +469,6 @@ def _locate_cars(poses, hints, offset, wheels, segments):
             if -right <= lateral + wx * nx + wy * ny <= left:
                 wheels_on += 1
         hints[c] = segment
+        points[c, 0], points[c, 1], points[c, 2] = px, py, s
         out.append((px, py, yaw, s, lateral, segment, heading, left, right, left + right, wheels_on))
     return out
