@@ -350,7 +350,6 @@ class Stewards:
         self._trail = (now,) + self._trail[:2]
         if not contacts:
             return
-        motions = self._motions()
         for contact in contacts:
             pair = (contact.a, contact.b)
             incident = self._open.get(pair)
@@ -358,26 +357,23 @@ class Stewards:
                 incident = self._open[pair] = {"records": self._record(contact, sim_time), "victim": None}
             incident["last"] = sim_time
             if incident["victim"] is None and not any(r is not None and r["caused"] for r in incident["records"]):
-                incident["victim"] = self._blame(contact, incident["records"], motions)
+                incident["victim"] = self._blame(contact, incident["records"])
             if incident["victim"] is not None:  # a push-off can follow until PUSH_OFF_WINDOW after its last touch
                 self.races[incident["victim"]].pushed = (sim_time + PUSH_OFF_WINDOW, incident["records"])
 
-    def _motions(self) -> dict:
-        """Each racing car's `CarMotion`: where it is now, moving as it did over the step before this one (going
-        into the contact: this step's motion has the contact's push in it); at rest if it was put back on the
-        track since (or was not racing) then."""
+    def _motion(self, i: int) -> CarMotion | None:
+        """Car i's `CarMotion`: where it is now, moving as it did over the step before this one (going into the
+        contact: this step's motion has the contact's push in it); at rest if it was put back on the track since
+        (or was not racing) then. None while it is not racing."""
         (now, last, before), dt = self._trail, self.dt
-        motions = {}
-        for i, place in enumerate(now):
-            if place is None:
-                continue
-            distance, lateral, resets = place
-            prev, older = last[i], before[i]
-            along = across = 0.0
-            if prev is not None and older is not None and older[2] == prev[2] == resets:
-                along, across = (prev[0] - older[0]) / dt, (prev[1] - older[1]) / dt
-            motions[i] = CarMotion(distance, lateral, along, across)
-        return motions
+        if now[i] is None:
+            return None
+        distance, lateral, resets = now[i]
+        prev, older = last[i], before[i]
+        along = across = 0.0
+        if prev is not None and older is not None and older[2] == prev[2] == resets:
+            along, across = (prev[0] - older[0]) / dt, (prev[1] - older[1]) / dt
+        return CarMotion(distance, lateral, along, across)
 
     def _record(self, contact, sim_time: float) -> tuple:
         """A new incident's records, one per car in it (None for a box)."""
@@ -391,7 +387,7 @@ class Stewards:
             records.append(self.rules.contact(race, race.clock(sim_time), name))
         return tuple(records)
 
-    def _blame(self, contact, records: tuple, motions: dict) -> int | None:
+    def _blame(self, contact, records: tuple) -> int | None:
         """Judge a contact of an incident nobody is at fault for yet: blame the car at fault, if any, and
         return the car it hit (None: nobody at fault, or a box)."""
         a, b = contact.a, contact.b
@@ -400,10 +396,11 @@ class Stewards:
             records[car]["kind"] = "obstacle"
             self.rules.blame(self.races[(a, b)[car][1]], records[car], with_car=False)
             return None
-        if a[1] not in motions or b[1] not in motions:
+        motion_a, motion_b = self._motion(a[1]), self._motion(b[1])
+        if motion_a is None or motion_b is None:
             return None
         striker = None if contact.striker is None else (0 if contact.striker == a else 1)
-        fault, kind = at_fault(motions[a[1]], motions[b[1]], striker, self.car_length, self.track_length)
+        fault, kind = at_fault(motion_a, motion_b, striker, self.car_length, self.track_length)
         for record in records:
             record["kind"] = kind
         if fault is None:

@@ -28,9 +28,9 @@ and can be sent to worker processes before use.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
+from typing import NamedTuple
 
 import numpy as np
 
@@ -71,9 +71,8 @@ RESTING_SPEED = 0.05  # m/s; two cars that close and slide slower than this are 
 DYNAMICS = ("dynamic", "kinematic")
 
 
-@dataclasses.dataclass(frozen=True)
-class Contact:
-    """Two bodies touched during an action step.
+class Contact(NamedTuple):
+    """Two bodies touched during an action step (a named tuple: a step in a bunch of cars makes several).
 
     `a` and `b` are ("car", i) or ("obstacle", k); `striker` is whichever of
     them drove into the other (for an obstacle, always the car). Where the two
@@ -131,7 +130,8 @@ class World:
         self.contact_shortcut = contact_shortcut
         self.action_steps = 0  # action steps taken
         self.bullet_steps = 0  # action steps PyBullet was stepped in (the others moved the cars without it)
-        self._pushes_pending = False  # PyBullet was stepped since the velocities were set: read its pushes
+        self._pushes_pending = False  # PyBullet was stepped since the velocities were set: its pushes count
+        self._contact_pushes = np.zeros((num_cars, 3))  # what PyBullet's last step added to the set velocities
         self._no_pushes = np.zeros((num_cars, 3))  # `_pushes` where PyBullet was not stepped (read only)
         self._stale = np.zeros(num_cars, dtype=bool)  # cars moved since PyBullet's body was last put in place
         self._car_size = np.array([spec.length, spec.width])
@@ -211,6 +211,7 @@ class World:
         self.poses[i] = (x, y, yaw)
         self.parked[i] = False
         self._stale[i] = False
+        self._contact_pushes[i] = 0.0  # put at rest: nothing pushed it
         self._struck_by.pop(i, None)  # a car put back on the track is no longer being pushed
 
     def park(self, i: int) -> None:
@@ -280,22 +281,18 @@ class World:
             pybullet.stepSimulation(cid)
             if substep % CONTACT_EVERY == CONTACT_EVERY - 1 or substep == self.substeps - 1:
                 self._collect_contacts(contacts)
-        self._read_poses(active)
+        self._read_bodies(active)
         self._pushes_pending = True
         return self._clear_pushed_strikers(list(contacts.values()))
 
     def _pushes(self) -> np.ndarray:
         """What PyBullet's last step added to each car's velocity (rows of x, y, yaw rate, world frame; a parked
-        car's row is not read): the contacts' pushes. Zero where PyBullet was not stepped since the velocities were last
-        set (`_no_pushes`)."""
+        car's row is not read): the contacts' pushes (`_read_bodies`; zero for a car put somewhere since). Zero
+        where PyBullet was not stepped since the velocities were last set (`_no_pushes`)."""
         if not self._pushes_pending:
             return self._no_pushes
         self._pushes_pending = False
-        pushes = np.zeros((self.num_cars, 3))
-        for i in np.flatnonzero(~self.parked).tolist():
-            (lvx, lvy, _), (_, _, wz) = pybullet.getBaseVelocity(self.car_ids[i], self.client)
-            pushes[i] = (lvx, lvy, wz)
-        return pushes - self._set_velocity
+        return self._contact_pushes
 
     def _may_touch(self, rows: np.ndarray) -> bool:
         """Whether any two bodies' padded bounding boxes can overlap during the step, moving at their set
@@ -335,7 +332,7 @@ class World:
             struck_by.setdefault(struck, set()).add(striker)
         for k, striker, struck in hits:
             if (struck_by.get(striker, set()) | self._struck_by.get(striker, set())) - {struck}:
-                contacts[k] = dataclasses.replace(contacts[k], striker=None)
+                contacts[k] = contacts[k]._replace(striker=None)
         self._struck_by = struck_by
         return contacts
 
@@ -375,6 +372,7 @@ class World:
                                      speed * math.sin(direction) + side * cos_y, yaw_rate)
 
     def _collect_contacts(self, contacts: dict) -> None:
+        planar = None  # every car's (x, y) velocity set for the step, read once if a new pair touches
         for point in pybullet.getContactPoints(physicsClientId=self.client):
             if point[8] > CONTACT_DISTANCE:
                 continue
@@ -387,7 +385,10 @@ class World:
             if a is None or b is None or (a[0] == "obstacle" and b[0] == "obstacle"):
                 continue
             normal_on_b = point[7]  # points from B towards A
-            (ax, ay), (bx, by) = self._planar_velocity(a), self._planar_velocity(b)
+            if planar is None:
+                planar = self._set_velocity[:, :2].tolist()
+            ax, ay = planar[a[1]] if a[0] == "car" else (0.0, 0.0)  # a box is at rest
+            bx, by = planar[b[1]] if b[0] == "car" else (0.0, 0.0)
             approach_a = -(ax * normal_on_b[0] + ay * normal_on_b[1])  # A's speed towards B
             approach_b = bx * normal_on_b[0] + by * normal_on_b[1]  # B's speed towards A
             closing = approach_a + approach_b
@@ -403,17 +404,22 @@ class World:
             first, second = (a, b) if a <= b else (b, a)
             contacts[key] = Contact(a=first, b=second, striker=striker)
 
-    def _planar_velocity(self, owner: tuple[str, int]) -> tuple[float, float]:
-        return tuple(self._set_velocity[owner[1], :2].tolist()) if owner[0] == "car" else (0.0, 0.0)
-
-    def _read_poses(self, active: list[int]) -> None:
-        cid = self.client
+    def _read_bodies(self, active: list[int]) -> None:
+        """After PyBullet's step: the `active` cars' poses, and what the step added to the velocities set for
+        it (their rows of `_contact_pushes`)."""
+        cid, height = self.client, self.spec.height / 2
+        poses, velocities = [], []
         for i in active:
             body = self.car_ids[i]
             pos, orn = pybullet.getBasePositionAndOrientation(body, cid)
             yaw = yaw_of(orn)
             # contacts at box edges can tip a body a little: put it back flat
-            if abs(orn[0]) > 1e-3 or abs(orn[1]) > 1e-3 or abs(pos[2] - self.spec.height / 2) > 1e-3:
+            if abs(orn[0]) > 1e-3 or abs(orn[1]) > 1e-3 or abs(pos[2] - height) > 1e-3:
                 flat = pybullet.getQuaternionFromEuler([0, 0, yaw])
-                pybullet.resetBasePositionAndOrientation(body, [pos[0], pos[1], self.spec.height / 2], flat, cid)
-            self.poses[i] = (pos[0], pos[1], yaw)
+                pybullet.resetBasePositionAndOrientation(body, [pos[0], pos[1], height], flat, cid)
+            poses.append((pos[0], pos[1], yaw))
+            (vx, vy, _), (_, _, turn) = pybullet.getBaseVelocity(body, cid)
+            velocities.append((vx, vy, turn))
+        if poses:
+            self.poses[active] = poses
+            self._contact_pushes[active] = np.array(velocities) - self._set_velocity[active]
