@@ -36,6 +36,7 @@ from ..sensors.suite import declared_sensors, race_suite
 from ..sim.objects import objects_seen
 from .randomize import Randomization, apply_command, apply_image
 from .reward_process import load_reward_function
+from .rewards import PARAM_KEYS
 from .core import RaceCore
 from .race_state import CarState, RaceState
 from .formats import make_rules
@@ -150,6 +151,10 @@ class RaceEnv(ParallelEnv):
             raise ValueError(f"car_names: expected {self.num_cars} names, got {len(names)}")
         self.core = RaceCore(self.track, self.rules, self.car_spec, names + [bot.name for bot in self.bots],
                              self.num_cars, physics_hz, ACTION_HZ, dynamics)
+        # the reward params every car shares in a step (`_reward_params` fills in the rest), in DeepRacer's order
+        self._shared_params = dict.fromkeys(PARAM_KEYS)
+        self._shared_params.update(track_length=self.track.length, waypoints=self.track.waypoints,
+                                   is_reversed=self.track.reverse)
         self.sensors = declared_sensors(sensor, lidar)  # the registry's sensors the cars carry (`sensors.suite`)
         # bots that read sensors (agent files driving beside the learners): their cars and what they read
         self._sensor_bots = np.array([self.num_cars + b for b, bot in enumerate(self.bots) if bot.sensors is not None],
@@ -398,8 +403,11 @@ class RaceEnv(ParallelEnv):
         core, track = self.core, self.track
         locs = [core.last_geometry(i) for i in range(self.num_cars)]
         owners, columns, seen = self._object_table()
-        length, waypoints, reverse = track.length, track.waypoints, track.reverse
-        steps, sim_time, races, commands = core.steps, core.sim_time, core.races, core.commands
+        length, races, commands = track.length, core.races, core.commands
+        # each car's dict is a copy of one with the step's shared values, in DeepRacer's key order: a dict's copy
+        # costs far less than building a 27-key dict
+        shared = self._shared_params
+        shared["steps"], shared["sim_time"] = core.steps, core.sim_time
         every_params = []
         for i, loc in enumerate(locs):
             x, y, yaw, s, lateral, _, _, _, _, width, wheels_on = loc
@@ -410,35 +418,29 @@ class RaceEnv(ParallelEnv):
             if i in owners:  # leave car i itself out of every column
                 k = owners.index(i)
                 del locations[k], left[k], speeds[k], heading[k], from_centre[k], along[k]
-            every_params.append({
-                "all_wheels_on_track": wheels_on == 4,
-                "x": x,
-                "y": y,
-                "heading": math.degrees(yaw),
-                "distance_from_center": abs(lateral),
-                "projection_distance": s,
-                "progress": race.lap_progress(length) if race.racing else 100.0 * (race.status == "finished"),
-                "steps": steps,
-                "speed": float(speed),
-                "steering_angle": math.degrees(steer),
-                "track_width": width,
-                "track_length": length,
-                "waypoints": waypoints,
-                "closest_waypoints": list(track.closest_waypoints(loc)),
-                "is_left_of_center": lateral > 0,
-                "is_reversed": reverse,
-                "closest_objects": [behind, ahead],
-                "objects_location": locations,
-                "objects_left_of_center": left,
-                "object_in_camera": in_camera == 1,
-                "objects_speed": speeds,
-                "objects_heading": heading,
-                "objects_distance_from_center": from_centre,
-                "objects_distance": along,
-                "is_crashed": bool(touched[i]),
-                "is_offtrack": wheels_on == 0,
-                "sim_time": sim_time,
-            })
+            params = shared.copy()
+            params["all_wheels_on_track"] = wheels_on == 4
+            params["x"], params["y"] = x, y
+            params["heading"] = math.degrees(yaw)
+            params["distance_from_center"] = abs(lateral)
+            params["projection_distance"] = s
+            params["progress"] = race.lap_progress(length) if race.racing else 100.0 * (race.status == "finished")
+            params["speed"] = float(speed)
+            params["steering_angle"] = math.degrees(steer)
+            params["track_width"] = width
+            params["closest_waypoints"] = list(track.closest_waypoints(loc))
+            params["is_left_of_center"] = lateral > 0
+            params["closest_objects"] = [behind, ahead]
+            params["objects_location"] = locations
+            params["objects_left_of_center"] = left
+            params["object_in_camera"] = in_camera == 1
+            params["objects_speed"] = speeds
+            params["objects_heading"] = heading
+            params["objects_distance_from_center"] = from_centre
+            params["objects_distance"] = along
+            params["is_crashed"] = bool(touched[i])
+            params["is_offtrack"] = wheels_on == 0
+            every_params.append(params)
         return every_params
 
     def _object_table(self) -> tuple:
