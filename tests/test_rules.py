@@ -77,10 +77,15 @@ def test_best_lap_is_scored_under_the_reset_rule():
     assert race.laps == 2 and race.best_lap == min(race.lap_times)
 
 
-def test_object_avoidance_crash_resets_behind_the_box_in_the_other_lane():
+@pytest.mark.parametrize("moved", [False, True])
+def test_object_avoidance_crash_resets_behind_the_box_in_the_other_lane(moved):
     env = multirace.parallel_env(num_cars=1, race="object_avoidance", action_space=CONTINUOUS)
     env.reset(seed=4)
     track = env.track
+    if moved:  # a box put in the other lane, nearer the start: its slot follows it
+        s_moved, lane_moved = 4.0, 1 - env.obstacle_slots[0][1]
+        env.core.place_obstacle(0, s_moved, track.lane_offset(lane_moved, s_moved))
+        assert env.obstacle_slots[0] == (s_moved, lane_moved)
     s_box, lane = env.obstacle_slots[0]
     driver = PurePursuit(speed=1.0, lateral=track.lane_offset(lane, s_box))  # drive in the box's lane
     crash = None

@@ -57,6 +57,13 @@ def test_monaco_runs_clockwise_and_inner_lane_is_on_the_right():
     assert track.lane_offset(0, 5.0) < 0 < track.lane_offset(1, 5.0)
 
 
+@pytest.mark.parametrize("name,reverse", [("Monaco", False), ("reinvent_base", False), ("reinvent_base", True)])
+def test_lane_of_a_lateral_offset_is_the_lane_whose_centre_lies_there(name, reverse):
+    track = load_track(name, reverse=reverse)
+    for s in (0.0, 0.3 * track.length, 0.7 * track.length):
+        assert [track.lane_of(track.lane_offset(lane, s)) for lane in (0, 1)] == [0, 1]
+
+
 def test_hint_search_agrees_with_full_search():
     track = load_track("reInvent2019_track")
     rng = np.random.default_rng(0)

@@ -84,7 +84,7 @@ class RaceCore:
     def _place_obstacles(self, rng: np.random.Generator) -> None:
         """Boxes spread around the lap, in alternating lanes, with seeded jitter."""
         count = self.rules.obstacles
-        self.obstacle_slots, self.obstacle_rows = [], []
+        self.obstacle_slots, self.obstacle_rows = [()] * count, [()] * count
         self.obstacle_points = np.zeros((count, 3))
         if not count:
             return
@@ -94,15 +94,15 @@ class RaceCore:
         lane = int(rng.integers(2))
         for k in range(count):
             s = (first + k * spacing + rng.uniform(-0.1, 0.1) * spacing) % track.length
-            self.obstacle_slots.append((s, lane))
-            self.obstacle_rows.append(())
             self.place_obstacle(k, s, track.lane_offset(lane, s))
             lane = 1 - lane
 
     def place_obstacle(self, k: int, s: float, lateral: float) -> None:
-        """Put box k at arc length s, `lateral` metres left of the centre line, facing along the track."""
+        """Put box k at arc length s, `lateral` metres left of the centre line, facing along the track, in the lane
+        of its half of the road (a car that hits it is put back in the other, `RaceRules.reset_behind_obstacle`)."""
         x, y, yaw = self.track.point_at(s, lateral)
         self.world.place_obstacle(k, x, y, yaw)
+        self.obstacle_slots[k] = (s, self.track.lane_of(lateral))
         self.obstacle_rows[k] = (-1, x, y, lateral > 0, 0.0, math.degrees(yaw), abs(lateral), s)
         self.obstacle_points[k] = (x, y, s)
 

@@ -387,6 +387,11 @@ class Track:
         want_left = (lane == 0) == inner_is_left
         return left / 2 if want_left else -right / 2
 
+    def lane_of(self, lateral: float) -> int:
+        """The lane (`lane_offset`'s numbering) of the half of the road at `lateral` metres left of the centre
+        line (the centre line itself counts to the right half)."""
+        return 0 if (lateral > 0) == (self.inner_side > 0) else 1
+
     def start_grid(self, num_cars: int, spacing: float = 0.75, lanes: bool = True) -> list[tuple[float, float]]:
         """(s, lateral) start slots: car k is `k * spacing` behind the line, lanes alternating.
 
