@@ -475,8 +475,8 @@ def _add_bench_parser(sub) -> None:
     bench.add_argument("--replay-seconds", type=NON_NEGATIVE, default=240.0,
                        help="race time of the replay-cost race (0 skips it; default 240, the reset-rule window)")
     bench.add_argument("--profile", action="store_true",
-                       help="instead: the per-stage split of a 4-car env step (dynamics, contacts, rules, params, "
-                            "reward, render) and the renderer's frames/s alone")
+                       help="instead: the per-stage split of a 4-car env step (commands, dynamics, contacts, rules, "
+                            "params, reward, render) and the renderer's frames/s alone")
     bench.add_argument("--racing", action="store_true",
                        help="with --profile: the cars driven as a head-to-head race (bots that keep their gaps, "
                             "no boxes) instead of random drivers in a bunch")

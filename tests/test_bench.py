@@ -12,7 +12,7 @@ def test_the_profile_splits_the_step_into_its_stages_and_leaves_the_env_untouche
         step()
         split = profile_step(step, env, 20)
         assert set(split) == set(STAGES) | {"total"}
-        for stage in ("dynamics", "contacts", "rules", "params", "reward", "render"):
+        for stage in ("commands", "dynamics", "contacts", "rules", "params", "reward", "render"):
             assert split[stage] > 0, stage
         assert sum(split[stage] for stage in STAGES) == pytest.approx(split["total"], abs=0.5)
         # the wrappers are gone: the class's own methods again

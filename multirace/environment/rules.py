@@ -78,8 +78,8 @@ class CarRace:
     def lap_progress(self, track_length: float) -> float:
         """DeepRacer's `progress`: percent of the current lap, 0-100, from where it began."""
         lap_len = track_length * (self.laps + 1) - self.lap_start_distance
-        done = self.distance - self.lap_start_distance
-        return float(min(max(100.0 * done / max(lap_len, 1e-9), 0.0), 100.0))
+        share = 100.0 * (self.distance - self.lap_start_distance) / (lap_len if lap_len > 1e-9 else 1e-9)
+        return 0.0 if share < 0.0 else 100.0 if share > 100.0 else float(share)  # (every car, every step)
 
     def race_progress(self, track_length: float, laps: int) -> float:
         """Percent of the whole race distance (all laps, from the grid slot) driven, 0-100."""

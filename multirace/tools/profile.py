@@ -1,13 +1,15 @@
 """`multirace bench --profile`: where the time of an env step goes, stage by stage, and the renderer alone.
 
-The stages of `RaceEnv.step`: dynamics (the car model: pushes, tyre kernel,
-free moves, the broad phase), contacts (PyBullet: syncing bodies, stepping,
-contact points, reading poses), rules (track measurement, contacts and the
-race rules, publishing the race state), params (the reward params and
-infos), reward (the reward function) and render (the observations). Each is
-timed by wrapping the env's, its race core's and the world's own methods on one instance with `time.perf_counter`, so the
-code of an unprofiled env is untouched; what no stage covers (actions,
-commands, bots) is "other".
+The stages of `RaceEnv.step`: commands (the actions read as commands, with
+DeepRacer's noise), dynamics (the car model: pushes, tyre kernel, free
+moves, the broad phase), contacts (PyBullet: syncing bodies, stepping,
+contact points, reading poses and pushes), rules (track measurement,
+contacts and the race rules, publishing the race state), params (the reward
+params and infos), reward (the reward function) and render (the
+observations). Each is timed by wrapping the env's, its race core's and the
+world's own methods on one instance with `time.perf_counter`, so the code of
+an unprofiled env is untouched; what no stage covers (the step's own glue:
+its dicts, the race's end) is "other".
 """
 from __future__ import annotations
 
@@ -18,9 +20,10 @@ import numpy as np
 from ..sensors.camera import CameraSpec, camera_poses
 from ..sensors.fast_renderer import FastRenderer
 
-STAGES = ("dynamics", "contacts", "rules", "params", "reward", "render", "other")
+STAGES = ("commands", "dynamics", "contacts", "rules", "params", "reward", "render", "other")
 # the methods timed as each stage: (object: "env", "core", "world" or "reward"; method names)
 _TIMED = {
+    "commands": ("env", ("_commands_for",)),
     "dynamics": ("world", ("_pushes", "_command_dynamic", "_command_kinematic", "_may_touch", "_move_freely")),
     "rules": ("core", ("_measure_all", "_apply_contacts", "apply_rules", "publish")),
     "params": ("env", ("_reward_params", "_info")),
