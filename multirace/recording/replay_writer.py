@@ -119,8 +119,9 @@ class ReplayWriter:
         """Take the rows of consecutive steps (and their images and log entries) from the race."""
         received, released = self._first + self._rows, None
         for row, car, image in batch["images"]:
-            if isinstance(image, ArenaImage):
-                image, released = self.arena.image(image), image.end
+            if isinstance(image, tuple):  # where it lies in the arena (`WriterProcess.carry`)
+                where = ArenaImage._make(image)
+                image, released = self.arena.image(where), where.end
             jpeg = self._encode(image)
             if jpeg is not None:
                 self._frames[car].append((received + row, jpeg))
