@@ -298,6 +298,31 @@ def test_a_teacher_expert_can_ask_for_a_share_of_its_speed(teacher):
         make_config("fast", distill_speed_scale=0.0)
 
 
+def test_a_free_road_teacher_labels_the_cars_with_no_traffic_near(teacher):
+    """`distill_free_teacher`: the run's teacher labels a car with a car near it (a bot 1.5 m ahead), the free-road
+    teacher a car whose road is clear (the bot 6 m ahead); a file that is not a teacher is refused naming the
+    setting."""
+    from multirace.train.distill import train_privileged
+    from multirace.train.envs import TrainEnv, env_settings
+    from multirace.train.experts import expert_commands, make_expert
+
+    out, _ = teacher
+    traffic, free = f"teacher:{out}@0.5", f"teacher:{out}"  # one net, two speeds: which labelled shows in the speed
+    for ahead, labeller in ((1.5, traffic), (6.0, free)):
+        env = TrainEnv([("reinvent_base", False)], num_cars=1, bots=("follow@1.0",), bots_ahead=ahead,
+                       action_space=SPACE, camera=(30, 40), expert_labels=True, expert=traffic, free_expert=free)
+        try:
+            _, infos = env.reset(seed=0)
+            expected = env.env.actions.nearest(*expert_commands(make_expert(labeller, 1.0), env.env, [0])[0])
+            assert infos["car_0"]["expert_action"] == pytest.approx([float(v) for v in expected])
+        finally:
+            env.close()
+    config = make_config("fast", tracks=("reinvent_base",), action_space=SPACE, distill_free_teacher=str(SPACE))
+    assert env_settings(config)["free_expert"] == f"teacher:{SPACE}"
+    with pytest.raises(ValueError, match="distill_free_teacher: teacher file .*action_space_racer.json"):
+        train_privileged(config, Path("never.pt"), log=None)
+
+
 def test_a_teacher_labels_every_car_of_an_env_in_one_pass_as_it_labels_each_alone(teacher):
     """`expert_commands` runs the teacher's net once for all the cars (a worker labels every image it sends): the
     commands are each car's own, as `expert_command` gives them one car at a time."""

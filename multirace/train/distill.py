@@ -65,6 +65,8 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
     run = TrainingRun(config, out, command, log)
     run.method, run.notes = "dagger", {"expert": config.expert.replace(TEACHER_PREFIX, "teacher:"),
                                        "stage": "student of an RL teacher (learning by cheating)"}
+    if config.distill_free_teacher:
+        run.notes["free_road_expert"] = f"teacher:{config.distill_free_teacher}"
     if init:
         run.lineage = init_lineage(init)
     if config.init_blend < 1:
@@ -237,6 +239,11 @@ def train_privileged(config: TrainConfig, out, command: str | None = None, log=p
     started = time.perf_counter()
     out = Path(out)
     budget = 60.0 * float(config.minutes)
+    if config.distill_free_teacher:  # refused before the teacher's stage, not in the student's workers
+        try:
+            load_teacher(config.distill_free_teacher)
+        except ValueError as exc:
+            raise ValueError(f"--set distill_free_teacher: {exc}") from None
     if teacher_file:
         teacher_path = Path(teacher_file)
         teacher = earlier_teacher(teacher_path)

@@ -32,7 +32,9 @@ adds what training needs on top of the race env:
   car's next observation, for the learner's auxiliary imitation loss
   (`expert_coef`): a scripted driver (by default ``pass``,
   `bots.passing_line`) or an RL teacher on the car's privileged state
-  (``expert="teacher:PATH"``, `teacher.py`);
+  (``expert="teacher:PATH"``, `teacher.py`); with ``free_expert``, a second
+  teacher labels the cars with no car or box near them (a time-trial
+  teacher's pace on an open road, the traffic teacher's craft near cars);
 - per-car episode statistics in the infos (return, length, laps driven,
   collisions caused);
 - optionally (`deepracer_log`), each car's sim-trace row, formatted here (in
@@ -54,6 +56,7 @@ import numpy as np
 from ..environment.actions import Command
 from ..environment.rewards import NAMED_REWARDS, RewardWeights
 from ..recording.simtrace import CarSimTrace
+from ..racing.entrant import TEACHER_PREFIX
 from .experts import expert_commands, make_expert
 from .track_sampling import RunSampler
 
@@ -72,6 +75,8 @@ def env_settings(config) -> dict:
             "bots_ahead": config.bots_ahead, "bots_ahead_spread": config.bots_ahead_spread,
             "rivals": tuple(config.rivals), "rival_cars": config.rival_cars,
             "expert_labels": config.expert_coef > 0, "expert": config.expert, "deepracer_log": config.deepracer_log,
+            "free_expert": f"{TEACHER_PREFIX}{config.distill_free_teacher}" if config.distill_free_teacher else "",
+            "free_reach": (config.distill_free_ahead, config.distill_free_behind),
             "track_sampling": config.track_sampling}
 
 
@@ -83,7 +88,7 @@ class TrainEnv:
                  sensor=None, episode_steps=1500, terminate_off_track=True, randomize=None, shared=None, worker=0,
                  terminate_collision=False, bots_ahead=0.0, bots_ahead_spread=0.0, expert_labels=False, expert="",
                  deepracer_log=False, observation="camera", pool=1, track_sampling="uniform", rivals=(), rival_cars=0,
-                 state_view="all", **weights):
+                 state_view="all", free_expert="", free_reach=(3.0, 1.0), **weights):
         self.runs = list(runs)  # [(track name/path or Track rows, reverse)]
         self.sampler = RunSampler(len(self.runs), track_sampling)  # which run each episode races on
         self.num_cars = int(num_cars)
@@ -105,6 +110,9 @@ class TrainEnv:
         self.expert_labels = bool(expert_labels)
         self.expert = str(expert or "")  # the labelling driver: a bot spec or "teacher:PATH"; "" = bot:pass at top speed
         self._expert = None  # that driver (built on first use)
+        self.free_expert = str(free_expert or "")  # "teacher:PATH" labelling the cars with no traffic near; "": none
+        self.free_reach = tuple(float(m) for m in free_reach)  # (ahead, behind): metres along the track that count as near
+        self._free_expert = None
         self.deepracer_log = bool(deepracer_log)  # each step's info carries the car's sim-trace row, formatted here
         self._sim_traces: list[CarSimTrace] = []  # each car's sim-trace rows (new at every reset)
         self.observation = observation  # "camera" (the sensors) or "state" (privileged vectors, for RL teachers)
@@ -212,7 +220,7 @@ class TrainEnv:
 
     def _expert_actions(self, known: bool = True) -> list:
         """The expert's action for each car where it stands (`expert`, else the pass driver at the space's top
-        speed).
+        speed; with `free_expert`, that teacher's for the cars with no car or box near them).
 
         With `known` False (the worker resets the env after this step, so the labels would not match
         the next observations) the labels are marked missing: -1, or NaNs for a continuous space.
@@ -223,8 +231,28 @@ class TrainEnv:
         if self._expert is None:  # every run shares the action space, so one driver serves all
             top = max(a[1] for a in space.actions) if space.discrete else float(space.high[1])
             self._expert = make_expert(self.expert, top)
-        labels = [space.nearest(*command) for command in expert_commands(self._expert, env, range(self.num_cars))]
+            self._free_expert = make_expert(self.free_expert, top) if self.free_expert else None
+        cars = range(self.num_cars)
+        free = [i for i in cars if self._free_expert is not None and not self._traffic_near(i)]
+        busy = [i for i in cars if i not in free]
+        commands = {}
+        for expert, group in ((self._expert, busy), (self._free_expert, free)):
+            if group:
+                commands.update(zip(group, expert_commands(expert, env, group)))
+        labels = [space.nearest(*commands[i]) for i in cars]
         return labels if space.discrete else [[float(v) for v in label] for label in labels]
+
+    def _traffic_near(self, i: int) -> bool:
+        """Whether another car or a box is within `free_reach` of car i along the track (ahead, behind), where
+        they stand now."""
+        env = self.env
+        me = env.race_state.cars[i]
+        if not me.located:
+            return False
+        ahead, behind = self.free_reach
+        length = env.track.length
+        gaps = [gap for gap, _, _ in env.traffic(i)] + [(s - me.s) % length for s in env.core.obstacle_points[:, 2]]
+        return any(gap < ahead or gap > length - behind for gap in gaps)
 
     def _small(self, info, done, episode, caused=0, time_limit=False):
         small = {"train_done": done, "time_limit": time_limit, "off_track": bool(info.get("off_track", False)),
