@@ -321,6 +321,8 @@ def test_a_free_road_teacher_labels_the_cars_with_no_traffic_near(teacher):
     assert env_settings(config)["free_expert"] == f"teacher:{SPACE}"
     with pytest.raises(ValueError, match="distill_free_teacher: teacher file .*action_space_racer.json"):
         train_privileged(config, Path("never.pt"), log=None)
+    with pytest.raises(ValueError, match="distill_free_teacher: .*speed scale"):
+        train_privileged(make_config("fast", distill_free_teacher=f"{out}@1.5"), Path("never.pt"), log=None)
 
 
 def test_a_teacher_labels_every_car_of_an_env_in_one_pass_as_it_labels_each_alone(teacher):

@@ -29,7 +29,7 @@ from ..environment.actions import load_action_space
 from ..racing.blend import blend_weights
 from ..racing.nets import build_net
 from .config import TrainConfig
-from .experts import TEACHER_PREFIX
+from .experts import TEACHER_PREFIX, make_expert
 from .imitate import Dataset, fit_labels, greedy_actions, imitation_loss
 from .ppo import decayed, init_continuous_head, input_pooling, make_vector_env, observation_shapes
 from .rollout import Rollout, expert_actions, finished_episodes
@@ -241,7 +241,7 @@ def train_privileged(config: TrainConfig, out, command: str | None = None, log=p
     budget = 60.0 * float(config.minutes)
     if config.distill_free_teacher:  # refused before the teacher's stage, not in the student's workers
         try:
-            load_teacher(config.distill_free_teacher)
+            make_expert(f"{TEACHER_PREFIX}{config.distill_free_teacher}", 1.0)
         except ValueError as exc:
             raise ValueError(f"--set distill_free_teacher: {exc}") from None
     if teacher_file:
