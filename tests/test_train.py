@@ -214,10 +214,15 @@ def test_bots_ahead_start_on_the_centre_line_in_front_of_the_learning_cars_and_d
 
     env = TrainEnv([("reinvent_base", False)], num_cars=2, bots=("follow@1.0", "follow@1.0"), camera=(30, 40),
                    bots_ahead=3.0, episode_steps=15)
-    env.reset(seed=0)
+    _, infos = env.reset(seed=0)
     start = env.env.race_state.cars
     for k, bot in enumerate(start[2:]):
         assert bot.s == pytest.approx(3.0 + BOT_SPACING * k, abs=0.1) and abs(bot.lateral) < 0.02
+    length = env.env.track.length
+    for i, agent in enumerate(("car_0", "car_1")):  # the reset's infos see the bots where they were moved to
+        nearest = min((other.s - start[i].s) % length for other in start if other.index != i)
+        assert infos[agent]["gap_ahead"] == pytest.approx(nearest, abs=0.05)
+    assert max(info["gap_ahead"] for info in infos.values()) < 4.0  # the leading learner has a bot 3 m ahead
     for step in range(15):
         _, _, _, _, infos = env.step({"car_0": 0, "car_1": 0})
         last = step == 14  # the step limit ends every car's episode, marked for bootstrapping; an off-track is not

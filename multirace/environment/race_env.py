@@ -278,11 +278,8 @@ class RaceEnv(ParallelEnv):
         for i, bot in enumerate(self.bots, start=self.num_cars):
             bot.reset(self, i)
         self.agents = list(self.possible_agents)
-        params = self._reward_params([set()] * self.num_cars)
-        state = self.core.publish([set()] * self.total_cars, [()] * self.total_cars)
-        observations = self._observe()
-        infos = {a: self._info(params[i], state.cars[i], state.time) for i, a in enumerate(self.agents)}
-        return observations, infos
+        self.core.publish([set()] * self.total_cars, [()] * self.total_cars)
+        return self._observe(), self.standing_infos()
 
     # -------------------------------------------------------------- step
     def step(self, actions):
@@ -351,10 +348,18 @@ class RaceEnv(ParallelEnv):
         """Put cars at rest at {car index: (arc length from the start line, lateral offset)}, as a reset does
         (`clear=False`: exactly there, side by side if asked, not moved back off a spot next to a car).
 
-        For training set-ups (bots started ahead of the learners). Returns the camera cars' new observations.
+        For training set-ups (bots started ahead of the learners). Returns the camera cars' new observations;
+        `standing_infos` gives their infos.
         """
         self.core.move_cars(slots, clear)
         return self._observe()
+
+    def standing_infos(self) -> dict:
+        """Every learning car's info as the cars stand now, nothing touched: what `reset` returns, and what a
+        set-up that moved cars after it (`move_cars`) hands its drivers."""
+        params = self._reward_params([set()] * self.num_cars)
+        state = self.race_state
+        return {a: self._info(params[i], state.cars[i], state.time) for i, a in enumerate(self.agents)}
 
     def traffic(self, i: int) -> list[tuple[float, float, float]]:
         """The other cars on track as seen from car i: (metres ahead, lateral offset, speed)."""

@@ -72,6 +72,7 @@ def run_race(controllers: list[Controller], config: RaceConfig, recorders=()) ->
         observations, infos = env.reset(seed=config.seed)
         if config.start:
             observations = env.move_cars(dict(config.start), clear=False)
+            infos = env.standing_infos()
         for i, controller in enumerate(controllers):
             controller.reset(env, i)
         for recorder in recorders:

@@ -201,6 +201,7 @@ class TrainEnv:
             extra = self._rng.uniform(0.0, self.bots_ahead_spread, bots)
             obs = self.env.move_cars({self.num_cars + b: (self.bots_ahead + BOT_SPACING * b + extra[b], 0.0)
                                       for b in range(bots)})
+            infos = self.env.standing_infos()
         obs = self._pooled(obs)
         track = self.env.track
         self.track_length = track.length
