@@ -138,7 +138,7 @@ def test_evaluate_rows_with_perturbation_and_traffic(trained, tmp_path):
     assert (tmp_path / "eval.png").stat().st_size > 1000
 
 
-def _ram(collision_penalty, terminate_collision=False, proximity_penalty=0.0):
+def _ram(collision_penalty, terminate_collision=False, proximity_penalty=0.0, braking_penalty=0.0):
     """Three cars on the start grid: car_2 (last) drives at 2 m/s into the cars ahead, which crawl at 0.1 m/s."""
     from multirace.train.envs import TrainEnv
 
@@ -146,7 +146,7 @@ def _ram(collision_penalty, terminate_collision=False, proximity_penalty=0.0):
              "action_space": [{"steering_angle": 0, "speed": 0.1}, {"steering_angle": 0, "speed": 2.0}]}
     env = TrainEnv([("reinvent_base", False)], num_cars=3, action_space=space, camera=(30, 40),
                    collision_penalty=collision_penalty, terminate_collision=terminate_collision,
-                   proximity_penalty=proximity_penalty)
+                   proximity_penalty=proximity_penalty, braking_penalty=braking_penalty)
     env.reset(seed=0)
     steps = []
     for _ in range(12):
@@ -207,6 +207,43 @@ def test_proximity_penalty_counts_a_car_alongside_with_too_little_room():
     assert cost(width + room, 0.1) == pytest.approx(0.0)  # enough room to the side
     assert cost(width, env.env.car_spec.length + 0.05) == pytest.approx(0.0)  # passed: no longer alongside
     env.close()
+
+
+def test_braking_penalty_is_the_braking_needed_not_to_rear_end_the_car_ahead():
+    """Closing in on a slower car in its lane costs the braking that would stop the closing within the gap over
+    the car's braking: more for a faster approach or a shorter gap, 1 at the limit; nothing when it is not
+    closing in or the car ahead is in the other lane; and in a rear-end run the cost comes before the strike."""
+    from multirace.train.envs import TrainEnv
+
+    env = TrainEnv([("reinvent_base", False)], num_cars=2, camera=(30, 40), braking_penalty=1.0)
+    env.reset(seed=0)
+    spec = env.env.car_spec
+
+    def cost(speed, other_speed, gap, lateral_gap=0.0):
+        """The car on the centre line at `speed`, the other `gap` m bumper to bumper ahead, `lateral_gap` left."""
+        here = 3.0
+        return env._braking_needed({"objects_distance": [here - 5.0, here + spec.length + gap],
+                                    "closest_objects": [0, 1], "projection_distance": here,
+                                    "distance_from_center": 0.0, "is_left_of_center": True,
+                                    "objects_distance_from_center": [0.0, lateral_gap],
+                                    "objects_left_of_center": [True, True], "objects_speed": [0.0, other_speed]},
+                                   speed)
+
+    assert cost(2.0, 1.0, 0.5) == pytest.approx(1.0 ** 2 / (2 * 0.5) / spec.brake)  # v^2 / 2d over the brakes
+    assert cost(2.0, 1.0, 0.2) > cost(2.0, 1.0, 0.5) > cost(2.0, 1.0, 2.0) > 0.0  # the nearer, the costlier
+    assert cost(3.0, 1.0, 0.5) > cost(2.0, 1.0, 0.5)  # the faster the approach, the costlier
+    assert cost(4.0, 0.5, 0.3) == pytest.approx(1.0)  # past the brakes' limit: capped
+    assert cost(1.0, 1.5, 0.3) == 0.0 and cost(1.0, 1.0, 0.3) == 0.0  # not closing in
+    assert cost(3.0, 1.0, 0.5, lateral_gap=spec.width + 0.2) == 0.0  # the car ahead is in the other lane
+    env.close()
+
+    plain, _ = _ram(0.0)
+    shaped, _ = _ram(0.0, braking_penalty=1.0)
+    first_strike = next(k for k, (_, infos) in enumerate(shaped) if infos["car_2"]["caused"])
+    costs = [r0["car_2"] - r1["car_2"] for (r0, _), (r1, _) in zip(plain, shaped)]
+    assert all(-1e-9 <= c <= 1.0 + 1e-9 for c in costs)
+    assert costs[0] == pytest.approx(0.0) and max(costs[:first_strike]) > 0.1, costs  # warned before it strikes
+    assert all(r0["car_0"] == pytest.approx(r1["car_0"]) for (r0, _), (r1, _) in zip(plain, shaped))  # nothing ahead
 
 
 def test_bots_ahead_start_on_the_centre_line_in_front_of_the_learning_cars_and_drive_on():

@@ -131,6 +131,7 @@ class RewardWeights:
     proximity_penalty: float = 0.0  # any reward: subtracted per step, up to this, for closing in on a car or box ahead in its lane or running alongside one too close
     proximity_gap: float = 1.0  # metres ahead within which proximity_penalty starts (0 at this gap, full when touching)
     proximity_side_room: float = 0.1  # metres of side room below which a car ahead counts as in the lane, or one alongside as too close
+    braking_penalty: float = 0.0  # any reward: subtracted per step, up to this, for closing in on the car or box ahead in its lane faster than it could stop: the braking that would stop it at that car's speed before touching, over the car's braking (full at its braking limit), so it slows early for a slower car rather than rear-ending it
 
     @classmethod
     def of(cls, settings) -> RewardWeights:

@@ -306,6 +306,26 @@ class TrainEnv:
             cost = max(cost, min(1.0, 1.0 - side_room(behind) / self.weights.proximity_side_room))
         return cost
 
+    def _braking_needed(self, info, speed: float) -> float:
+        """How hard the car must brake not to run into the object ahead in its lane (less than
+        `proximity_side_room` between them sideways): the deceleration that brings its closing speed to 0 within
+        the bumper-to-bumper gap, over its braking (`CarSpec.brake`), capped at 1; 0 when it is not closing in.
+        `speed` is the car's own (actual) speed; the object's is its `objects_speed`."""
+        along = info["objects_distance"]
+        if not along:
+            return 0.0
+        spec = self.env.car_spec
+        ahead = info["closest_objects"][1]
+        own = info["distance_from_center"] * (1.0 if info["is_left_of_center"] else -1.0)
+        other = info["objects_distance_from_center"][ahead] * (1.0 if info["objects_left_of_center"][ahead] else -1.0)
+        closing = speed - info["objects_speed"][ahead]
+        if closing <= 0.0 or abs(own - other) - spec.width >= self.weights.proximity_side_room:
+            return 0.0
+        gap = (along[ahead] - info["projection_distance"]) % self.track_length - spec.length
+        if gap <= 0.0:
+            return 1.0
+        return min(1.0, closing * closing / (2.0 * gap) / spec.brake)
+
     def step(self, actions):
         env = self.env
         obs, rewards, terms, truncs, infos = env.step(actions)
@@ -325,6 +345,8 @@ class TrainEnv:
             r -= self.weights.collision_penalty * caused
             if self.weights.proximity_penalty and not off:
                 r -= self.weights.proximity_penalty * self._closing_in(info)
+            if self.weights.braking_penalty and not off:
+                r -= self.weights.braking_penalty * self._braking_needed(info, env.race_state.cars[i].speed)
             self._ep_caused[i] += caused
             self._ep_return[i] += r
             self._ep_length[i] += 1
