@@ -5,6 +5,7 @@ from multirace.environment.rules import CarRace
 from multirace.racing.entrant import BotController
 from multirace.racing.overtakes import OvertakeRecorder, OvertakeTracker
 from multirace.racing.runner import RaceConfig, run_race
+from multirace.sim.car import CarSpec
 from multirace.sim.tracks import load_track
 from multirace.train.scenarios import SCENARIOS, placements, run_scenario, track_sites
 
@@ -79,3 +80,25 @@ def test_a_passer_clears_the_slower_car_on_a_straight_and_a_follower_does_not(dr
     row = run_scenario(driver, SCENARIOS[0], seed=0)
     assert row["success"] is success
     assert (row["passed_at"] is not None) is success and row["caused"] == 0
+
+
+def test_a_race_with_set_up_starts_hands_the_drivers_infos_of_where_their_cars_stand():
+    """`RaceConfig.start` moves cars after the grid; their drivers' first infos read the moved cars, not the grid."""
+    class Recording(BotController):
+        first = None
+
+        def act(self, observation, info):
+            if self.first is None:
+                self.first = dict(info)
+            return super().act(observation, info)
+
+    drivers = [Recording("bot:follow@0.8"), Recording("bot:follow@0.8")]
+    start = ((0, (6.0, 0.0)), (1, (4.0, 0.2)))
+    run_race(drivers, RaceConfig(race="head_to_head", laps=1, seed=0, max_steps=3, start=start))
+    ahead = CarSpec().reported_point_offset  # a car is put with its body centre on the slot
+    for driver, (_, (s, lateral)) in zip(drivers, start):
+        info = driver.first
+        assert info["projection_distance"] == pytest.approx(s + ahead, abs=0.05), info["projection_distance"]  # (curves)
+        assert info["distance_from_center"] == pytest.approx(lateral, abs=0.02)
+        assert info["is_left_of_center"] == (lateral > 0) and info["speed"] == 0.0
+    assert drivers[0].first["rank"] == 1 and drivers[1].first["rank"] == 2  # car 0 is now the one ahead
