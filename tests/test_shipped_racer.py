@@ -36,7 +36,7 @@ def test_lidar_racer_reads_the_lidar_never_trained_on_a_held_out_track_and_can_c
 
 
 def test_lidar_racer_laps_a_held_out_track_clean_and_wins_a_heat_there():
-    from multirace.train.heats import run_heats
+    from multirace.train.heats import run_heats, summarise_heats
 
     row = race_agent(LIDAR_RACER, "Mexico_track", reverse=True, laps=2, seed=1, randomize="mild", step_budget=1.0)
     assert row["clean"], row
@@ -47,3 +47,8 @@ def test_lidar_racer_laps_a_held_out_track_clean_and_wins_a_heat_there():
     # under the race rules it is at fault about 0.4 times a lap on this track (10 heats: README "Race rules"),
     # mostly rear-ending cars it laps; this heat (LIDAR beams cast in the plane since issue 29) has 3
     assert racer["position"] == 1 and racer["laps"] == 3 and racer["collisions_caused"] <= 3
+    kinds = {"rear_end", "side_swipe", "cut_across", "push_off", "obstacle"}  # what the stewards judge
+    for car in heat["cars"]:  # every at-fault incident counted once, under its kind
+        assert sum(car["caused_kinds"].values()) == car["collisions_caused"] and set(car["caused_kinds"]) <= kinds
+    summary = summarise_heats([heat])["all"][heat["cars"][0]["entrant"]]
+    assert summary["caused_kinds"] == racer["caused_kinds"]

@@ -273,14 +273,15 @@ def print_heats(agent_name: str, heats: dict, console) -> None:
 
     table = Table(title=f"{agent_name}: head-to-head heats (at-fault collisions per lap driven; overtakes: passes "
                         "for position on track, attempts from within a car length closing in)")
-    for column in ("track", "entrant", "heats", "first", "mean pos", "laps", "at fault", "/lap", "penalties",
-                   "overtakes", "overtaken", "attempted", "completed"):
+    for column in ("track", "entrant", "heats", "first", "mean pos", "laps", "at fault", "/lap", "at fault by kind",
+                   "penalties", "overtakes", "overtaken", "attempted", "completed"):
         table.add_column(column, justify="left" if column in ("track", "entrant") else "right",
                          no_wrap=column in ("track", "entrant"))
     for track, entrants in heats.items():
         for name, f in entrants.items():
             table.add_row(track, name, str(f["heats"]), str(f["first"]), f"{f['mean_position']:.2f}",
                           f"{f['laps_driven']:.1f}", str(f["collisions_caused"]), f"{f['caused_per_lap']:.3f}",
+                          ", ".join(f"{kind} {count}" for kind, count in f.get("caused_kinds", {}).items()) or "-",
                           *[str(f.get(key, "-")) for key in ("penalties", "overtakes", "overtaken",
                                                              "overtakes_attempted", "overtakes_completed")])
     console.print(table)

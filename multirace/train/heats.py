@@ -8,7 +8,8 @@ collision is *caused* by the car at fault under the race rules
 (`rules.at_fault`: the README's "Race rules"), once per incident.
 
 Per entrant: first places, mean position, laps driven, at-fault collisions
-per lap driven, penalties, and overtakes (`racing.overtakes`: passes for
+per lap driven and by kind (`caused_kinds`: rear_end, push_off, side_swipe,
+cut_across, ... as the stewards judged each), penalties, and overtakes (`racing.overtakes`: passes for
 position on track, attempted and completed): a racer should take most of the
 first places and cause no more collisions per lap than `bot:follow`.
 """
@@ -75,8 +76,28 @@ def check_heats(tracks, field) -> None:
             raise ValueError(f"--field: {spec}: no such agent file or shipped agent")
 
 
+class FaultRecorder:
+    """A `run_race` recorder that adds to every result car its at-fault incidents by kind (`caused_kinds`:
+    {kind: count})."""
+
+    def start(self, env) -> None:
+        pass
+
+    def step(self, env, observations=None, rewards=None, infos=None) -> None:
+        pass
+
+    def finish(self, env, result: dict) -> None:
+        for car in result["cars"]:
+            kinds: dict[str, int] = {}
+            for record in env.races[int(car["car"].split("_")[1])].collisions:
+                if record["caused"]:
+                    kinds[record["kind"]] = kinds.get(record["kind"], 0) + 1
+            car["caused_kinds"] = kinds
+
+
 def run_heats(agent_path, tracks, seeds, field=None, laps=HEAT_LAPS, progress=None) -> list[dict]:
-    """One row per heat: the track, seed and every car's place, laps driven and collisions caused."""
+    """One row per heat: the track, seed and every car's place, laps driven and collisions caused (and their
+    kinds)."""
     from ..racing.runner import RaceConfig, make_controller, run_race
 
     field = default_field(agent_path) if field is None else list(field)
@@ -87,13 +108,14 @@ def run_heats(agent_path, tracks, seeds, field=None, laps=HEAT_LAPS, progress=No
             entrants = [make_controller(spec, **({} if spec.startswith("bot:") else {"step_budget": STEP_BUDGET}))
                         for spec in [str(agent_path), *field]]
             result = run_race(entrants, RaceConfig(track=track, race="head_to_head", laps=laps, seed=seed),
-                              recorders=[OvertakeRecorder()])
+                              recorders=[OvertakeRecorder(), FaultRecorder()])
             cars = sorted(result["cars"], key=lambda c: int(c["car"].split("_")[1]))
             row = {"track": result["track"], "seed": seed, "laps": laps, "cars": [
                 {"entrant": spec, "position": car["position"], "laps": car["laps"],
                  "laps_driven": round(car["progress"] * laps / 100.0, 3), "resets": car["resets"],
                  "penalties": car["penalties"], "collisions": car["collisions"],
-                 "collisions_caused": car["collisions_caused"], "status": car["status"],
+                 "collisions_caused": car["collisions_caused"], "caused_kinds": car["caused_kinds"],
+                 "status": car["status"],
                  **{name: car[name] for name in FIELDS}}
                 for spec, car in zip([Path(str(agent_path)).stem] + field, cars)]}
             rows.append(row)
@@ -105,16 +127,21 @@ def run_heats(agent_path, tracks, seeds, field=None, laps=HEAT_LAPS, progress=No
 
 def summarise_heats(rows: list[dict]) -> dict:
     """Per track and over all heats, per entrant: heats, first places, mean position, at-fault collisions per
-    lap driven, penalties, overtakes (and per lap), overtakes attempted and completed."""
+    lap driven and by kind, penalties, overtakes (and per lap), overtakes attempted and completed."""
     def figures(selected):
         out = {}
         for k, name in enumerate(c["entrant"] for c in selected[0]["cars"]):
             cars = [r["cars"][k] for r in selected]
             driven = sum(c["laps_driven"] for c in cars)
             total = {key: sum(c.get(key, 0) for c in cars) for key in ("collisions_caused", "penalties", *FIELDS)}
+            kinds: dict[str, int] = {}
+            for c in cars:
+                for kind, count in c.get("caused_kinds", {}).items():
+                    kinds[kind] = kinds.get(kind, 0) + count
             out[name] = {"heats": len(cars), "first": sum(c["position"] == 1 for c in cars),
                          "mean_position": sum(c["position"] for c in cars) / len(cars),
                          "laps_driven": round(driven, 2), **total,
+                         "caused_kinds": dict(sorted(kinds.items(), key=lambda item: -item[1])),
                          "caused_per_lap": total["collisions_caused"] / max(driven, 0.25),
                          "overtakes_per_lap": total["overtakes"] / max(driven, 0.25)}
         return out
