@@ -484,3 +484,40 @@ def test_a_camera_view_teacher_keeps_its_view_in_its_file_and_labels_from_it(tea
         env.close()
     with pytest.raises(ValueError, match="teacher_view"):
         make_config("fast", teacher_view="lidar")
+
+
+def test_a_teacher_can_label_as_if_the_cars_ahead_drove_no_faster_than_a_speed(teacher):
+    """`distill_ahead_speed`: the traffic teacher's state lists the bot ahead closing as if it drove at that speed
+    (where it drives faster; the car behind and everything else as they are), and its label is the teacher's
+    command from that state; the setting is checked and reaches the env."""
+    from multirace.environment.state import CAR_FEATURES, MAX_SPEED, slowed_ahead
+    from multirace.train.envs import TrainEnv, env_settings
+    from multirace.train.experts import expert_commands, make_expert
+
+    out, _ = teacher
+    expert = f"teacher:{out}"
+    env = TrainEnv([("reinvent_base", False)], num_cars=1, bots=("follow@1.5",), bots_ahead=1.5, action_space=SPACE,
+                   camera=(30, 40), expert_labels=True, expert=expert, expert_ahead_speed=0.0)
+    try:
+        env.reset(seed=0)
+        for _ in range(10):  # both cars under way, the bot ahead faster than the learner
+            _, _, _, _, infos = env.step({"car_0": [0.0, 0.8]})
+        race_env = env.env
+        own, bot = race_env.race_state.cars[0].speed, race_env.race_state.cars[1].speed
+        assert bot > own > 0.3
+        state = race_env.car_state(0)
+        first = CAR_FEATURES - 12  # the traffic rows: two ahead, one behind, four values each
+        assert state[first] == 1.0 and state[first + 3] == pytest.approx((bot - own) / MAX_SPEED, abs=1e-6)
+        slowed = slowed_ahead(state[None], [own], 0.0)[0]
+        assert slowed[first + 3] == pytest.approx(-own / MAX_SPEED, abs=1e-6)  # the bot taken to stand still
+        assert np.array_equal(np.delete(slowed, first + 3), np.delete(state, first + 3))
+        assert slowed_ahead(state[None], [own], 9.0)[0][first + 3] == state[first + 3]  # no faster than it is
+        label = race_env.actions.nearest(*make_expert(expert, 1.0).drive_many(slowed[None])[0])
+        assert infos["car_0"]["expert_action"] == pytest.approx([float(v) for v in label])
+        assert expert_commands(make_expert(expert, 1.0), race_env, [0], 0.0) != \
+            expert_commands(make_expert(expert, 1.0), race_env, [0])
+    finally:
+        env.close()
+    assert env_settings(make_config("fast", distill_ahead_speed=1.0))["expert_ahead_speed"] == 1.0
+    with pytest.raises(ValueError, match="distill_ahead_speed"):
+        make_config("fast", distill_ahead_speed=-1.0)

@@ -105,6 +105,7 @@ class TrainConfig(RewardWeights):
     distill_traffic: float = 0.0  # with privileged: > 0: the student's fit draws a label with weight (1 + distill_traffic) x its other weight where a car or box was less than distill_traffic_gap metres ahead (braking and passing are rare among free laps); 0: no boost
     distill_traffic_gap: float = 2.0  # metres along the track: the reach of distill_traffic
     distill_free_teacher: str = ""  # with privileged: a second teacher file (e.g. a time-trial teacher; PATH@SCALE: at that share of its speed) whose labels the student learns where no car or box is within distill_free_ahead metres ahead or distill_free_behind behind it along the track; the run's teacher labels the rest (a traffic teacher keeps a margin on an empty road too); "" = the one teacher everywhere
+    distill_ahead_speed: float | None = None  # with privileged: m/s; the run's teacher labels as if every car ahead of the student drove no faster than this (one camera frame shows where a car is, not how fast it goes: the labels are what is safe whatever it does; train README); None: at the speeds they drive
     distill_free_ahead: float = 3.0  # metres along the track ahead of a car: a car or box nearer hands its labels to the run's teacher (with distill_free_teacher)
     distill_free_behind: float = 1.0  # metres behind: a car alongside or just passed keeps the run's teacher labelling (with distill_free_teacher)
     distill_balance: float = 0.0  # with privileged: > 0: the student's fit draws a label with weight 1 + distill_balance x |its steering| / the widest steering (hard turns are rare among straights: steering-balanced sampling, as end-to-end driving datasets do); 0: uniform draws
@@ -208,7 +209,7 @@ RANGES = {  # setting: (lowest, highest), inclusive; None: no bound
     "clip": (1e-6, None), "pool_fraction": (0, 1), "checkpoint_every": (0, None), "eval_every": (0, None),
     "snapshot_every": (1e-6, None), "worker_spin_wait": (0, 1), "nature_temperature": (1e-6, None), "max_grad_norm": (1e-12, None),
     "distill_speed_scale": (0.1, 1.0), "init_blend": (0, 1), "distill_balance": (0, None), "distill_traffic": (0, None),
-    "distill_traffic_gap": (0, None), "distill_free_ahead": (0, None), "distill_free_behind": (0, None),
+    "distill_traffic_gap": (0, None), "distill_ahead_speed": (0, None), "distill_free_ahead": (0, None), "distill_free_behind": (0, None),
 }
 
 

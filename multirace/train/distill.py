@@ -67,6 +67,8 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
                                        "stage": "student of an RL teacher (learning by cheating)"}
     if config.distill_free_teacher:
         run.notes["free_road_expert"] = f"teacher:{config.distill_free_teacher}"
+    if config.distill_ahead_speed is not None:
+        run.notes["expert_ahead_speed"] = config.distill_ahead_speed  # m/s: the cars ahead as the teacher took them
     if init:
         run.lineage = init_lineage(init)
     if config.init_blend < 1:

@@ -11,6 +11,7 @@ import numpy as np
 
 from ..environment.bots import PassBot, parse_bot
 from ..environment.drivers import Driver
+from ..environment.state import slowed_ahead
 from ..racing.entrant import TEACHER_PREFIX, teacher_spec
 from ..racing.teacher_net import TeacherDriver
 
@@ -29,8 +30,13 @@ def expert_command(expert: Driver, env, car: int = 0) -> tuple[float, float]:
     return expert_commands(expert, env, [car])[0]
 
 
-def expert_commands(expert: Driver, env, cars) -> list[tuple[float, float]]:
-    """`expert_command` for each of the env's `cars`; a teacher's net runs once for all of them."""
+def expert_commands(expert: Driver, env, cars, ahead_speed: float | None = None) -> list[tuple[float, float]]:
+    """`expert_command` for each of the env's `cars`; a teacher's net runs once for all of them. `ahead_speed`
+    (m/s, a teacher only): the teacher takes the cars ahead of each to drive no faster than that
+    (`state.slowed_ahead`)."""
     if isinstance(expert, TeacherDriver):
-        return expert.drive_many(np.stack([env.car_state(car, expert.view) for car in cars]))
+        states = np.stack([env.car_state(car, expert.view) for car in cars])
+        if ahead_speed is not None:
+            states = slowed_ahead(states, [env.race_state.cars[car].speed for car in cars], ahead_speed)
+        return expert.drive_many(states)
     return [expert.drive(env.race_state, car, None) for car in cars]
