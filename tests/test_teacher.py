@@ -508,10 +508,10 @@ def test_a_teacher_can_label_as_if_the_cars_ahead_drove_no_faster_than_a_speed(t
         state = race_env.car_state(0)
         first = CAR_FEATURES - 12  # the traffic rows: two ahead, one behind, four values each
         assert state[first] == 1.0 and state[first + 3] == pytest.approx((bot - own) / MAX_SPEED, abs=1e-6)
-        slowed = slowed_ahead(state[None], [own], 0.0)[0]
+        slowed = slowed_ahead(state[None], 0.0)[0]
         assert slowed[first + 3] == pytest.approx(-own / MAX_SPEED, abs=1e-6)  # the bot taken to stand still
         assert np.array_equal(np.delete(slowed, first + 3), np.delete(state, first + 3))
-        assert slowed_ahead(state[None], [own], 9.0)[0][first + 3] == state[first + 3]  # no faster than it is
+        assert slowed_ahead(state[None], 9.0)[0][first + 3] == state[first + 3]  # no faster than it is
         label = race_env.actions.nearest(*make_expert(expert, 1.0).drive_many(slowed[None])[0])
         assert infos["car_0"]["expert_action"] == pytest.approx([float(v) for v in label])
         assert expert_commands(make_expert(expert, 1.0), race_env, [0], 0.0) != \

@@ -117,12 +117,12 @@ def _traffic_features(state, i: int, camera=None) -> list[float]:
     return rows
 
 
-def slowed_ahead(features: np.ndarray, own_speeds, speed: float) -> np.ndarray:
-    """`car_features` rows (N, CAR_FEATURES) of cars driving at `own_speeds` (m/s), with every car they list
-    ahead taken to drive at `speed` m/s where it drives faster: the worst case that what a camera frame shows
-    (where a car is, not how fast it goes) cannot rule out. A copy; the cars behind are left as they are."""
+def slowed_ahead(features: np.ndarray, speed: float) -> np.ndarray:
+    """`car_features` rows (N, CAR_FEATURES) with every car they list ahead taken to drive at `speed` m/s where
+    it drives faster: the worst case that what a camera frame shows (where a car is, not how fast it goes)
+    cannot rule out. A copy; the cars behind are left as they are."""
     out = np.array(features, np.float32)
-    assumed = (float(speed) - np.asarray(own_speeds, np.float32)) / MAX_SPEED
+    assumed = float(speed) / MAX_SPEED - out[:, 3]  # (the ego speed is the fourth value, over MAX_SPEED)
     first = CAR_FEATURES - 4 * (TRAFFIC_AHEAD + TRAFFIC_BEHIND)  # the first traffic row
     for k in range(TRAFFIC_AHEAD):
         present, closing = out[:, first + 4 * k], out[:, first + 4 * k + 3]

@@ -37,6 +37,6 @@ def expert_commands(expert: Driver, env, cars, ahead_speed: float | None = None)
     if isinstance(expert, TeacherDriver):
         states = np.stack([env.car_state(car, expert.view) for car in cars])
         if ahead_speed is not None:
-            states = slowed_ahead(states, [env.race_state.cars[car].speed for car in cars], ahead_speed)
+            states = slowed_ahead(states, ahead_speed)
         return expert.drive_many(states)
     return [expert.drive(env.race_state, car, None) for car in cars]
