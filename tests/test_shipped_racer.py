@@ -36,7 +36,8 @@ def test_lidar_racer_reads_the_lidar_never_trained_on_a_held_out_track_and_can_c
 
 
 def test_lidar_racer_laps_a_held_out_track_clean_and_wins_a_heat_there():
-    from multirace.train.heats import run_heats, summarise_heats
+    from multirace.sim.car import CarSpec
+    from multirace.train.heats import INCIDENT_STEPS, run_heats, summarise_heats
 
     row = race_agent(LIDAR_RACER, "Mexico_track", reverse=True, laps=2, seed=1, randomize="mild", step_budget=1.0)
     assert row["clean"], row
@@ -52,3 +53,10 @@ def test_lidar_racer_laps_a_held_out_track_clean_and_wins_a_heat_there():
         assert sum(car["caused_kinds"].values()) == car["collisions_caused"] and set(car["caused_kinds"]) <= kinds
     summary = summarise_heats([heat])["all"][heat["cars"][0]["entrant"]]
     assert summary["caused_kinds"] == racer["caused_kinds"]
+    # each of its incidents (heats have no boxes) with the steps that led to it, the last one touching
+    incidents = heat["incidents"]
+    assert len(incidents) == racer["collisions_caused"] > 0
+    assert {kind: sum(i["kind"] == kind for i in incidents) for kind in racer["caused_kinds"]} == racer["caused_kinds"]
+    for incident in incidents:
+        assert incident["with"] in field and 1 <= len(incident["steps"]) <= INCIDENT_STEPS
+        assert abs(incident["steps"][-1]["gap"]) < 2 * CarSpec().length

@@ -11,11 +11,15 @@ Per entrant: first places, mean position, laps driven, at-fault collisions
 per lap driven and by kind (`caused_kinds`: rear_end, push_off, side_swipe,
 cut_across, ... as the stewards judged each), penalties, and overtakes (`racing.overtakes`: passes for
 position on track, attempted and completed): a racer should take most of the
-first places and cause no more collisions per lap than `bot:follow`.
+first places and cause no more collisions per lap than `bot:follow`. Each
+heat's row also holds the agent's at-fault incidents with the steps that led
+to them (`incidents`: both cars' gap, road position, speed and commanded
+speed), to tell a car that never braked from one cut up.
 """
 from __future__ import annotations
 
 import hashlib
+from collections import deque
 from pathlib import Path
 
 from ..environment.race_env import MAX_CARS
@@ -27,6 +31,7 @@ FIELD_BOT = "bot:follow@1.0"
 HEAT_LAPS = 3
 FIELD_ROOM = MAX_CARS - 2  # shipped agents a default heat has room for beside the agent and FIELD_BOT
 STEP_BUDGET = 30.0  # seconds of CPU time per inference step: heats judge driving, not inference speed
+INCIDENT_STEPS = 8  # steps before (and with) an at-fault incident kept in its record (about half a second)
 
 
 def default_field(agent_path) -> list[str]:
@@ -78,13 +83,22 @@ def check_heats(tracks, field) -> None:
 
 class FaultRecorder:
     """A `run_race` recorder that adds to every result car its at-fault incidents by kind (`caused_kinds`:
-    {kind: count})."""
+    {kind: count}), and keeps car 0's at-fault incidents with another car, each with the `INCIDENT_STEPS`
+    steps up to it (`incidents`)."""
 
     def start(self, env) -> None:
-        pass
+        self.incidents, self._seen = [], 0
+        self._pending: list[tuple[dict, list]] = []  # car 0's new contact records, with the steps up to each
+        self._history: deque = deque(maxlen=INCIDENT_STEPS)
 
     def step(self, env, observations=None, rewards=None, infos=None) -> None:
-        pass
+        state = env.race_state
+        self._history.append([(car.race.distance, car.lateral, car.speed, car.command[1]) for car in state.cars])
+        records = env.races[0].collisions
+        for record in records[self._seen:]:  # (the fault may be found later in the incident: judged at the end)
+            if record["with"] in env.car_names:
+                self._pending.append((record, list(self._history)))
+        self._seen = len(records)
 
     def finish(self, env, result: dict) -> None:
         for car in result["cars"]:
@@ -93,6 +107,21 @@ class FaultRecorder:
                 if record["caused"]:
                     kinds[record["kind"]] = kinds.get(record["kind"], 0) + 1
             car["caused_kinds"] = kinds
+        length = env.track.length
+        for record, steps in self._pending:
+            if record["caused"]:
+                other = env.car_names.index(record["with"])
+                self.incidents.append({"time": record["time"], "kind": record["kind"], "with": record["with"],
+                                       "steps": [_incident_step(row[0], row[other], length) for row in steps]})
+
+
+def _incident_step(me: tuple, other: tuple, track_length: float) -> dict:
+    """One step of an incident record: how far `other` was ahead of `me` along the track (m, negative: behind),
+    and [me, other]'s lateral offsets (m, + left of centre), speeds and commanded speeds (m/s); `me` and
+    `other` are (race distance, lateral, speed, commanded speed)."""
+    gap = (other[0] - me[0] + track_length / 2) % track_length - track_length / 2
+    return {"gap": round(gap, 3), "lateral": [round(me[1], 3), round(other[1], 3)],
+            "speed": [round(me[2], 3), round(other[2], 3)], "command_speed": [round(me[3], 3), round(other[3], 3)]}
 
 
 def run_heats(agent_path, tracks, seeds, field=None, laps=HEAT_LAPS, progress=None) -> list[dict]:
@@ -107,8 +136,9 @@ def run_heats(agent_path, tracks, seeds, field=None, laps=HEAT_LAPS, progress=No
         for seed in seeds:
             entrants = [make_controller(spec, **({} if spec.startswith("bot:") else {"step_budget": STEP_BUDGET}))
                         for spec in [str(agent_path), *field]]
+            faults = FaultRecorder()
             result = run_race(entrants, RaceConfig(track=track, race="head_to_head", laps=laps, seed=seed),
-                              recorders=[OvertakeRecorder(), FaultRecorder()])
+                              recorders=[OvertakeRecorder(), faults])
             cars = sorted(result["cars"], key=lambda c: int(c["car"].split("_")[1]))
             row = {"track": result["track"], "seed": seed, "laps": laps, "cars": [
                 {"entrant": spec, "position": car["position"], "laps": car["laps"],
@@ -117,7 +147,7 @@ def run_heats(agent_path, tracks, seeds, field=None, laps=HEAT_LAPS, progress=No
                  "collisions_caused": car["collisions_caused"], "caused_kinds": car["caused_kinds"],
                  "status": car["status"],
                  **{name: car[name] for name in FIELDS}}
-                for spec, car in zip([Path(str(agent_path)).stem] + field, cars)]}
+                for spec, car in zip([Path(str(agent_path)).stem] + field, cars)], "incidents": faults.incidents}
             rows.append(row)
             agent = row["cars"][0]
             say(f"heat {track} seed {seed}: P{agent['position']}, {agent['laps']}/{laps} laps, "
