@@ -521,3 +521,42 @@ def test_a_teacher_can_label_as_if_the_cars_ahead_drove_no_faster_than_a_speed(t
     assert env_settings(make_config("fast", distill_ahead_speed=1.0))["expert_ahead_speed"] == 1.0
     with pytest.raises(ValueError, match="distill_ahead_speed"):
         make_config("fast", distill_ahead_speed=-1.0)
+
+
+@pytest.mark.parametrize("bound_coef", [0.0, 1.0])
+def test_the_bound_loss_brings_a_speed_mean_past_the_top_speed_back_into_the_box(bound_coef):
+    """`bound_coef`: a teacher whose speed mean sits past the action box's top speed (it commands the top speed
+    whatever its samples, so PPO's advantages cannot move it; trd3 in traffic) has it pulled back to the top
+    speed by PPO updates with no advantage to follow; without the loss it stays out there. Means inside the box
+    are left alone."""
+    import torch
+
+    from multirace.environment.actions import load_action_space
+    from multirace.racing.teacher_net import StatePolicyNet
+    from multirace.train.policy import Policy
+    from multirace.train.ppo import beyond_box, ppo_update
+
+    torch.manual_seed(0)
+    space = load_action_space(SPACE)  # speed 0.5-4 m/s
+    net, policy = StatePolicyNet(space), Policy(space)
+    with torch.no_grad():
+        net.mean.bias[1] = 1.6  # speed mean = 2.25 + 1.75 x 1.6 = 5.05 m/s; steering inside the box
+    obs = torch.randn(256, net.features)
+    with torch.no_grad():
+        out = net(obs)
+        act, logp = policy.sample(out)
+    assert out[:, 1].min() > 4.5 and beyond_box(out, space) > 0.1
+    batch = {"obs": obs, "act": act, "logp": logp, "adv": torch.zeros(256), "val": torch.zeros(256),
+             "ret": torch.zeros(256)}
+    config = make_config("fast", minibatch_size=64, epochs=10, bound_coef=bound_coef, ent_coef=0.0,
+                         norm_adv=False)
+    ppo_update(net, policy, torch.optim.SGD(net.parameters(), lr=0.1), batch, config, space, value_only=False)
+    with torch.no_grad():
+        speed = net(obs)[:, 1]
+    if bound_coef:
+        assert speed.max() < 4.25 and speed.mean() > 3.5  # back at the edge (from 5.05), not pushed far in
+    else:
+        assert speed.min() > 4.5
+    assert beyond_box(torch.tensor([[29.0, 3.9, 0.0, 0.0]]), space) == 0.0
+    with pytest.raises(ValueError, match="bound_coef"):
+        make_config("fast", bound_coef=-1.0)

@@ -78,6 +78,7 @@ class TrainConfig(RewardWeights):
     ent_coef: float = 0.01  # entropy bonus (DeepRacer: beta_entropy 0.01)
     vf_coef: float = 0.5  # value loss weight
     max_grad_norm: float = 0.5  # gradient norm clip
+    bound_coef: float = 0.0  # weight of a loss on a continuous policy's mean beyond its action box (squared, in half-ranges past the edge): a mean past the edge commands the edge whatever it is, so none of its samples does less and nothing teaches it back (trd3's speed mean sat above the top speed in traffic: train README); 0: none
     target_kl: float | None = None  # stop an iteration's epochs early above this approximate KL
     norm_adv: bool = True  # normalise advantages per minibatch
     expert_coef: float = 0.0  # weight of an auxiliary imitation loss toward the expert's action (privileged state); 0 = pure RL
@@ -209,7 +210,8 @@ RANGES = {  # setting: (lowest, highest), inclusive; None: no bound
     "clip": (1e-6, None), "pool_fraction": (0, 1), "checkpoint_every": (0, None), "eval_every": (0, None),
     "snapshot_every": (1e-6, None), "worker_spin_wait": (0, 1), "nature_temperature": (1e-6, None), "max_grad_norm": (1e-12, None),
     "distill_speed_scale": (0.1, 1.0), "init_blend": (0, 1), "distill_balance": (0, None), "distill_traffic": (0, None),
-    "distill_traffic_gap": (0, None), "distill_ahead_speed": (0, None), "distill_free_ahead": (0, None), "distill_free_behind": (0, None),
+    "distill_traffic_gap": (0, None), "distill_ahead_speed": (0, None),
+    "bound_coef": (0, None), "distill_free_ahead": (0, None), "distill_free_behind": (0, None),
 }
 
 

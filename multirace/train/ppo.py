@@ -250,9 +250,20 @@ def anneal_learning_rate(optimiser, config: TrainConfig, fraction: float) -> Non
 
 
 # ------------------------------------------------------------------ the PPO update
+def beyond_box(out: torch.Tensor, space) -> torch.Tensor:
+    """How far a continuous policy's means (`out[:, :2]`) lie beyond its action box: the mean over the batch of
+    the squared distance past the box's edges, in half-ranges of the box (0 for means inside it)."""
+    low = torch.as_tensor(space.low, dtype=out.dtype)
+    high = torch.as_tensor(space.high, dtype=out.dtype)
+    half_range = ((high - low) / 2).clamp(min=1e-3)
+    excess = torch.relu((out[:, :2] - (low + high) / 2).abs() / half_range - 1.0)
+    return excess.square().sum(-1).mean()
+
+
 def ppo_update(net, policy: Policy, optimiser, batch: dict, config: TrainConfig, space,
                value_only: bool, pooled: bool = False, generator=None) -> dict:
-    """Clipped PPO epochs over minibatches of the learner's samples (plus the expert loss where asked);
+    """Clipped PPO epochs over minibatches of the learner's samples (plus the expert loss and the loss on means
+    beyond the action box (`bound_coef`) where asked);
     `value_only` fits the value head alone (a fresh head under an --init policy); `pooled`: the images
     are pooled (`nets.pool_image`); `generator`: the minibatches' random source (torch's own if None).
     Returns the statistics."""
@@ -286,6 +297,8 @@ def ppo_update(net, policy: Policy, optimiser, batch: dict, config: TrainConfig,
                 vl = 0.5 * ((value - ret) ** 2).mean()
             ent = policy.entropy(dist).mean()
             loss = pg - config.ent_coef * ent + config.vf_coef * vl
+            if config.bound_coef and not space.discrete:  # pull means past the box's edge back to it
+                loss = loss + config.bound_coef * beyond_box(out, space)
             if config.expert_coef:  # imitation of the expert where it labelled the image
                 labels = batch["expert"][idx]
                 known = labels >= 0 if space.discrete else ~torch.isnan(labels).any(-1)
