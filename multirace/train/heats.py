@@ -107,20 +107,18 @@ class FaultRecorder:
                 if record["caused"]:
                     kinds[record["kind"]] = kinds.get(record["kind"], 0) + 1
             car["caused_kinds"] = kinds
-        length = env.track.length
         for record, steps in self._pending:
             if record["caused"]:
                 other = env.car_names.index(record["with"])
                 self.incidents.append({"time": record["time"], "kind": record["kind"], "with": record["with"],
-                                       "steps": [_incident_step(row[0], row[other], length) for row in steps]})
+                                       "steps": [_incident_step(row[0], row[other], env.track) for row in steps]})
 
 
-def _incident_step(me: tuple, other: tuple, track_length: float) -> dict:
+def _incident_step(me: tuple, other: tuple, track) -> dict:
     """One step of an incident record: how far `other` was ahead of `me` along the track (m, negative: behind),
     and [me, other]'s lateral offsets (m, + left of centre), speeds and commanded speeds (m/s); `me` and
     `other` are (race distance, lateral, speed, commanded speed)."""
-    gap = (other[0] - me[0] + track_length / 2) % track_length - track_length / 2
-    return {"gap": round(gap, 3), "lateral": [round(me[1], 3), round(other[1], 3)],
+    return {"gap": round(track.wrap_ds(other[0] - me[0]), 3), "lateral": [round(me[1], 3), round(other[1], 3)],
             "speed": [round(me[2], 3), round(other[2], 3)], "command_speed": [round(me[3], 3), round(other[3], 3)]}
 
 
