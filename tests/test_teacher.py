@@ -560,3 +560,19 @@ def test_the_bound_loss_brings_a_speed_mean_past_the_top_speed_back_into_the_box
     assert beyond_box(torch.tensor([[29.0, 3.9, 0.0, 0.0]]), space) == 0.0
     with pytest.raises(ValueError, match="bound_coef"):
         make_config("fast", bound_coef=-1.0)
+
+
+def test_a_teachers_entropy_bonus_widens_its_exploration(teacher, tmp_path):
+    """`teacher_ent_coef`: with an entropy bonus the teacher's speed noise grows over an update (so some of
+    its samples brake); without one (the default) PPO alone moves it, and less. (Steering is left out: the
+    fixture's steering std sits at the policy's cap, where no loss moves it.)"""
+    start, _ = teacher
+    widened = {}
+    for bonus in (0.0, 1.0):
+        config = make_config("fast", tracks=("reinvent_base",), action_space=SPACE, max_iterations=1, seed=3,
+                             eval_every=1e9, progress=False, teacher_init=str(start), teacher_lr=1e-3,
+                             teacher_ent_coef=bonus)
+        out = tmp_path / f"ent{bonus}.teacher.pt"
+        train_teacher(config, out, seconds=1e9, log=None)
+        widened[bonus] = float(load_teacher(out).log_std[1] - load_teacher(start).log_std[1])
+    assert widened[1.0] > 0 and widened[1.0] > widened[0.0] + 1e-3, widened

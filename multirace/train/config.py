@@ -91,6 +91,7 @@ class TrainConfig(RewardWeights):
     teacher_lr: float = 3e-4  # the teacher's Adam learning rate
     teacher_epochs: int = 5  # the teacher's passes over each rollout
     teacher_minibatch: int = 512  # the teacher's samples per gradient step
+    teacher_ent_coef: float = 0.0  # the teacher's entropy bonus; 0 lets its std collapse (trd3's speed std fell to 0.08 m/s, so no sample braked: train README)
     teacher_norm_reward: bool = True  # the teacher divides rewards by a running std of the return (as norm_reward)
     teacher_init: str = ""  # with privileged: the teacher starts from this teacher file's weights (an RL fine-tune, e.g. in traffic); "" = from nothing
     teacher_view: str = "all"  # with privileged: the traffic in the teacher's state, "all" (the cars near it) or "camera" (only those its front camera shows: what a camera student can learn to do; environment.state)
@@ -211,7 +212,7 @@ RANGES = {  # setting: (lowest, highest), inclusive; None: no bound
     "snapshot_every": (1e-6, None), "worker_spin_wait": (0, 1), "nature_temperature": (1e-6, None), "max_grad_norm": (1e-12, None),
     "distill_speed_scale": (0.1, 1.0), "init_blend": (0, 1), "distill_balance": (0, None), "distill_traffic": (0, None),
     "distill_traffic_gap": (0, None), "distill_ahead_speed": (0, None),
-    "bound_coef": (0, None), "distill_free_ahead": (0, None), "distill_free_behind": (0, None),
+    "bound_coef": (0, None), "teacher_ent_coef": (0, None), "distill_free_ahead": (0, None), "distill_free_behind": (0, None),
 }
 
 

@@ -71,7 +71,7 @@ def train_teacher(config: TrainConfig, out, seconds: float, log=print) -> dict:
     optimiser = torch.optim.Adam(net.parameters(), lr=config.teacher_lr, eps=1e-5)
     reward_scale = RewardScale(N, config.gamma) if config.teacher_norm_reward else None
     teacher_config = dataclasses.replace(config, lr=config.teacher_lr, epochs=config.teacher_epochs,
-                                         minibatch_size=config.teacher_minibatch, ent_coef=0.0, expert_coef=0.0,
+                                         minibatch_size=config.teacher_minibatch, ent_coef=config.teacher_ent_coef, expert_coef=0.0,
                                          update_precision="float32")  # state inputs: no convolutions to speed up
     robust = RobustKnobs(TrainConfig(), seed=config.seed)  # no pool or nature: every car is the learner
     learner_mask = np.ones((E, A), bool)
