@@ -160,6 +160,23 @@ def test_replays_in_a_row_share_one_writer_process(tmp_path):
     assert [replay_summary(tmp_path / f"{k}.rrd")["steps"] for k in range(2)] == [40, 40]
 
 
+@pytest.mark.skipif(not hasattr(os, "SCHED_BATCH"), reason="Linux's scheduling policies")
+def test_the_writer_and_its_threads_yield_the_core_to_the_race(tmp_path):
+    """The writer (and every thread it started: rerun's own) runs under SCHED_BATCH, so the blocks a race sends
+    it do not take the race's core (replay_process, "The writer yields its core"); the race runs as it did."""
+    recorder = ReplayRecorder(tmp_path / "race.rrd")
+    policies = []
+
+    def look(car):
+        tasks = f"/proc/{recorder._writer.process.pid}/task"
+        policies.extend(os.sched_getscheduler(int(tid)) for tid in os.listdir(tasks))
+
+    run_race([Act("bot:follow@1.5", 100, look)], RaceConfig(laps=3, max_steps=240), recorders=[recorder])
+    assert len(policies) > 1 and set(policies) == {os.SCHED_BATCH}, policies
+    assert os.sched_getscheduler(0) == os.SCHED_OTHER
+    assert replay_summary(tmp_path / "race.rrd")["steps"] == 240
+
+
 def test_a_writer_that_fails_is_an_error_naming_the_file_and_the_old_file_stays(tmp_path):
     path = tmp_path / "race.rrd"
     path.write_bytes(b"the previous replay")

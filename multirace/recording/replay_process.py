@@ -29,6 +29,12 @@ lock another thread held. It is not multiprocessing's 'spawn' either, which impo
 script again in the child (a script without an ``if __name__ == "__main__"`` guard would run its race
 twice). The child gets the parent's `sys.path`, so it imports the same multirace (a wheel or a source tree,
 whatever the working folder holds), and ignores SIGINT: Ctrl-C reaches the race, which stops the writer.
+
+The writer yields its core: it runs under Linux's SCHED_BATCH policy (its threads too), so a message that
+wakes it does not take the race's core from the race; the scheduler runs it on another core, or when the
+race's time slice ends. Under the default policy, each block sent woke the writer onto the race's core for
+its JPEG encoding: the send took 2-3 ms instead of 0.1 ms, most of what the replay cost a race on a busy
+machine. (Elsewhere, where the policy does not exist, the writer runs as any process.)
 """
 from __future__ import annotations
 
@@ -56,8 +62,12 @@ SOCKET_BYTES = 4 << 20  # the socket's send buffer asked for (the system may giv
 ARENA_BYTES = 8 << 20  # shared memory for the images on their way to the writer (about 400 grey frames)
 ANSWER_TIMEOUT = 300.0  # seconds the writer may go without reading or answering before it is taken for hung
 EXIT_WAIT = 5.0  # seconds a failed writer has to answer or end before it is ended
-BOOT = ("import json, signal, sys\n"
+BOOT = ("import json, os, signal, sys\n"
         "signal.signal(signal.SIGINT, signal.SIG_IGN)\n"
+        "try:\n"  # see "The writer yields its core"
+        "    os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))\n"
+        "except (AttributeError, OSError):\n"
+        "    pass\n"
         "sys.path[:] = json.loads(sys.argv[1])\n"
         "from multirace.recording.replay_writer import serve\n"
         "serve(int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]))\n")
