@@ -33,8 +33,8 @@ whatever the working folder holds), and ignores SIGINT: Ctrl-C reaches the race,
 The writer yields its core: it runs under Linux's SCHED_BATCH policy (its threads too), so a message that
 wakes it does not take the race's core from the race; the scheduler runs it on another core, or when the
 race's time slice ends. Under the default policy, each block sent woke the writer onto the race's core for
-its JPEG encoding: the send took 2-3 ms instead of 0.1 ms, most of what the replay cost a race on a busy
-machine. (Elsewhere, where the policy does not exist, the writer runs as any process.)
+its JPEG encoding: on a machine busy with other work the send took 2-3 ms instead of 0.1 ms (README,
+performance). (Elsewhere, where the policy does not exist, the writer runs as any process.)
 """
 from __future__ import annotations
 
