@@ -574,5 +574,5 @@ def test_a_teachers_entropy_bonus_widens_its_exploration(teacher, tmp_path):
                              teacher_ent_coef=bonus)
         out = tmp_path / f"ent{bonus}.teacher.pt"
         train_teacher(config, out, seconds=1e9, log=None)
-        widened[bonus] = float(load_teacher(out).log_std[1] - load_teacher(start).log_std[1])
+        widened[bonus] = (load_teacher(out).log_std[1] - load_teacher(start).log_std[1]).detach().item()
     assert widened[1.0] > 0 and widened[1.0] > widened[0.0] + 1e-3, widened
