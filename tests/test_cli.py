@@ -88,6 +88,9 @@ def test_agent_inspect_and_agent_list_work_by_name_from_any_folder(tmp_path):
         assert Path(row["path"]) == agents_dir() / f"{row['name']}.pt" and row["parameters"] > 100_000
         assert "m/s" in row["actions"] and row["network"]
         assert "clean" in row["held_out"] and "per lap" in row["traffic"]  # agents/README's "At a glance" figures
+    made_by = {row["name"]: row["made_by"] for row in rows}  # the method, and whom it learnt from
+    assert made_by["racer"] == "dagger bot:racingline@0.9, 25 min"
+    assert made_by["racer_h2h"].startswith("dagger RL teacher ") and made_by["racer_h2h"].endswith(" min")
 
 
 def test_race_help_names_every_bot_kind(capsys):

@@ -92,12 +92,13 @@ def test_evaluate_scenarios_report_a_success_rate_per_scenario(tmp_path, capsys)
 
 def test_the_default_heat_field_is_the_other_shipped_agents_and_bot_follow(tmp_path):
     from multirace.resources import list_agents
-    from multirace.train.heats import default_field
+    from multirace.train.heats import default_field, left_out
 
     copy = tmp_path / "mine.pt"
     copy.write_bytes(AGENT.read_bytes())  # a copy of a shipped file is not raced against itself
     field = default_field(copy)
-    assert field == [n for n in list_agents() if n != "dagger_small"] + ["bot:follow@1.0"]
+    others = [n for n in list_agents() if n != "dagger_small"]
+    assert field == others[:6] + ["bot:follow@1.0"] and left_out(copy) == others[6:]  # a heat holds 8 cars
 
 
 def test_evaluate_refuses_bad_parts_heats_entrants_and_heat_tracks_up_front(capsys):
@@ -152,7 +153,7 @@ def test_the_report_figure_draws_zero_counts_from_zero_and_plots_traffic():
 
 
 def test_the_default_heat_field_of_an_agent_that_is_not_shipped_fits_in_a_race(tmp_path):
-    """Seven shipped agents, the bot and an agent of one's own are nine cars: a heat holds eight."""
+    """The shipped agents, the bot and an agent of one's own are more cars than the eight a heat holds."""
     from multirace.environment.race_env import MAX_CARS
     from multirace.resources import list_agents
     from multirace.train.heats import check_heats, default_field, left_out

@@ -689,9 +689,13 @@ def agent_summary(path) -> dict:
     space = ActionSpace(metadata, str(path))
     speeds = [speed for _, speed in space.actions] if space.discrete else [space.low[1], space.high[1]]
     training = metadata.get("training") if isinstance(metadata.get("training"), dict) else {}
-    made = " ".join(str(training[key]) for key in ("method", "expert") if training.get(key))
-    if training.get("minutes"):
-        made += f", {training['minutes']:g} min"
+    expert = str(training.get("expert") or "")
+    if expert.startswith("teacher:"):  # a student of a privileged RL teacher (teacher:FILE[@SCALE]): the file
+        expert = f"RL teacher {Path(expert.removeprefix('teacher:').split('@')[0]).name}"
+    made = " ".join(part for part in (str(training.get("method") or ""), expert) if part)
+    minutes = training.get("minutes") or (training.get("wall_seconds") or 0) / 60
+    if minutes:
+        made += f", {minutes:.0f} min" if minutes >= 1 else f", {minutes:.1f} min"
     state = payload.get("state_dict") or {}
     return {"name": metadata.get("name", path.stem), "network": metadata.get("neural_network"),
             "parameters": sum(int(t.numel()) for t in state.values() if isinstance(t, torch.Tensor)),
