@@ -401,10 +401,11 @@ def test_imported_deepracer_layers_load_or_name_the_field(tmp_path, change, mess
 
 def test_no_build_machine_folders_reach_inspect_or_a_written_file(tmp_path):
     command = "multirace imitate --action-space /home/me/work/agents/space.json --init C:\\runs\\a.pt --out x.pt"
-    path = _save(tmp_path / "a.pt", training={"command": command, "init": {"file": "/srv/runs/b.pt"}})
+    path = _save(tmp_path / "a.pt", training={"command": command, "init": {"file": "/srv/runs/b.pt"},
+                                              "expert": "teacher:/srv/runs/t.teacher.pt@0.95"})
     stored = json.loads(torch.load(path, weights_only=True)["metadata"])  # written without the folders
     assert stored["training"] == {"command": "multirace imitate --action-space space.json --init a.pt --out x.pt",
-                                  "init": {"file": "b.pt"}}
+                                  "init": {"file": "b.pt"}, "expert": "teacher:t.teacher.pt@0.95"}
     for shipped in SHIPPED:  # the shipped files were written on a build machine: what users see has no folder
         shown = json.dumps(inspect_agent(shipped)["metadata"])
         assert "/work/" not in shown and "/home/" not in shown, shipped.name

@@ -350,7 +350,10 @@ def parse_metadata(payload: dict, source: str) -> dict:
     return without_machine_paths(metadata)
 
 
-_ABSOLUTE_PATH = re.compile(r"(?<![\w.:/~-])(?:/|~/|[A-Za-z]:[\\/])(?:[^\s/\\'\"]+[/\\])+(?=[^\s/\\'\"]+)")
+# an absolute path's folders: at a word's start (not inside a URL or a relative path), or right after
+# "teacher:" (an entrant spec naming an RL teacher file, as a student's training metadata records it)
+_ABSOLUTE_PATH = re.compile(r"(?:(?<=teacher:)|(?<![\w.:/~-]))(?:/|~/|[A-Za-z]:[\\/])(?:[^\s/\\'\"]+[/\\])+"
+                            r"(?=[^\s/\\'\"]+)")
 
 
 def without_machine_paths(value):
