@@ -692,9 +692,11 @@ def agent_summary(path) -> dict:
     space = ActionSpace(metadata, str(path))
     speeds = [speed for _, speed in space.actions] if space.discrete else [space.low[1], space.high[1]]
     training = metadata.get("training") if isinstance(metadata.get("training"), dict) else {}
+    from .entrant import TEACHER_PREFIX, teacher_spec
+
     expert = str(training.get("expert") or "")
-    if expert.startswith("teacher:"):  # a student of a privileged RL teacher (teacher:FILE[@SCALE]): the file
-        expert = f"RL teacher {Path(expert.removeprefix('teacher:').split('@')[0]).name}"
+    if expert.startswith(TEACHER_PREFIX):  # a student of a privileged RL teacher: the teacher file's name
+        expert = f"RL teacher {Path(teacher_spec(expert)[0]).name}"
     made = " ".join(part for part in (str(training.get("method") or ""), expert) if part)
     minutes = training.get("minutes") or (training.get("wall_seconds") or 0) / 60
     if minutes:
