@@ -67,7 +67,7 @@ from ..sensors.registry import BY_KIND, CAMERA_KEY, SENSORS
 from ..sensors.suite import SensorSuite, declared_sensors, parse_sensors, suite_of
 from .graphnet import GRAPH_FIELD, GraphNet, plan
 from .nets import NETWORKS, CameraNet, num_outputs_for, parameter_count
-from .entrant import Controller, Forfeit
+from .entrant import TEACHER_PREFIX, Controller, Forfeit, teacher_spec
 
 FORMAT = "multirace-agent"
 FORMAT_VERSION = 1
@@ -692,8 +692,6 @@ def agent_summary(path) -> dict:
     space = ActionSpace(metadata, str(path))
     speeds = [speed for _, speed in space.actions] if space.discrete else [space.low[1], space.high[1]]
     training = metadata.get("training") if isinstance(metadata.get("training"), dict) else {}
-    from .entrant import TEACHER_PREFIX, teacher_spec
-
     expert = str(training.get("expert") or "")
     if expert.startswith(TEACHER_PREFIX):  # a student of a privileged RL teacher: the teacher file's name
         expert = f"RL teacher {Path(teacher_spec(expert)[0]).name}"
