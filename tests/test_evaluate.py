@@ -69,7 +69,21 @@ def test_heats_report_places_and_collisions_caused_per_lap_of_every_entrant(tmp_
         assert entrant["penalties"] == car["penalties"] and entrant["overtakes"] == car["overtakes"]
         assert car["overtakes_completed"] <= min(car["overtakes"], car["overtakes_attempted"])
     assert sum(c["overtakes"] for c in heat["cars"]) == sum(c["overtaken"] for c in heat["cars"])
+    assert figures["dagger_small"]["caused_into_crash"] == sum(i["into_crash"] for i in heat["incidents"])
+    assert all(isinstance(i["into_crash"], bool) for i in heat["incidents"])
     assert (tmp_path / "heats.png").exists()
+
+
+def test_an_incident_is_into_a_crash_only_where_the_car_hit_lost_more_speed_than_brakes_shed():
+    from multirace.sim.car import CarSpec
+    from multirace.train.heats import stopped_by_crash
+
+    brake, dt = CarSpec().brake, 1 / 15  # 0.4 m/s a step at most
+    assert not stopped_by_crash([2.0, 1.6, 1.2, 0.8, 0.4, 0.0], brake, dt)  # full braking to a stop
+    assert not stopped_by_crash([0.9, 0.8, 0.9, 0.85], brake, dt)  # a slow car, steady
+    # a heat's car ahead (2026-11-29, re:Invent 2018 seed 1) that ran into a third car: 1.96 -> 0.45 in a step
+    assert stopped_by_crash([1.611, 1.739, 1.884, 1.855, 1.873, 1.963, 0.45], brake, dt)
+    assert not stopped_by_crash([], brake, dt) and not stopped_by_crash([1.5], brake, dt)
 
 
 @pytest.mark.slow

@@ -281,7 +281,8 @@ def print_heats(agent_name: str, heats: dict, console) -> None:
         for name, f in entrants.items():
             table.add_row(track, name, str(f["heats"]), str(f["first"]), f"{f['mean_position']:.2f}",
                           f"{f['laps_driven']:.1f}", str(f["collisions_caused"]), f"{f['caused_per_lap']:.3f}",
-                          ", ".join(f"{kind} {count}" for kind, count in f.get("caused_kinds", {}).items()) or "-",
+                          (", ".join(f"{kind} {count}" for kind, count in f.get("caused_kinds", {}).items()) or "-")
+                          + (f" ({f['caused_into_crash']} into a crash)" if f.get("caused_into_crash") else ""),
                           *[str(f.get(key, "-")) for key in ("penalties", "overtakes", "overtaken",
                                                              "overtakes_attempted", "overtakes_completed")])
     console.print(table)

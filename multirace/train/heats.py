@@ -14,7 +14,8 @@ position on track, attempted and completed): a racer should take most of the
 first places and cause no more collisions per lap than `bot:follow`. Each
 heat's row also holds the agent's at-fault incidents with the steps that led
 to them (`incidents`: both cars' gap, road position, speed and commanded
-speed), to tell a car that never braked from one cut up.
+speed), to tell a car that never braked from one cut up, and whether the other car
+had just been stopped by a crash of its own (`into_crash`: a pile-up the agent ran into).
 """
 from __future__ import annotations
 
@@ -32,6 +33,7 @@ HEAT_LAPS = 3
 FIELD_ROOM = MAX_CARS - 2  # shipped agents a default heat has room for beside the agent and FIELD_BOT
 STEP_BUDGET = 30.0  # seconds of CPU time per inference step: heats judge driving, not inference speed
 INCIDENT_STEPS = 8  # steps before (and with) an at-fault incident kept in its record (about half a second)
+CRASH_DROP = 2.0  # a car whose speed fell in one step by more than this many times what its brakes shed was stopped by a crash
 
 
 def default_field(agent_path) -> list[str]:
@@ -111,7 +113,9 @@ class FaultRecorder:
             if record["caused"]:
                 other = env.car_names.index(record["with"])
                 self.incidents.append({"time": record["time"], "kind": record["kind"], "with": record["with"],
-                                       "steps": [_incident_step(row[0], row[other], env.track) for row in steps]})
+                                       "steps": [_incident_step(row[0], row[other], env.track) for row in steps],
+                                       "into_crash": stopped_by_crash([row[other][2] for row in steps[:-1]],
+                                                                      env.car_spec.brake, env.dt)})
 
 
 def _incident_step(me: tuple, other: tuple, track) -> dict:
@@ -120,6 +124,13 @@ def _incident_step(me: tuple, other: tuple, track) -> dict:
     `other` are (race distance, lateral, speed, commanded speed)."""
     return {"gap": round(track.wrap_ds(other[0] - me[0]), 3), "lateral": [round(me[1], 3), round(other[1], 3)],
             "speed": [round(me[2], 3), round(other[2], 3)], "command_speed": [round(me[3], 3), round(other[3], 3)]}
+
+
+def stopped_by_crash(speeds: list[float], brake: float, dt: float) -> bool:
+    """Whether a car whose speed (m/s) over consecutive steps of `dt` s was `speeds` lost more in one step than
+    `CRASH_DROP` x what its brakes (`brake` m/s^2) shed: a crash of its own stopped it."""
+    limit = CRASH_DROP * brake * dt
+    return any(before - after > limit for before, after in zip(speeds, speeds[1:]))
 
 
 def run_heats(agent_path, tracks, seeds, field=None, laps=HEAT_LAPS, progress=None) -> list[dict]:
@@ -155,7 +166,8 @@ def run_heats(agent_path, tracks, seeds, field=None, laps=HEAT_LAPS, progress=No
 
 def summarise_heats(rows: list[dict]) -> dict:
     """Per track and over all heats, per entrant: heats, first places, mean position, at-fault collisions per
-    lap driven and by kind, penalties, overtakes (and per lap), overtakes attempted and completed."""
+    lap driven and by kind, penalties, overtakes (and per lap), overtakes attempted and completed; for the
+    agent, how many of its at-fault incidents were into a car a crash had just stopped."""
     def figures(selected):
         out = {}
         for k, name in enumerate(c["entrant"] for c in selected[0]["cars"]):
@@ -172,6 +184,8 @@ def summarise_heats(rows: list[dict]) -> dict:
                          "caused_kinds": dict(sorted(kinds.items(), key=lambda item: -item[1])),
                          "caused_per_lap": total["collisions_caused"] / max(driven, 0.25),
                          "overtakes_per_lap": total["overtakes"] / max(driven, 0.25)}
+        agent = out[selected[0]["cars"][0]["entrant"]]  # its incidents are kept: how many were into a crash
+        agent["caused_into_crash"] = sum(i.get("into_crash", False) for r in selected for i in r["incidents"])
         return out
 
     if not rows:
