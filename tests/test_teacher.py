@@ -246,6 +246,7 @@ def test_train_reuses_a_teacher_with_the_cli(teacher, tmp_path, capsys):
     assert code == 0
     out = capsys.readouterr().out
     assert "teacher 0.0 s, 0 agent-steps" in out
+    assert f"(from the teacher {teacher_path})" in out and "(teacher) in" not in out  # it wrote no teacher file
     agent = load_agent(tmp_path / "c.pt", step_budget=None)
     assert agent.metadata["training"]["expert"] == f"teacher:{teacher_path.name}@0.8"
     assert not (tmp_path / "c.teacher.pt").exists()

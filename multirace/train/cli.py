@@ -244,7 +244,9 @@ def report_privileged(config, args, command) -> int:
             print(f"{name}: reused from {stage['reused']} (trained in {stage.get('trained_seconds')} s)")
         else:
             print(f"{name} first evaluations: {reached or 'none clean'}")
-    print(f"wrote {summary['out']} (camera agent) and {summary['teacher_file']} (teacher) in "
+    teacher_note = f"(from the teacher {summary['teacher_file']})" if teacher.get("reused") else \
+        f"and {summary['teacher_file']} (teacher)"
+    print(f"wrote {summary['out']} (camera agent) {teacher_note} in "
           f"{summary['wall_seconds']} s: teacher {teacher['wall_seconds']} s, {teacher['agent_steps']} agent-steps; "
           f"student {student['wall_seconds']} s, {student['agent_steps']} agent-steps")
     return 0
