@@ -33,7 +33,7 @@ HEAT_LAPS = 3
 FIELD_ROOM = MAX_CARS - 2  # shipped agents a default heat has room for beside the agent and FIELD_BOT
 STEP_BUDGET = 30.0  # seconds of CPU time per inference step: heats judge driving, not inference speed
 INCIDENT_STEPS = 8  # steps before (and with) an at-fault incident kept in its record (about half a second)
-CRASH_DROP = 2.0  # a car whose speed fell in one step by more than this many times what its brakes shed was stopped by a crash
+CRASH_DROP = 2.0  # a speed lost in one step beyond this many times what brakes shed: a crash stopped the car
 
 
 def default_field(agent_path) -> list[str]:
