@@ -146,7 +146,8 @@ def _raw_agent_file(path, metadata: dict, net) -> None:
 
 @pytest.mark.parametrize("sensor, channels, message", [
     (STEREO, 1, "'image' has 1 channel\\(s\\) but field 'sensor' \\['STEREO_CAMERAS'\\] declares STEREO_CAMERAS"),
-    (["FRONT_FACING_CAMERA"], 2, "'image' has 2 channel\\(s\\) but field 'sensor'.*a 2-channel pair is STEREO"),
+    (["FRONT_FACING_CAMERA"], 2, "'image' has 2 channel\\(s\\) but field 'sensor'.*2 channels are "
+                                 "STEREO_CAMERAS or FRONT_FACING_CAMERA_TWO_FRAMES"),
     (["STEREO_CAMERAS", "RADAR"], 2, "metadata field 'sensor': unknown sensor 'RADAR'"),
 ])
 def test_metadata_whose_sensor_and_image_disagree_is_refused_naming_the_file(tmp_path, sensor, channels, message):

@@ -84,7 +84,8 @@ class RaceEnv(ParallelEnv):
     `sensor` is DeepRacer's model_metadata sensor list (default
     ``["FRONT_FACING_CAMERA"]``; see `sensors.suite`). Camera images are uint8
     (H, W) grey (the default), (H, W, 3) colour with ``grayscale=False`` or
-    (H, W, 2) grey pairs [left, right] with ``STEREO_CAMERAS``
+    (H, W, 2) grey pairs [left, right] with ``STEREO_CAMERAS`` or [this
+    step's, the previous step's] with ``FRONT_FACING_CAMERA_TWO_FRAMES``
     (`camera.observation_shape`). An observation is the image, or with
     ``LIDAR`` (or ``lidar=True``) or ``SECTOR_LIDAR`` a dict ``{"camera": image,
     "lidar": 64 float32 ranges}`` or ``{"camera": image, "lidar": 8 binary sectors}``.
@@ -161,6 +162,7 @@ class RaceEnv(ParallelEnv):
                                      np.int64)
         self._bot_sensors = race_suite(self.bots[i - self.num_cars].sensors for i in self._sensor_bots)
         self._bot_observations: dict = {}  # their observations after the last reset or step
+        self._last_images: dict = {}  # {car: its previous camera image}, for sensors that read two frames
         obs_space = self.sensors.space(self.camera)
         self.lidar = scanner(self.car_spec) if self.sensors.lidar else None  # its beams, for replays' echoes
         if observation not in ("camera", "state"):
@@ -263,6 +265,7 @@ class RaceEnv(ParallelEnv):
             self._lidar_rng = np.random.default_rng([seed, 5])
         self.world.connect()
         self._draw = None
+        self._last_images.clear()
         palette = DEFAULT_PALETTE
         self.world.grip[:], self.world.motor[:] = 1.0, 1.0
         if self.randomization.enabled:
@@ -352,6 +355,8 @@ class RaceEnv(ParallelEnv):
         `standing_infos` gives their infos.
         """
         self.core.move_cars(slots, clear)
+        for car in slots:  # a car put somewhere else starts its frames afresh
+            self._last_images.pop(car, None)
         return self._observe()
 
     def standing_infos(self) -> dict:
@@ -390,7 +395,7 @@ class RaceEnv(ParallelEnv):
         if draw is not None and randomization.perception_enabled:
             perturb = functools.partial(apply_image, rng=self._randomizer_rng, draw=draw)
         return SensorView(self.world, cars, self.camera, self.car_spec, self._lidar_rng, self._renderer, jitter,
-                          perturb, self.race_state)
+                          perturb, self.race_state, self._last_images)
 
     def car_state(self, i: int, view: str = "all") -> np.ndarray:
         """Car i's privileged ego state (`state.car_features`, listing the traffic of `view`), what an RL

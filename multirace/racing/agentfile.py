@@ -11,8 +11,9 @@ The metadata is DeepRacer's ``model_metadata.json`` (``sensor``,
 ``training_algorithm``) plus ``name`` (the agent's name), ``image``
 (``{"height", "width", "channels"}`` of the camera it expects) and optional
 ``training`` notes. ``sensor`` is DeepRacer's list (`sensors.suite`): one
-camera, ``FRONT_FACING_CAMERA`` (1 grey or 3 colour channels) or
-``STEREO_CAMERAS`` (2 channels, [left, right]), at most one range sensor,
+camera, ``FRONT_FACING_CAMERA`` (1 grey or 3 colour channels),
+``STEREO_CAMERAS`` (2 channels, [left, right]) or multirace's
+``FRONT_FACING_CAMERA_TWO_FRAMES`` (2 channels, [now, the step before]), at most one range sensor,
 ``LIDAR`` (64 ranges) or ``SECTOR_LIDAR`` (8 binary sectors), and multirace's
 own sensors such as ``SPEED`` (`sensors.registry`); the net reads each sensor
 beside the camera as the registry's schema sizes it
@@ -110,7 +111,7 @@ def save_agent(path, net: CameraNet, metadata: dict, verify: bool = False) -> Pa
     h, w, c = net.image_shape
     metadata.setdefault("image", {"height": h, "width": w, "channels": c})
     try:
-        reads = net_sensors(net)
+        reads = net_sensors(net, declared_camera(metadata))
     except ValueError as exc:
         raise AgentFileError(f"{path}: {exc}") from None
     metadata.setdefault("sensor", reads.names)
@@ -128,10 +129,26 @@ def save_agent(path, net: CameraNet, metadata: dict, verify: bool = False) -> Pa
     return write_agent_file(path, metadata, net, verify)
 
 
-def net_sensors(net: CameraNet) -> SensorSuite:
-    """The sensors a net reads: a stereo pair on 2-channel images; per vector input the registry's sensor of
-    that key and size (LIDAR 64 inputs, SECTOR_LIDAR 8, SPEED 1)."""
-    sensors = [BY_KIND["stereo" if net.image_shape[2] == 2 else "mono"]]
+def declared_camera(metadata: dict) -> str | None:
+    """The camera kind a metadata's ``sensor`` list names (None where it names none that parses: the metadata's
+    check reports it)."""
+    try:
+        return parse_sensors(metadata["sensor"]).camera
+    except (KeyError, ValueError):
+        return None
+
+
+def net_sensors(net: CameraNet, camera: str | None = None) -> SensorSuite:
+    """The sensors a net reads: its `camera` (a `SensorSuite` camera kind; default: a stereo pair on 2-channel
+    images, else the single camera), which must give the net's channels; per vector input the registry's
+    sensor of that key and size (LIDAR 64 inputs, SECTOR_LIDAR 8, SPEED 1)."""
+    channels = net.image_shape[2]
+    kind = camera or ("stereo" if channels == 2 else "mono")
+    expected = camera_channels(kind)
+    if not (channels == expected if expected else channels in (1, 3)):
+        raise ValueError(f"the net reads {channels}-channel images; {BY_KIND[kind].name} gives "
+                         f"{expected or '1 (grey) or 3 (colour)'}")
+    sensors = [BY_KIND[kind]]
     for key, size in net.vector_inputs.items():
         fits = [sensor for sensor in SENSORS if sensor.key == key and sensor.inputs == size]
         if not fits:
@@ -139,6 +156,12 @@ def net_sensors(net: CameraNet) -> SensorSuite:
             raise ValueError(f"the net reads {size} {key!r} inputs; the sensors of that key give: {known}")
         sensors.append(fits[0])
     return suite_of(sensors)
+
+
+def camera_channels(kind: str) -> int | None:
+    """The channels a camera kind's images have: 2 for a stereo pair or two frames, None for the single camera
+    (1 grey or 3 colour)."""
+    return BY_KIND[kind].channels
 
 
 def agent_file_bytes(metadata: dict, net) -> bytes:
@@ -417,9 +440,11 @@ def check_metadata(metadata: dict, source: str):
     if not (32 <= shape[0] <= 1080 and 32 <= shape[1] <= 1920 and shape[2] in (1, 2, 3)):
         raise AgentFileError(f"{source}: metadata field 'image' {image!r} out of range "
                              "(32-1080 x 32-1920 pixels, 1 to 3 channels)")
-    if (shape[2] == 2) != (sensors.camera == "stereo"):
-        reads = ("STEREO_CAMERAS, a grey pair of 2 channels [left, right]" if sensors.camera == "stereo" else
-                 "a single camera of 1 (grey) or 3 (colour) channels; a 2-channel pair is STEREO_CAMERAS")
+    if (shape[2] == 2) != (camera_channels(sensors.camera) == 2):
+        reads = {"stereo": "STEREO_CAMERAS, a grey pair of 2 channels [left, right]",
+                 "frames": "FRONT_FACING_CAMERA_TWO_FRAMES, 2 grey channels [now, the step before]"}.get(
+            sensors.camera, "a single camera of 1 (grey) or 3 (colour) channels; 2 channels are STEREO_CAMERAS "
+                            "or FRONT_FACING_CAMERA_TWO_FRAMES")
         raise AgentFileError(f"{source}: metadata field 'image' has {shape[2]} channel(s) but field 'sensor' "
                              f"{metadata['sensor']!r} declares {reads}")
     network = metadata.get("neural_network")
@@ -465,7 +490,7 @@ class Agent:
         values = observation if isinstance(observation, dict) else {CAMERA_KEY: observation}
         image = np.asarray(values.get(CAMERA_KEY))
         height, width, channels = self.image_shape
-        if channels == 1 and image.shape in ((height, width, 1), (height, width, 2)):  # grey, or a stereo pair's left
+        if channels == 1 and image.shape in ((height, width, 1), (height, width, 2)):  # grey, or a pair's first image
             image = image[:, :, 0]
         if image.shape != observation_shape(self.image_shape) or image.dtype != np.uint8:
             raise ValueError(f"observation {image.shape} {image.dtype} does not match the {height}x{width}x{channels} "

@@ -6,7 +6,7 @@ agent networks, agent files, export/import and training read it from here.
 """
 from __future__ import annotations
 
-from .camera_sensors import FrontCamera, StereoCameras
+from .camera_sensors import FrontCamera, StereoCameras, TwoFrameCamera
 from .lidar_sensors import LidarSensor, SectorLidar
 from .sensor import Sensor
 from .speed import Speed
@@ -14,6 +14,7 @@ from .speed import Speed
 SENSORS: tuple[Sensor, ...] = (
     FrontCamera(),
     StereoCameras(),
+    TwoFrameCamera(),
     LidarSensor(),
     SectorLidar(),
     Speed(),

@@ -1,6 +1,7 @@
 """The schema of one sensor: a named input with its space and its values, the entries of `registry`.
 
-A `Sensor` is stateless: its DeepRacer-style name (the model_metadata
+A `Sensor` is stateless (what one must remember between steps, the env keeps
+in the view: `SensorView.last_images`): its DeepRacer-style name (the model_metadata
 ``sensor`` list's word for it), the observation key it fills (a car carries
 one sensor per key: ``camera``, ``lidar``, ...), the number of float32 values
 it gives per step (0 for a camera image), its gymnasium space for the env's
@@ -32,6 +33,8 @@ class SensorView(NamedTuple):
     camera_jitter: np.ndarray | None = None  # (cars, 3) camera mount offsets of this episode (domain randomisation)
     perturb: Callable[[np.ndarray], np.ndarray] | None = None  # image perturbation of this episode, per image
     race_state: Any = None  # the RaceState published after the previous reset or step (None before the first)
+    last_images: dict | None = None  # {car: its camera image of the previous observation}, kept by the env for
+    # sensors that read two frames (they update it); emptied at every reset and for cars put somewhere else
 
 
 class Sensor:

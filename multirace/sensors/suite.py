@@ -11,7 +11,9 @@ DeepRacer's ``sensor`` list combines one camera and at most one range sensor:
   0.5 m).
 
 multirace adds sensors DeepRacer's cars do not have, for research: ``SPEED``
-(the car's own drive speed). A car carries one sensor per observation key
+(the car's own drive speed) and ``FRONT_FACING_CAMERA_TWO_FRAMES`` (the single
+grey camera's image and the one a step before it, a 2-channel image [now,
+before]: how fast things move, which one frame cannot show). A car carries one sensor per observation key
 (one camera, at most one LIDAR, ...). An unknown name is an error, never
 silently dropped.
 
@@ -32,7 +34,7 @@ from .sensor import Sensor, SensorView
 
 @dataclasses.dataclass(frozen=True)
 class SensorSuite:
-    """A car's sensors: its camera ("mono" or "stereo"), its range sensor (None, "lidar" or "sector") and the
+    """A car's sensors: its camera ("mono", "stereo" or "frames"), its range sensor (None, "lidar" or "sector") and the
     kinds of its other sensors (e.g. ("speed",)), each a `registry` entry."""
 
     camera: str = "mono"
@@ -93,7 +95,8 @@ def suite_of(sensors, where: str = "sensor", names=None) -> SensorSuite:
     keys = [sensor.key for sensor in sensors]
     if len(set(keys)) != len(keys):
         raise ValueError(f"{where}: {names!r} names more than one camera or more than one LIDAR; a car carries one "
-                         "sensor per kind: one camera (FRONT_FACING_CAMERA or STEREO_CAMERAS), at most one of "
+                         "sensor per kind: one camera (FRONT_FACING_CAMERA, STEREO_CAMERAS or "
+                         "FRONT_FACING_CAMERA_TWO_FRAMES), at most one of "
                          "LIDAR, SECTOR_LIDAR")
     by_key = {sensor.key: sensor for sensor in sensors}
     if CAMERA_KEY not in by_key:

@@ -128,7 +128,7 @@ class TrainingRun:
         if not self.config.deepracer_log:
             return None
         metadata = make_metadata(space, net.network, self.out.stem, image_shape, training_algorithm="clipped_ppo",
-                                 sensor=net_sensors(net).names)
+                                 sensor=net_sensors(net, self.config.sensors().camera).names)
         return DeepRacerFolder(self.out.with_name(self.out.stem + ".deepracer"), metadata, self.config)
 
     # ------------------------------------------------------------ history
@@ -318,7 +318,7 @@ def save_agent_file(path, net, space, config: TrainConfig, image_shape, training
     """The agent file of a PPO net (its value head is not saved)."""
     name = Path(path).stem
     metadata = make_metadata(space, net.network, name, image_shape, training_algorithm="clipped_ppo",
-                             sensor=net_sensors(net).names, training=training)
+                             sensor=net_sensors(net, config.sensors().camera).names, training=training)
     return save_agent(path, net, metadata)
 
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
+import torch
+
 from ..racing.agentfile import metadata_sensors, parse_metadata, read_payload
 from ..racing.nets import CameraNet, add_vector_inputs
 from ..sensors.suite import SensorSuite
@@ -13,7 +15,9 @@ def load_init_agent(path, net) -> None:
     """Initialise the policy from an agent file (e.g. a DAgger imitation agent); the value head stays new.
 
     An agent can start a net that reads more vector sensors (a camera-only agent a LIDAR net): the inputs it
-    lacks start with zero weight (`add_vector_inputs`), after the ones it has.
+    lacks start with zero weight (`add_vector_inputs`), after the ones it has. A single grey camera's agent
+    can start a net of 2-channel images (two frames, or a stereo pair): it reads the first channel as the
+    agent read its image, the second starts with zero weight.
     """
     payload = read_payload(path)
     state = {k: v for k, v in payload["state_dict"].items() if not k.startswith("value_head.")}
@@ -27,6 +31,7 @@ def load_init_agent(path, net) -> None:
         load_init_agent(path, narrow)
         net.load_state_dict(add_vector_inputs(narrow, lacks).state_dict())
         return
+    state = _with_image_channels(state, net, path)
     missing, unexpected = net.load_state_dict(state, strict=False)
     if unexpected or any(not k.startswith("value_head.") for k in missing):
         raise ValueError(f"--init {path}: weights do not match the network ({missing or unexpected})")
@@ -52,3 +57,18 @@ def init_lineage(path) -> dict:
     metadata = parse_metadata(payload, str(path))
     return {"file": Path(path).name, "sha256": hashlib.sha256(Path(path).read_bytes()).hexdigest(),
             "name": metadata.get("name"), "training": metadata.get("training")}
+
+
+def _with_image_channels(state: dict, net, path) -> dict:
+    """`state` with its first convolution widened to `net`'s image channels where the agent read one grey
+    channel and the net reads more: the new channels' weights are zero, so the net acts as the agent did."""
+    first = next(name for name, value in net.conv.state_dict().items() if value.dim() == 4)
+    key, wanted = f"conv.{first}", net.image_shape[2]
+    weight = state.get(key)
+    if weight is None or weight.shape[1] == wanted:
+        return state
+    if weight.shape[1] != 1:
+        raise ValueError(f"--init {path}: the agent reads {weight.shape[1]}-channel images, the net {wanted}")
+    widened = torch.zeros(weight.shape[0], wanted, *weight.shape[2:], dtype=weight.dtype)
+    widened[:, :1] = weight
+    return {**state, key: widened}
