@@ -52,12 +52,12 @@ def test_held_out_rows_carry_the_racing_line_reference_and_clean_runs_both_ways(
 
 def test_heats_report_places_and_collisions_caused_per_lap_of_every_entrant(tmp_path):
     out = tmp_path / "heats.json"
-    assert main(["evaluate", str(AGENT), "--parts", "heats", "--heats", "1", "--heat-tracks", "Mexico_track",
-                 "--field", "bot:follow@1.0,dagger_fast", "--json", str(out)]) == 0
+    assert main(["evaluate", str(AGENT), "--parts", "heats", "--heats", "1", "--first-heat", "4", "--heat-tracks",
+                 "Mexico_track", "--field", "bot:follow@1.0,dagger_fast", "--json", str(out)]) == 0
     report = json.loads(out.read_text())
     assert report["held_out"] == [] and report["perturbations"] == [] and report["traffic"] == []
     (heat,) = report["heats"]
-    assert heat["track"] == "Mexico_track" and heat["seed"] == 1 and heat["laps"] == 3
+    assert heat["track"] == "Mexico_track" and heat["seed"] == 4 and heat["laps"] == 3  # --first-heat 4
     assert [c["entrant"] for c in heat["cars"]] == ["dagger_small", "bot:follow@1.0", "dagger_fast"]
     assert sorted(c["position"] for c in heat["cars"]) == [1, 2, 3]
     figures = report["summary"]["heats"]["Mexico_track"]

@@ -287,8 +287,11 @@ def add_evaluate_parser(sub) -> None:
     p.add_argument("--quick", action="store_true",
                    help="fewer perturbations, and 3 tracks of the declared held-out split the agent did not train on")
     p.add_argument("--heats", type=COUNT, default=0, metavar="N",
-                   help="also run N head-to-head heats (seeds 1..N, 3 laps) per heat track against the field and "
-                        "report first places and collisions caused per lap (default 0: none)")
+                   help="also run N head-to-head heats (seeds K..K+N-1, --first-heat K, 3 laps) per heat track "
+                        "against the field and report first places and collisions caused per lap (default 0: none)")
+    p.add_argument("--first-heat", type=POSITIVE_INT, default=1, metavar="K",
+                   help="the first heat's seed (default 1): a second run with --first-heat N+1 adds new heats to a "
+                        "first run's N")
     p.add_argument("--heat-tracks", default=None, metavar="TRACKS",
                    help="comma-separated heat tracks (default: reinvent_base and the first held-out track the "
                         "agent did not train on)")

@@ -124,9 +124,9 @@ def held_out_tracks(seen: set, quick: bool = False) -> list[str]:
 def evaluate_agent(agent_path, tracks=None, grid=None, laps=2, seeds=1, reference=None, progress=None,
                    quick=False, directions="forward", randomize=None, heats=0, heat_tracks=None, field=None,
                    parts=("held-out", "perturbations", "traffic", "heats", "scenarios"), scenarios=0,
-                   scenario_track="reinvent_base") -> dict:
-    """The report for one agent file (see the module docstring): the `parts` asked for, heats if `heats` > 0,
-    overtake scenarios if `scenarios` (seeds per scenario) > 0."""
+                   scenario_track="reinvent_base", first_heat=1) -> dict:
+    """The report for one agent file (see the module docstring): the `parts` asked for, heats (seeds
+    `first_heat` onwards) if `heats` > 0, overtake scenarios if `scenarios` (seeds per scenario) > 0."""
     seen = trained_tracks(agent_path)
     if tracks is None:
         tracks = held_out_tracks(seen, quick)
@@ -167,7 +167,8 @@ def evaluate_agent(agent_path, tracks=None, grid=None, laps=2, seeds=1, referenc
         missing = left_out(agent_path) if field is None else []
         if missing:
             say(f"heats: no room in the field for {', '.join(missing)} (a race holds {MAX_CARS} cars)")
-        report["heats"] = run_heats(agent_path, heat_tracks, range(1, heats + 1), field=field, progress=say)
+        report["heats"] = run_heats(agent_path, heat_tracks, range(first_heat, first_heat + heats), field=field,
+                                     progress=say)
     if scenarios > 0 and "scenarios" in parts:
         report["scenarios"] = run_scenarios(agent_path, range(scenarios), scenario_track, progress=say)
     report["summary"] = summarise(report)
@@ -400,7 +401,8 @@ def run_evaluation(args) -> int:
     for agent in args.agents:
         reports.append(evaluate_agent(agent, tracks=tracks, grid=grid, laps=args.laps, seeds=args.seeds,
                                       quick=args.quick, directions=args.directions, randomize=args.randomize,
-                                      heats=args.heats, heat_tracks=_names(args.heat_tracks),
+                                      heats=args.heats, first_heat=args.first_heat,
+                                      heat_tracks=_names(args.heat_tracks),
                                       field=_names(args.field), parts=parts, scenarios=args.scenarios,
                                       scenario_track=args.scenario_track,
                                       progress=lambda line: console.print(f"[dim]{line}[/dim]")))
