@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from multirace.environment.actions import Command
 from multirace.racing.agentfile import AgentController, load_agent
 from multirace.racing.runner import RaceConfig, run_race
 from multirace.train.config import make_config
@@ -523,6 +524,37 @@ def test_a_teacher_can_label_as_if_the_cars_ahead_drove_no_faster_than_a_speed(t
     assert env_settings(make_config("fast", distill_ahead_speed=1.0))["expert_ahead_speed"] == 1.0
     with pytest.raises(ValueError, match="distill_ahead_speed"):
         make_config("fast", distill_ahead_speed=-1.0)
+
+
+def test_with_ahead_seen_only_the_cars_ahead_the_camera_shows_are_taken_that_slow(teacher):
+    """`distill_ahead_seen`: a car alongside, just ahead of the learner's centre but behind its camera, keeps its
+    own speed in the teacher's state; the car straight ahead, which the camera shows, is slowed."""
+    from multirace.environment.race_env import RaceEnv
+    from multirace.environment.state import CAR_FEATURES, ahead_in_camera, slowed_ahead
+    from multirace.train.experts import expert_commands, make_expert
+
+    out, _ = teacher
+    expert = make_expert(f"teacher:{out}", 1.0)
+    env = RaceEnv(num_cars=3, obstacles=0, race="head_to_head", camera=(30, 40))
+    try:
+        env.reset(seed=0)
+        env.move_cars({0: (10.0, 0.0), 1: (10.8, 0.0), 2: (10.15, -0.3)}, clear=False)
+        for _ in range(6):  # all three under way, the two ahead faster than the learner
+            env.step({"car_0": Command((0.0, 0.6)), "car_1": Command((0.0, 1.5)), "car_2": Command((0.0, 1.5))})
+        state = env.car_state(0)
+        first = CAR_FEATURES - 12  # the traffic rows: two ahead, one behind, four values each
+        assert state[first] == state[first + 4] == 1.0 and state[first + 3] > 0 and state[first + 7] > 0
+        shown = ahead_in_camera(env, 0)
+        assert sorted(shown) == [False, True]  # the car straight ahead is shown, the one alongside is not
+        seen_only = slowed_ahead(state[None], 0.0, [shown])[0]
+        hidden, seen = first + 4 * shown.index(False) + 3, first + 4 * shown.index(True) + 3
+        assert seen_only[hidden] == state[hidden] and seen_only[seen] < 0  # only the car shown is slowed
+        assert np.array_equal(slowed_ahead(state[None], 0.0, [[True, True]]), slowed_ahead(state[None], 0.0))
+        assert expert_commands(expert, env, [0], 0.0, ahead_seen=True) == expert.drive_many(seen_only[None])
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match="distill_ahead_seen: needs --set distill_ahead_speed"):
+        make_config("fast", distill_ahead_seen=True)
 
 
 @pytest.mark.parametrize("bound_coef", [0.0, 1.0])

@@ -89,44 +89,59 @@ def in_camera_view(camera, me, other, spec) -> bool:
     return False
 
 
+def _near(state, i: int, camera=None, shown_by=None) -> tuple[list, list]:
+    """The cars within `TRAFFIC_RANGE` ahead of car i and those behind it, each most in the way first
+    (`in_the_way`), as (gap, lateral difference, speed, shown) rows; with `camera` (a `CameraSpec`), only the
+    cars car i's camera shows. `shown` says whether the camera `shown_by` shows the car (False without one)."""
+    ahead, behind = [], []
+    length, width = state.track.length, state.car_spec.width
+    me = state.cars[i]
+    others = [car for car in state.cars if car.located and car.index != i]  # `traffic`'s cars, in its order
+    for (along, lateral, speed), car in zip(state.traffic(i), others):
+        if camera is not None and not in_camera_view(camera, me, car, state.car_spec):
+            continue
+        shown = shown_by is not None and in_camera_view(shown_by, me, car, state.car_spec)
+        if along <= TRAFFIC_RANGE:
+            ahead.append((in_the_way(along, lateral, width), along, lateral, speed, shown))
+        elif length - along <= TRAFFIC_RANGE:
+            behind.append((in_the_way(length - along, lateral, width), length - along, lateral, speed, shown))
+    return [car[1:] for car in sorted(ahead)], [car[1:] for car in sorted(behind)]
+
+
 def _traffic_features(state, i: int, camera=None) -> list[float]:
     """(present, gap / range, lateral difference, speed difference / max) of the cars ahead, then behind, most
     in the way first (`in_the_way`); with `camera` (a `CameraSpec`), only the cars car i's camera shows."""
-    ahead, behind = [], []
-    length, width = state.track.length, state.car_spec.width
-    traffic = state.traffic(i)
-    if camera is not None:
-        me = state.cars[i]
-        others = [car for car in state.cars if car.located and car.index != i]  # `traffic`'s cars, in its order
-        traffic = [seen for seen, car in zip(traffic, others) if in_camera_view(camera, me, car, state.car_spec)]
-    for along, lateral, speed in traffic:
-        if along <= TRAFFIC_RANGE:
-            ahead.append((in_the_way(along, lateral, width), along, lateral, speed))
-        elif length - along <= TRAFFIC_RANGE:
-            behind.append((in_the_way(length - along, lateral, width), length - along, lateral, speed))
     own = state.cars[i].speed
     rows = []
-    for cars, count in (([car[1:] for car in sorted(ahead)], TRAFFIC_AHEAD),
-                        ([car[1:] for car in sorted(behind)], TRAFFIC_BEHIND)):
+    for cars, count in zip(_near(state, i, camera), (TRAFFIC_AHEAD, TRAFFIC_BEHIND)):
         for k in range(count):
             if k < len(cars):
-                gap, lateral, speed = cars[k]
+                gap, lateral, speed, _ = cars[k]
                 rows += [1.0, gap / TRAFFIC_RANGE, lateral, (speed - own) / MAX_SPEED]
             else:
                 rows += [0.0, 1.0, 0.0, 0.0]
     return rows
 
 
-def slowed_ahead(features: np.ndarray, speed: float) -> np.ndarray:
+def ahead_in_camera(env, i: int) -> list[bool]:
+    """For each of the `TRAFFIC_AHEAD` rows ahead of `car_features(env, i)` (view "all"): whether car i's front
+    camera shows that car (False for an empty row)."""
+    ahead, _ = _near(env.race_state, i, shown_by=env.camera)
+    return [k < len(ahead) and ahead[k][3] for k in range(TRAFFIC_AHEAD)]
+
+
+def slowed_ahead(features: np.ndarray, speed: float, only=None) -> np.ndarray:
     """`car_features` rows (N, CAR_FEATURES) with every car they list ahead taken to drive at `speed` m/s where
     it drives faster: the worst case that what a camera frame shows (where a car is, not how fast it goes)
-    cannot rule out. A copy; the cars behind are left as they are."""
+    cannot rule out. `only` (N, TRAFFIC_AHEAD) bools: slow only the rows ahead marked (e.g. the cars a camera
+    shows, `ahead_in_camera`). A copy; the cars behind are left as they are."""
     out = np.array(features, np.float32)
     assumed = float(speed) / MAX_SPEED - out[:, 3]  # (the ego speed is the fourth value, over MAX_SPEED)
     first = CAR_FEATURES - 4 * (TRAFFIC_AHEAD + TRAFFIC_BEHIND)  # the first traffic row
+    marked = np.ones((len(out), TRAFFIC_AHEAD), bool) if only is None else np.asarray(only, bool)
     for k in range(TRAFFIC_AHEAD):
         present, closing = out[:, first + 4 * k], out[:, first + 4 * k + 3]
-        out[:, first + 4 * k + 3] = np.where(present > 0, np.minimum(closing, assumed), closing)
+        out[:, first + 4 * k + 3] = np.where((present > 0) & marked[:, k], np.minimum(closing, assumed), closing)
     return out
 
 

@@ -108,6 +108,7 @@ class TrainConfig(RewardWeights):
     distill_traffic_gap: float = 2.0  # metres along the track: the reach of distill_traffic
     distill_free_teacher: str = ""  # with privileged: a second teacher file (e.g. a time-trial teacher; PATH@SCALE: at that share of its speed) whose labels the student learns where no car or box is within distill_free_ahead metres ahead or distill_free_behind behind it along the track; the run's teacher labels the rest (a traffic teacher keeps a margin on an empty road too); "" = the one teacher everywhere
     distill_ahead_speed: float | None = None  # with privileged: m/s; the run's teacher labels as if every car ahead of the student drove no faster than this (one camera frame shows where a car is, not how fast it goes: the labels are what is safe whatever it does; train README); None: at the speeds they drive
+    distill_ahead_seen: bool = False  # with distill_ahead_speed: only the cars ahead that the student's front camera shows are taken that slow (a car hidden round a bend is labelled at its own speed: slowing for what the student cannot see teaches it to slow on a road that looks empty; train README)
     distill_free_ahead: float = 3.0  # metres along the track ahead of a car: a car or box nearer hands its labels to the run's teacher (with distill_free_teacher)
     distill_free_behind: float = 1.0  # metres behind: a car alongside or just passed keeps the run's teacher labelling (with distill_free_teacher)
     distill_balance: float = 0.0  # with privileged: > 0: the student's fit draws a label with weight 1 + distill_balance x |its steering| / the widest steering (hard turns are rare among straights: steering-balanced sampling, as end-to-end driving datasets do); 0: uniform draws
@@ -152,6 +153,9 @@ class TrainConfig(RewardWeights):
         if self.track_sampling not in TRACK_SAMPLINGS:
             raise ValueError(f"--set track_sampling: expected one of {', '.join(TRACK_SAMPLINGS)}, "
                              f"got {self.track_sampling!r}")
+        if self.distill_ahead_seen and self.distill_ahead_speed is None:
+            raise ValueError("--set distill_ahead_seen: needs --set distill_ahead_speed (the speed the cars the "
+                             "camera shows are taken to drive at)")
 
     def to_dict(self) -> dict:
         return json.loads(json.dumps(dataclasses.asdict(self), default=str))

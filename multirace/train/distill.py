@@ -69,6 +69,8 @@ def distill_student(config: TrainConfig, out, command: str | None = None, log=pr
         run.notes["free_road_expert"] = f"teacher:{config.distill_free_teacher}"
     if config.distill_ahead_speed is not None:
         run.notes["expert_ahead_speed"] = config.distill_ahead_speed  # m/s: the cars ahead as the teacher took them
+        if config.distill_ahead_seen:
+            run.notes["expert_ahead_seen"] = True  # ... only those the student's camera showed
     if init:
         run.lineage = init_lineage(init)
     if config.init_blend < 1:

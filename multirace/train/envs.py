@@ -36,7 +36,8 @@ adds what training needs on top of the race env:
   teacher labels the cars with no car or box near them (a time-trial
   teacher's pace on an open road, the traffic teacher's craft near cars);
   with ``expert_ahead_speed``, the traffic teacher labels as if the cars
-  ahead drove no faster than that (`state.slowed_ahead`);
+  ahead drove no faster than that (`state.slowed_ahead`; with
+  ``expert_ahead_seen``, only the cars ahead that the car's camera shows);
 - per-car episode statistics in the infos (return, length, laps driven,
   collisions caused);
 - optionally (`deepracer_log`), each car's sim-trace row, formatted here (in
@@ -79,7 +80,7 @@ def env_settings(config) -> dict:
             "expert_labels": config.expert_coef > 0, "expert": config.expert, "deepracer_log": config.deepracer_log,
             "free_expert": f"{TEACHER_PREFIX}{config.distill_free_teacher}" if config.distill_free_teacher else "",
             "free_reach": (config.distill_free_ahead, config.distill_free_behind),
-            "expert_ahead_speed": config.distill_ahead_speed,
+            "expert_ahead_speed": config.distill_ahead_speed, "expert_ahead_seen": config.distill_ahead_seen,
             "track_sampling": config.track_sampling}
 
 
@@ -91,7 +92,8 @@ class TrainEnv:
                  sensor=None, episode_steps=1500, terminate_off_track=True, randomize=None, shared=None, worker=0,
                  terminate_collision=False, bots_ahead=0.0, bots_ahead_spread=0.0, expert_labels=False, expert="",
                  deepracer_log=False, observation="camera", pool=1, track_sampling="uniform", rivals=(), rival_cars=0,
-                 state_view="all", free_expert="", free_reach=(3.0, 1.0), expert_ahead_speed=None, **weights):
+                 state_view="all", free_expert="", free_reach=(3.0, 1.0), expert_ahead_speed=None, expert_ahead_seen=False,
+                 **weights):
         self.runs = list(runs)  # [(track name/path or Track rows, reverse)]
         self.sampler = RunSampler(len(self.runs), track_sampling)  # which run each episode races on
         self.num_cars = int(num_cars)
@@ -118,6 +120,7 @@ class TrainEnv:
         self._free_expert = None
         # m/s: a teacher expert takes the cars ahead to drive no faster than this (None: as fast as they drive)
         self.expert_ahead_speed = None if expert_ahead_speed is None else float(expert_ahead_speed)
+        self.expert_ahead_seen = bool(expert_ahead_seen)  # ... only the cars ahead that the car's camera shows
         self.deepracer_log = bool(deepracer_log)  # each step's info carries the car's sim-trace row, formatted here
         self._sim_traces: list[CarSimTrace] = []  # each car's sim-trace rows (new at every reset)
         self.observation = observation  # "camera" (the sensors) or "state" (privileged vectors, for RL teachers)
@@ -245,7 +248,7 @@ class TrainEnv:
         for expert, group, ahead_speed in ((self._expert, busy, self.expert_ahead_speed),
                                            (self._free_expert, free, None)):
             if group:
-                commands.update(zip(group, expert_commands(expert, env, group, ahead_speed)))
+                commands.update(zip(group, expert_commands(expert, env, group, ahead_speed, self.expert_ahead_seen)))
         labels = [space.nearest(*commands[i]) for i in cars]
         return labels if space.discrete else [[float(v) for v in label] for label in labels]
 

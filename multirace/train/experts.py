@@ -11,7 +11,7 @@ import numpy as np
 
 from ..environment.bots import PassBot, parse_bot
 from ..environment.drivers import Driver
-from ..environment.state import slowed_ahead
+from ..environment.state import ahead_in_camera, slowed_ahead
 from ..racing.entrant import TEACHER_PREFIX, teacher_spec
 from ..racing.teacher_net import TeacherDriver
 
@@ -30,13 +30,15 @@ def expert_command(expert: Driver, env, car: int = 0) -> tuple[float, float]:
     return expert_commands(expert, env, [car])[0]
 
 
-def expert_commands(expert: Driver, env, cars, ahead_speed: float | None = None) -> list[tuple[float, float]]:
+def expert_commands(expert: Driver, env, cars, ahead_speed: float | None = None,
+                    ahead_seen: bool = False) -> list[tuple[float, float]]:
     """`expert_command` for each of the env's `cars`; a teacher's net runs once for all of them. `ahead_speed`
     (m/s, a teacher only): the teacher takes the cars ahead of each to drive no faster than that
-    (`state.slowed_ahead`)."""
+    (`state.slowed_ahead`); with `ahead_seen`, only the cars ahead that the car's front camera shows."""
     if isinstance(expert, TeacherDriver):
         states = np.stack([env.car_state(car, expert.view) for car in cars])
         if ahead_speed is not None:
-            states = slowed_ahead(states, ahead_speed)
+            shown = [ahead_in_camera(env, car) for car in cars] if ahead_seen and expert.view == "all" else None
+            states = slowed_ahead(states, ahead_speed, shown)
         return expert.drive_many(states)
     return [expert.drive(env.race_state, car, None) for car in cars]
