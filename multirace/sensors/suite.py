@@ -13,8 +13,8 @@ DeepRacer's ``sensor`` list combines one camera and at most one range sensor:
 multirace adds sensors DeepRacer's cars do not have, for research: ``SPEED``
 (the car's own drive speed) and ``FRONT_FACING_CAMERA_TWO_FRAMES`` (the single
 grey camera's image and the one a step before it, a 2-channel image [now,
-before]: how fast things move, which one frame cannot show). A car carries one sensor per observation key
-(one camera, at most one LIDAR, ...). An unknown name is an error, never
+before]: how fast things move, which one frame cannot show). A car carries
+one sensor per observation key (one camera, at most one LIDAR, ...). An unknown name is an error, never
 silently dropped.
 
 A suite's observation is the camera image alone, or with any other sensor a
@@ -34,8 +34,8 @@ from .sensor import Sensor, SensorView
 
 @dataclasses.dataclass(frozen=True)
 class SensorSuite:
-    """A car's sensors: its camera ("mono", "stereo" or "frames"), its range sensor (None, "lidar" or "sector") and the
-    kinds of its other sensors (e.g. ("speed",)), each a `registry` entry."""
+    """A car's sensors: its camera ("mono", "stereo" or "frames"), its range sensor (None, "lidar" or "sector")
+    and the kinds of its other sensors (e.g. ("speed",)), each a `registry` entry."""
 
     camera: str = "mono"
     lidar: str | None = None

@@ -92,8 +92,8 @@ class TrainEnv:
                  sensor=None, episode_steps=1500, terminate_off_track=True, randomize=None, shared=None, worker=0,
                  terminate_collision=False, bots_ahead=0.0, bots_ahead_spread=0.0, expert_labels=False, expert="",
                  deepracer_log=False, observation="camera", pool=1, track_sampling="uniform", rivals=(), rival_cars=0,
-                 state_view="all", free_expert="", free_reach=(3.0, 1.0), expert_ahead_speed=None, expert_ahead_seen=False,
-                 **weights):
+                 state_view="all", free_expert="", free_reach=(3.0, 1.0), expert_ahead_speed=None,
+                 expert_ahead_seen=False, **weights):
         self.runs = list(runs)  # [(track name/path or Track rows, reverse)]
         self.sampler = RunSampler(len(self.runs), track_sampling)  # which run each episode races on
         self.num_cars = int(num_cars)
