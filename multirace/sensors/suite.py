@@ -14,8 +14,8 @@ multirace adds sensors DeepRacer's cars do not have, for research: ``SPEED``
 (the car's own drive speed) and ``FRONT_FACING_CAMERA_TWO_FRAMES`` (the single
 grey camera's image and the one a step before it, a 2-channel image [now,
 before]: how fast things move, which one frame cannot show). A car carries
-one sensor per observation key (one camera, at most one LIDAR, ...). An unknown name is an error, never
-silently dropped.
+one sensor per observation key (one camera, at most one LIDAR, ...). An
+unknown name is an error, never silently dropped.
 
 A suite's observation is the camera image alone, or with any other sensor a
 dict {key: value} (``{"camera": image, "lidar": ranges, "speed": [m/s]}``).
