@@ -17,10 +17,11 @@ REPO = Path(__file__).resolve().parents[1]
 SPACE = load_action_space(None)
 
 
-def _agent(path, seed, network=SMALL, space=SPACE):
+def _agent(path, seed, network=SMALL, space=SPACE, training=None):
     torch.manual_seed(seed)
     net = build_net(network, (120, 160, 1), space)
-    return save_agent(path, net, make_metadata(space, network, path.stem, net.image_shape))
+    extra = {"training": training} if training else {}
+    return save_agent(path, net, make_metadata(space, network, path.stem, net.image_shape, **extra))
 
 
 def _outputs(path, images):
@@ -60,3 +61,15 @@ def test_agents_that_cannot_blend_are_refused_naming_the_file_and_field(tmp_path
     assert not (tmp_path / "out.pt").exists()
     assert cli_main(["agent", "blend", str(first), str(first), "--share", "1.5", "--out", str(tmp_path / "out.pt")]) == 2
     assert "argument --share: must be at least 0 and at most 1" in capsys.readouterr().err
+
+
+def test_a_blend_has_trained_on_every_track_of_both_lineages(tmp_path):
+    from multirace.train.evaluate import trained_tracks
+
+    start = {"expert": "bot:racingline@0.9", "tracks": ["Oval_track"]}
+    first = _agent(tmp_path / "fast.pt", 1, training={"expert": "teacher:t.teacher.pt", "tracks": ["Mexico_track"],
+                                                      "init": {"file": "start.pt", "training": start}})
+    second = _agent(tmp_path / "careful.pt", 2, training={"expert": "teacher:t.teacher.pt", "tracks": ["Aragon"]})
+    blend = blend_agents(first, second, 0.75, tmp_path / "blend.pt")
+    # evaluate's held-out split leaves out what either blended file, or a file it started from, trained on
+    assert trained_tracks(blend) == {"Mexico_track", "Oval_track", "Aragon"}

@@ -96,7 +96,7 @@ def reference_lap(track: str, reverse: bool = False, laps: int = 2):
 
 
 def trained_tracks(agent_path) -> set:
-    """The tracks an agent file (or a ``teacher:PATH``), and every file it started from, trained on."""
+    """The tracks an agent file (or a ``teacher:PATH``), and every file it started from or blends, trained on."""
     from ..racing.agentfile import parse_metadata, read_payload
     from ..racing.entrant import TEACHER_PREFIX, teacher_spec
     from ..racing.teacher_net import load_teacher
@@ -108,11 +108,21 @@ def trained_tracks(agent_path) -> set:
             training = parse_metadata(read_payload(agent_path), str(agent_path)).get("training")
     except Exception:
         return set()
-    seen = set()
-    while isinstance(training, dict):  # this agent's training, then that of the file it started from, ...
-        seen |= {Path(str(t)).stem for t in training.get("tracks") or []}
-        training = (training.get("init") or {}).get("training") if isinstance(training.get("init"), dict) else None
-    return seen
+    return {Path(str(t)).stem for stage in training_stages(training) for t in stage.get("tracks") or []}
+
+
+def training_stages(training) -> list[dict]:
+    """Every training record of an agent's lineage: its own, then those of the file it started from (`init`)
+    and of the files it is a weight blend of (`blended`), and theirs in turn."""
+    stages, pending = [], [training]
+    while pending:
+        stage = pending.pop(0)
+        if not isinstance(stage, dict):
+            continue
+        stages.append(stage)
+        sources = [stage.get("init")] + list(stage.get("blended") or [])
+        pending.extend(source.get("training") for source in sources if isinstance(source, dict))
+    return stages
 
 
 def held_out_tracks(seen: set, quick: bool = False) -> list[str]:
