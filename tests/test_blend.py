@@ -9,7 +9,7 @@ import torch
 
 from multirace.cli import main as cli_main
 from multirace.environment.actions import load_action_space
-from multirace.racing.agentfile import AgentFileError, load_agent, make_metadata, save_agent
+from multirace.racing.agentfile import AgentFileError, agent_summary, load_agent, make_metadata, save_agent
 from multirace.racing.blend import blend_agents
 from multirace.racing.nets import SMALL, TINY, build_net
 
@@ -43,6 +43,7 @@ def test_a_blend_is_the_share_of_each_agents_weights_and_its_file_says_so(tmp_pa
             expected = 0.25 * a.net.state_dict()[key] + 0.75 * b.net.state_dict()[key]
             torch.testing.assert_close(value, expected)
     assert blend.name == "quarter"
+    assert agent_summary(tmp_path / "quarter.pt")["made_by"] == "weight blend (WiSE-FT), 0.25 fast + 0.75 careful"
     training = blend.metadata["training"]
     assert training["share_of_first"] == 0.25
     assert [part["sha256"] for part in training["blended"]] == [a.sha256, b.sha256]

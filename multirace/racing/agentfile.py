@@ -721,6 +721,12 @@ def agent_summary(path) -> dict:
     if expert.startswith(TEACHER_PREFIX):  # a student of a privileged RL teacher: the teacher file's name
         expert = f"RL teacher {Path(teacher_spec(expert)[0]).name}"
     made = " ".join(part for part in (str(training.get("method") or ""), expert) if part)
+    blended = training.get("blended")
+    share = training.get("share_of_first")
+    if isinstance(blended, list) and len(blended) == 2 and all(isinstance(part, dict) for part in blended) \
+            and isinstance(share, (int, float)):
+        first, second = (part.get("name") for part in blended)
+        made += f", {share:g} {first} + {1 - share:g} {second}"
     minutes = training.get("minutes") or (training.get("wall_seconds") or 0) / 60
     if minutes:
         made += f", {minutes:.0f} min" if minutes >= 1 else f", {minutes:.1f} min"
