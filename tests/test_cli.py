@@ -90,7 +90,8 @@ def test_agent_inspect_and_agent_list_work_by_name_from_any_folder(tmp_path):
         assert "clean" in row["held_out"] and "per lap" in row["traffic"]  # agents/README's "At a glance" figures
     made_by = {row["name"]: row["made_by"] for row in rows}  # the method, and whom it learnt from
     assert made_by["racer"] == "dagger bot:racingline@0.9, 25 min"
-    assert made_by["racer_h2h"].startswith("dagger RL teacher ") and made_by["racer_h2h"].endswith(" min")
+    assert made_by["racer_h2h_lidar"].startswith("dagger RL teacher ") and made_by["racer_h2h_lidar"].endswith(" min")
+    assert made_by["racer_h2h"] == "weight blend (WiSE-FT), 0.75 cg7 + 0.25 cg1"  # of two RL-teacher students
 
 
 def test_race_help_names_every_bot_kind(capsys):
