@@ -74,3 +74,5 @@ def test_a_blend_has_trained_on_every_track_of_both_lineages(tmp_path):
     blend = blend_agents(first, second, 0.75, tmp_path / "blend.pt")
     # evaluate's held-out split leaves out what either blended file, or a file it started from, trained on
     assert trained_tracks(blend) == {"Mexico_track", "Oval_track", "Aragon"}
+    odd = _agent(tmp_path / "odd.pt", 3, training={"tracks": ["Aragon"], "blended": 7, "init": "b.pt"})
+    assert trained_tracks(odd) == {"Aragon"}  # a malformed lineage is read as far as it goes

@@ -120,7 +120,8 @@ def training_stages(training) -> list[dict]:
         if not isinstance(stage, dict):
             continue
         stages.append(stage)
-        sources = [stage.get("init")] + list(stage.get("blended") or [])
+        blended = stage.get("blended")
+        sources = [stage.get("init")] + (blended if isinstance(blended, list) else [])
         pending.extend(source.get("training") for source in sources if isinstance(source, dict))
     return stages
 
