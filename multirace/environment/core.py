@@ -74,6 +74,7 @@ class RaceCore:
         self._place_obstacles(rng)
         self._measure_all()
         self._s = [loc.s for loc in self.geometry]
+        self._prev_distance = [0.0] * self.total_cars
         for i, loc in enumerate(self.geometry):
             s = loc.s
             signed = s - track.length if s > track.length / 2 else s
@@ -114,13 +115,17 @@ class RaceCore:
         contacts = self.world.step(commands)
         self.steps += 1
         self.sim_time = self.steps * self.dt
-        races, last_s, wrap_ds = self.races, self._s, self.track.wrap_ds
-        self._prev_distance = [race.distance for race in races]
+        races, last_s, prev_distance = self.races, self._s, self._prev_distance
+        length = self.track.length
+        half = length / 2
         self._measure_all()
         for i, loc in enumerate(self.geometry):
+            race = races[i]
+            prev_distance[i] = race.distance
             if loc is not None:
-                races[i].distance += wrap_ds(loc.s - last_s[i])
-                last_s[i] = loc.s
+                s = loc[3]  # loc.s
+                race.distance += (s - last_s[i] + half) % length - half  # `Track.wrap_ds`, inline
+                last_s[i] = s
         return self._apply_contacts(contacts)
 
     def _apply_contacts(self, contacts) -> list[set]:
@@ -141,10 +146,11 @@ class RaceCore:
         returns each car's events."""
         rules, length, geometry = self.rules, self.track.length, self.geometry
         events = []
-        for i, race in enumerate(self.races):
-            loc = geometry[i]
-            hit_box = sorted(o[1] for o in touched[i] if o[0] == "obstacle") if touched[i] else ()
-            if loc is None or not race.racing or rules.uneventful(race, loc.wheels_on, loc.s, bool(hit_box), length):
+        for i, (race, loc, near) in enumerate(zip(self.races, geometry, touched)):
+            hit_box = sorted(o[1] for o in near if o[0] == "obstacle") if near else ()
+            # a location's fields by position (wheels_on: 10, s: 3), cheaper than by name
+            if loc is None or race.status != "racing" or rules.uneventful(race, loc[10], loc[3], bool(hit_box),
+                                                                          length):
                 events.append([])
             else:
                 events.append(self._judge(i, loc, hit_box))
@@ -192,6 +198,12 @@ class RaceCore:
         located = self.track.locate_cars(self.world.poses[cars], hints, offset, wheels, points)
         self._hints[cars], self.points[cars] = hints, points
         return located
+
+    def last_locations(self, count: int) -> list[CarLocation]:
+        """`last_geometry` of the first `count` cars."""
+        if not self._stopped:
+            return self.geometry[:count]
+        return [self.last_geometry(i) for i in range(count)]
 
     def last_geometry(self, i: int) -> CarLocation:
         """Car i's location this step, or where it was last located once its run is over."""

@@ -292,7 +292,7 @@ class RaceEnv(ParallelEnv):
         touched = core.advance(self._commands_for(actions))
         params = self._reward_params(touched)
         races, agents = core.races, self.possible_agents
-        racing = [i for i in range(self.num_cars) if races[i].racing]
+        racing = [i for i, race in enumerate(races[:self.num_cars]) if race.status == "racing"]
         rewards = dict.fromkeys(agents, 0.0)
         if racing:  # one call for all cars: a reward file answers from its own process
             racing_agents = [agents[i] for i in racing]
@@ -300,7 +300,7 @@ class RaceEnv(ParallelEnv):
             rewards.update(zip(racing_agents, values))
         events = core.apply_rules(touched)  # self.rules.judge per car, then self.rules.time_up
 
-        done = not any(race.racing for race in races)
+        done = "racing" not in [race.status for race in races]
         truncated = not done and core.steps >= self.max_steps
         if truncated:
             core.end_unfinished("not_finished", f"step limit {self.max_steps} reached")
@@ -325,7 +325,7 @@ class RaceEnv(ParallelEnv):
         space = self.actions
         for i, agent in enumerate(self.possible_agents):
             action = actions.get(agent, _NO_ACTION)
-            if action is _NO_ACTION or not races[i].racing:
+            if action is _NO_ACTION or races[i].status != "racing":
                 continue
             try:
                 steer, speed = (DRIVER_COMMANDS if type(action) is Command else space).command(action)
@@ -411,7 +411,6 @@ class RaceEnv(ParallelEnv):
         """The 27 DeepRacer reward params of every learning car, in DeepRacer's units (its object params: the boxes
         and every other car on track, from `_object_table`); a parked car reads where its run ended."""
         core, track = self.core, self.track
-        locs = [core.last_geometry(i) for i in range(self.num_cars)]
         owners, columns, seen = self._object_table()
         length, races, commands = track.length, core.races, core.commands
         # each car's dict is a copy of one with the step's shared values, in DeepRacer's key order: a dict's copy
@@ -419,26 +418,27 @@ class RaceEnv(ParallelEnv):
         shared = self._shared_params
         shared["steps"], shared["sim_time"] = core.steps, core.sim_time
         every_params = []
-        for i, loc in enumerate(locs):
-            x, y, yaw, s, lateral, _, _, _, _, width, wheels_on = loc
+        for i, (x, y, yaw, s, lateral, segment, _, _, _, width, wheels_on) in enumerate(core.last_locations(
+                self.num_cars)):
             race = races[i]
             steer, speed = commands[i]
             in_camera, behind, ahead = seen[i]
             locations, left, speeds, heading, from_centre, along = map(list.copy, columns)
-            if i in owners:  # leave car i itself out of every column
-                k = owners.index(i)
+            k = owners.get(i)
+            if k is not None:  # leave car i itself out of every column
                 del locations[k], left[k], speeds[k], heading[k], from_centre[k], along[k]
+            status = race.status
             params = shared.copy()
             params["all_wheels_on_track"] = wheels_on == 4
             params["x"], params["y"] = x, y
             params["heading"] = math.degrees(yaw)
             params["distance_from_center"] = abs(lateral)
             params["projection_distance"] = s
-            params["progress"] = race.lap_progress(length) if race.racing else 100.0 * (race.status == "finished")
+            params["progress"] = race.lap_progress(length) if status == "racing" else 100.0 * (status == "finished")
             params["speed"] = float(speed)
             params["steering_angle"] = math.degrees(steer)
             params["track_width"] = width
-            params["closest_waypoints"] = list(track.closest_waypoints(loc))
+            params["closest_waypoints"] = [segment, segment + 1]  # `Track.closest_waypoints`, inline
             params["is_left_of_center"] = lateral > 0
             params["closest_objects"] = [behind, ahead]
             params["objects_location"] = locations
@@ -454,19 +454,20 @@ class RaceEnv(ParallelEnv):
         return every_params
 
     def _object_table(self) -> tuple:
-        """Every object a car can see this step (boxes, then cars on track): the car index of each (-1 for a box),
+        """Every object a car can see this step (boxes, then cars on track): {car index: its place} of the cars,
         the columns (locations (x, y), left_of_centre, speed, heading_deg, distance_from_centre, s), then per
         learning car ``[object_in_camera, *closest_objects]`` (see `objects.objects_seen`).
         """
         core, speeds = self.core, self.world.drive_speed.tolist()
-        rows = core.obstacle_rows + [(j, loc.x, loc.y, loc.lateral > 0, speeds[j], math.degrees(loc.yaw),
-                                      abs(loc.lateral), loc.s)
+        # a location's fields by position (x, y, yaw, s, lateral: 0-4), cheaper than by name
+        rows = core.obstacle_rows + [(j, loc[0], loc[1], loc[4] > 0, speeds[j], math.degrees(loc[2]), abs(loc[4]),
+                                      loc[3])
                                      for j, loc in enumerate(core.geometry) if loc is not None]
         owners, xs, ys, left, speed, heading, from_centre, along = map(list, zip(*rows)) if rows else ([],) * 8
         seen = objects_seen(core.obstacle_points, core.points, core.located, self.world.poses[:self.num_cars],
                             self.track.length, self._tan_half_fov, CAMERA_RANGE)
         columns = (list(zip(xs, ys)), left, speed, heading, from_centre, along)
-        return owners, columns, seen.tolist()
+        return {car: k for k, car in enumerate(owners) if car >= 0}, columns, seen.tolist()
 
     def ranks(self) -> list[int]:
         """Current position (1 = leading) of every car, learning cars then bots."""
@@ -483,12 +484,12 @@ class RaceEnv(ParallelEnv):
         if car.touched:
             names = self.car_names
             touched = sorted(names[o[1]] if o[0] == "car" else f"obstacle_{o[1]}" for o in car.touched)
-        racing = race.racing
+        racing = race.status == "racing"
         # item by item: an update from a dict literal builds that dict first (twice the time, every car and step)
         params["lap"] = race.laps + (1 if racing else 0)
         params["laps_completed"] = race.laps
         params["lap_times"] = list(race.lap_times)
-        params["race_time"] = race.clock(sim_time) if racing else race.finish_time
+        params["race_time"] = sim_time + race.penalty_time if racing else race.finish_time  # `race.clock`
         params["resets"] = race.resets
         params["penalties"] = race.penalties
         params["penalty_time"] = race.penalty_time
