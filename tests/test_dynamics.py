@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 import multirace
+from multirace.sim import dynamics
 from multirace.sim.car import CarSpec
 from multirace.sim.dynamics import GRAVITY
 from multirace.sim.world import World
@@ -129,3 +130,29 @@ def test_grip_and_motor_randomisation_reach_the_car_and_follow_the_seed():
         poses.append(world.poses[0].copy())
     radius, speed = path_radius_and_speed(np.array(poses[-16:]))
     assert speed ** 2 / radius <= 1.05 * 0.6 * SPEC.mu * GRAVITY
+
+
+def test_drive_moves_each_car_as_advance_moves_it_alone():
+    # nine cars: the kernel runs them four to a block, the last block part full; cars 3 and 7 are not driven
+    rng = np.random.default_rng(5)
+    n, rows = 9, np.array([0, 1, 2, 4, 5, 6, 8])
+    params = World(SPEC, 1, 0, 60, 15)._params
+    poses = np.column_stack([rng.uniform(-5, 5, n), rng.uniform(-5, 5, n), rng.uniform(-math.pi, math.pi, n)])
+    motion = np.column_stack([rng.uniform(-0.1, 4.0, n), rng.normal(0, 0.3, n), rng.normal(0, 2.0, n)])
+    pushes = np.column_stack([rng.normal(0, 0.2, n), rng.normal(0, 0.2, n), rng.normal(0, 1.0, n)])
+    commands = np.column_stack([rng.uniform(-0.5, 0.5, n), rng.uniform(0.0, 4.0, n)])
+    grip, motor = rng.uniform(0.8, 1.2, n), rng.uniform(0.8, 1.2, n)
+    moved, velocity = motion.copy(), np.zeros((n, 3))
+    dynamics.drive(poses, moved, velocity, rows, pushes, commands, grip, motor, params, DT)
+    for i in range(n):
+        if i not in rows:
+            assert np.array_equal(moved[i], motion[i]) and not velocity[i].any()
+            continue
+        cos_y, sin_y = math.cos(poses[i, 2]), math.sin(poses[i, 2])
+        push_x, push_y, push_r = pushes[i]
+        u, v, r, x, y, yaw = dynamics.advance(motion[i, 0] + push_x * cos_y + push_y * sin_y,
+                                              motion[i, 1] - push_x * sin_y + push_y * cos_y, motion[i, 2] + push_r,
+                                              commands[i, 0], commands[i, 1], grip[i], motor[i], params, DT)
+        np.testing.assert_allclose(moved[i], [u, v, r], rtol=0, atol=1e-12)
+        world_step = [(x * cos_y - y * sin_y) / DT, (x * sin_y + y * cos_y) / DT, yaw / DT]
+        np.testing.assert_allclose(velocity[i], world_step, rtol=0, atol=1e-12)

@@ -81,7 +81,10 @@ def drive_cars(poses, motion, velocity, drive_speed, parked, stale, pushes, comm
     """One action step of the cars not `parked` under the dynamic model, in one compiled call (each call from
     Python costs per argument): their tyre model (`dynamics.drive`; `drive_speed` is their new forward speed), then,
     with `shortcut`, if no two bodies can touch within the step (`may_touch`), their free move (`move_freely`),
-    marking them `stale`. Returns whether they moved; if not, PyBullet must step them at the velocities set."""
+    marking them `stale`. Returns whether they moved; if not, PyBullet must step them at the velocities set.
+
+    numba's cache keys this kernel on this file alone: a change to `dynamics.drive` (compiled into it) needs a
+    change here too, or a cached copy runs the old tyre model."""
     rows = np.flatnonzero(~parked)
     step_time = dt * substeps
     drive(poses, motion, velocity, rows, pushes, commands, grip, motor, params, step_time)
