@@ -29,6 +29,10 @@ def test_run_profile_reports_every_stage_and_the_renderer_alone(racing):
     labels = [label for label, _ in format_profile(profile)]
     assert labels[:len(STAGES)] == list(STAGES)
     assert profile["renderer_frames_per_s"] > 0 and 0 <= profile["pybullet_step_share"] <= 1
+    floor = profile["floor_us_per_step"]  # the floor's own split: its physics and its camera warps make its step
+    assert floor["physics"] > 0 and floor["warps"] > 0
+    assert abs(floor["physics"] + floor["warps"] - floor["total"]) <= 0.2
+    assert any(label.startswith("floor: physics") for label in labels)
 
 
 

@@ -13,7 +13,7 @@ that keep their gaps, where the random drivers push each other in a bunch
 round the boxes); the share of steps that stepped PyBullet; the fast
 renderer alone; the speed-up of two worker processes over one; memory; and
 the cost of recording a replay. `run_profile` is `multirace bench --profile`: where a step's time
-goes (`profile.py`).
+goes, and its floor's (`profile.py`).
 """
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ from ..environment.actions import Command
 from ..environment.bots import parse_bot
 from ..environment.race_env import RaceEnv
 from ..sensors.camera import camera_pose
-from .profile import profile_step, renderer_frames_per_s
+from .profile import profile_floor, profile_step, renderer_frames_per_s
 
 CAR_COUNTS = (1, 2, 4, 8)
 WINDOWS = 15  # each figure is the best of this many equal time windows, taken in turns
@@ -126,7 +126,8 @@ def _env_stepper(num_cars: int, renderer: str, seed: int = 0, lidar: bool = Fals
 
 
 def _floor_stepper(num_cars: int, seed: int = 0, steps: int = 900, racing: bool = False):
-    """(step, close) of the bare minimum of the env benchmark's run: its physics alone plus one texture warp per camera.
+    """(step, close) of the bare minimum of the env benchmark's run: its physics alone plus one texture warp per camera
+    (`step.world` is the world it steps).
 
     A run of the env benchmark (same cars, obstacles, random actions or `racing` drivers, and seed)
     is recorded first: the commands of every physics step, and every time a car
@@ -184,6 +185,7 @@ def _floor_stepper(num_cars: int, seed: int = 0, steps: int = 900, racing: bool 
         if position[0] == 0:
             restart()
 
+    step.world = world
     return step, env.close
 
 
@@ -303,10 +305,17 @@ def run_profile(num_cars: int = 4, steps: int = 3000, progress=print, racing: bo
         fps = renderer_frames_per_s(env)
     finally:
         env.close()
-    progress(f"profiled {steps} steps of a {num_cars}-car env ({'racing' if racing else 'random drivers'}); "
-             f"renderer alone: {fps:.0f} frames/s")
+    floor_step, close_floor = _floor_stepper(num_cars, racing=racing)
+    try:
+        for _ in range(200):  # untimed lead-in
+            floor_step()
+        floor = profile_floor(floor_step, floor_step.world, steps)
+    finally:
+        close_floor()
+    progress(f"profiled {steps} steps of a {num_cars}-car env ({'racing' if racing else 'random drivers'}) and of "
+             f"its floor; renderer alone: {fps:.0f} frames/s")
     return {"cars": num_cars, "steps": steps, "workload": "racing" if racing else "random", "us_per_step": split,
-            "pybullet_step_share": round(pybullet_share, 3),
+            "floor_us_per_step": floor, "pybullet_step_share": round(pybullet_share, 3),
             "renderer_frames_per_s": round(fps, 1)}
 
 

@@ -1,4 +1,4 @@
-"""`multirace bench --profile`: where the time of an env step goes, stage by stage, and the renderer alone.
+"""`multirace bench --profile`: where the time of an env step and of its floor goes, and the renderer alone.
 
 The stages of `RaceEnv.step`: commands (the actions read as commands, with
 DeepRacer's noise), dynamics (the car model: pushes, tyre kernel, free
@@ -6,7 +6,11 @@ moves, the broad phase), contacts (PyBullet: syncing bodies, stepping,
 contact points, reading poses and pushes), rules (track measurement,
 contacts and the race rules, publishing the race state), params (the reward
 params and infos), reward (the reward function) and render (the
-observations). Each is timed by wrapping the env's, its race core's and the
+observations); beside them the bench's floor for the same workload
+(`bench._floor_stepper`: the env's physics alone and a texture warp per
+camera) split into its physics and its warps (the wrappers slow the
+profiled step by a few us, so the step's ratio to its floor is read from
+`multirace bench`, not from here). Each is timed by wrapping the env's, its race core's and the
 world's own methods on one instance with `time.perf_counter`, so the code of
 an unprofiled env is untouched; what no stage covers (the step's own glue:
 its dicts, the race's end) is "other".
@@ -66,6 +70,22 @@ def profile_step(step, env, steps: int) -> dict:
     return {stage: round(1e6 * seconds / steps, 1) for stage, seconds in totals.items()}
 
 
+def profile_floor(step, world, steps: int) -> dict:
+    """Microseconds per step of the bench's floor (`bench._floor_stepper`'s `step`, which steps `world`): its
+    physics (`World.step`: the tyre model and PyBullet) and the rest (one texture warp per camera, the replay)."""
+    totals = {"physics": 0.0, "total": 0.0}
+    world.step = _timed(world.step, totals, "physics")
+    try:
+        for _ in range(steps):
+            start = time.perf_counter()
+            step()
+            totals["total"] += time.perf_counter() - start
+    finally:
+        del world.step  # the class's own method again
+    totals["warps"] = totals["total"] - totals["physics"]
+    return {part: round(1e6 * seconds / steps, 1) for part, seconds in totals.items()}
+
+
 def renderer_frames_per_s(env, frames: int = 2000) -> float:
     """Frames per second of the fast renderer alone: one 120x160 grey camera on `env`'s track and world."""
     spec = CameraSpec(height=120, width=160, grayscale=True)
@@ -83,7 +103,10 @@ def format_profile(profile: dict) -> list[tuple[str, str]]:
     """(stage, value) rows for printing."""
     split = profile["us_per_step"]
     rows = [(stage, f"{split[stage]:.1f} us ({100 * split[stage] / split['total']:.0f} %)") for stage in STAGES]
+    floor = profile["floor_us_per_step"]
     rows += [("whole step", f"{split['total']:.1f} us"),
+             ("floor: physics (tyre model, PyBullet)", f"{floor['physics']:.1f} us"),
+             ("floor: camera warps (and its replay's glue)", f"{floor['warps']:.1f} us"),
              ("steps that ran PyBullet", f"{100 * profile['pybullet_step_share']:.0f} %"),
              ("renderer alone, 120x160 grey (frames/s)", f"{profile['renderer_frames_per_s']:,.0f}")]
     return rows
