@@ -55,10 +55,7 @@ def profile_step(step, env, steps: int) -> dict:
             setattr(owners[owner], name, _timed(getattr(owners[owner], name), totals, stage))
     env.world.step = _timed(env.world.step, totals, "world")
     try:
-        for _ in range(steps):
-            start = time.perf_counter()
-            step()
-            totals["total"] += time.perf_counter() - start
+        _run(step, steps, totals)
     finally:
         for owner, names in _TIMED.values():
             for name in names:
@@ -67,7 +64,7 @@ def profile_step(step, env, steps: int) -> dict:
     totals["contacts"] = totals.pop("world") - totals["dynamics"]
     covered = sum(totals[stage] for stage in STAGES if stage != "other")
     totals["other"] = totals["total"] - covered
-    return {stage: round(1e6 * seconds / steps, 1) for stage, seconds in totals.items()}
+    return _per_step(totals, steps)
 
 
 def profile_floor(step, world, steps: int) -> dict:
@@ -76,13 +73,23 @@ def profile_floor(step, world, steps: int) -> dict:
     totals = {"physics": 0.0, "total": 0.0}
     world.step = _timed(world.step, totals, "physics")
     try:
-        for _ in range(steps):
-            start = time.perf_counter()
-            step()
-            totals["total"] += time.perf_counter() - start
+        _run(step, steps, totals)
     finally:
         del world.step  # the class's own method again
     totals["warps"] = totals["total"] - totals["physics"]
+    return _per_step(totals, steps)
+
+
+def _run(step, steps: int, totals: dict) -> None:
+    """Call `step` `steps` times, adding the wall time of the calls to totals["total"]."""
+    for _ in range(steps):
+        start = time.perf_counter()
+        step()
+        totals["total"] += time.perf_counter() - start
+
+
+def _per_step(totals: dict, steps: int) -> dict:
+    """Seconds in all steps as microseconds per step, one decimal."""
     return {part: round(1e6 * seconds / steps, 1) for part, seconds in totals.items()}
 
 
