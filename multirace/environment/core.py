@@ -48,9 +48,9 @@ class RaceCore:
         self.commands = [(0.0, 0.0)] * self.total_cars  # (steer rad, speed m/s) per car
         self.geometry: list[CarLocation | None] = []
         self.obstacle_slots: list[tuple[float, int]] = []  # (arc length, lane) of every box
-        self.obstacle_rows: list[tuple] = []  # every box as a row of `RaceEnv`'s object table
-        self.obstacle_points = np.zeros((0, 3))  # every box's (x, y, arc length)
-        self.points = np.zeros((self.total_cars, 3))  # each car's reported point and arc length where last located
+        self.obstacle_points = np.zeros((0, 5))  # every box's (x, y, arc length, lateral offset, yaw)
+        self.points = np.zeros((self.total_cars, 5))  # each car's reported point, arc length, lateral offset and
+        # yaw where last located (`Track.locate_cars`)
         self.located = np.ones(self.total_cars, bool)  # the cars `geometry` locates (not parked)
         self.state: RaceState | None = None
         self._s: list[float] = []  # each car's arc length when its distance was last advanced
@@ -85,8 +85,8 @@ class RaceCore:
     def _place_obstacles(self, rng: np.random.Generator) -> None:
         """Boxes spread around the lap, in alternating lanes, with seeded jitter."""
         count = self.rules.obstacles
-        self.obstacle_slots, self.obstacle_rows = [()] * count, [()] * count
-        self.obstacle_points = np.zeros((count, 3))
+        self.obstacle_slots = [()] * count
+        self.obstacle_points = np.zeros((count, 5))
         if not count:
             return
         track = self.track
@@ -104,8 +104,7 @@ class RaceCore:
         x, y, yaw = self.track.point_at(s, lateral)
         self.world.place_obstacle(k, x, y, yaw)
         self.obstacle_slots[k] = (s, self.track.lane_of(lateral))
-        self.obstacle_rows[k] = (-1, x, y, lateral > 0, 0.0, math.degrees(yaw), abs(lateral), s)
-        self.obstacle_points[k] = (x, y, s)
+        self.obstacle_points[k] = (x, y, s, lateral, yaw)
 
     # -------------------------------------------------------------- step
     def advance(self, commands: list[tuple[float, float]]) -> list[set]:

@@ -33,7 +33,8 @@ from ..sim.car import CarSpec
 from ..sensors.lidar_sensors import scanner
 from ..sensors.sensor import SensorView
 from ..sensors.suite import declared_sensors, race_suite
-from ..sim.objects import objects_seen
+from ..sim.objects import object_table
+from .noise import NoiseBlocks
 from .randomize import Randomization, apply_command, apply_image
 from .reward_process import load_reward_function
 from .rewards import PARAM_KEYS
@@ -180,6 +181,7 @@ class RaceEnv(ParallelEnv):
         self._renderer = None
         self._texture = None
         self._rng = np.random.default_rng()
+        self._noise = NoiseBlocks(self._rng, (self.num_cars, 2))  # DeepRacer's action noise, from `_rng`
         self._randomizer_rng = np.random.default_rng()
         self._lidar_rng = np.random.default_rng()  # LIDAR noise: its own stream, so a scan changes no other draw
         self._draw = None  # this episode's domain-randomisation draw
@@ -261,6 +263,7 @@ class RaceEnv(ParallelEnv):
             if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
                 raise ValueError(f"seed: expected a whole number of at least 0, got {seed!r}")
             self._rng = np.random.default_rng(seed)
+            self._noise = NoiseBlocks(self._rng, (self.num_cars, 2))
             self._randomizer_rng = np.random.default_rng([seed, 3])  # its own stream: same grid either way
             self._lidar_rng = np.random.default_rng([seed, 5])
         self.world.connect()
@@ -277,6 +280,7 @@ class RaceEnv(ParallelEnv):
             self._renderer = None
         if self._renderer is None and (self.observation == "camera" or len(self._sensor_bots)):
             self._renderer = make_renderer(self.renderer_name, self.camera, self.texture)
+        self._noise.settle()  # `_rng` as if the noise had been drawn step by step: the boxes' draws come next
         self.core.start(self._rng)
         for i, bot in enumerate(self.bots, start=self.num_cars):
             bot.reset(self, i)
@@ -320,7 +324,7 @@ class RaceEnv(ParallelEnv):
         spec, races, draw = self.car_spec, self.core.races, self._draw
         randomised = draw is not None and self.randomization.dynamics_enabled
         commands = list(self.core.commands)
-        noise = self._rng.standard_normal((self.num_cars, 2)).tolist()  # DeepRacer's action noise
+        noise = self._noise.next()  # DeepRacer's action noise: a (steer, speed) pair per learning car
         steer_noise, speed_noise, clamp = spec.steer_noise, spec.speed_noise, spec.clamp_command
         space = self.actions
         for i, agent in enumerate(self.possible_agents):
@@ -411,7 +415,7 @@ class RaceEnv(ParallelEnv):
         """The 27 DeepRacer reward params of every learning car, in DeepRacer's units (its object params: the boxes
         and every other car on track, from `_object_table`); a parked car reads where its run ended."""
         core, track = self.core, self.track
-        owners, columns, seen = self._object_table()
+        columns, seen = self._object_table()
         length, races, commands = track.length, core.races, core.commands
         # each car's dict is a copy of one with the step's shared values, in DeepRacer's key order: a dict's copy
         # costs far less than building a 27-key dict
@@ -422,10 +426,9 @@ class RaceEnv(ParallelEnv):
                 self.num_cars)):
             race = races[i]
             steer, speed = commands[i]
-            in_camera, behind, ahead = seen[i]
+            in_camera, behind, ahead, k = seen[i]
             locations, left, speeds, heading, from_centre, along = map(list.copy, columns)
-            k = owners.get(i)
-            if k is not None:  # leave car i itself out of every column
+            if k >= 0:  # leave car i itself out of every column
                 del locations[k], left[k], speeds[k], heading[k], from_centre[k], along[k]
             status = race.status
             params = shared.copy()
@@ -454,20 +457,15 @@ class RaceEnv(ParallelEnv):
         return every_params
 
     def _object_table(self) -> tuple:
-        """Every object a car can see this step (boxes, then cars on track): {car index: its place} of the cars,
-        the columns (locations (x, y), left_of_centre, speed, heading_deg, distance_from_centre, s), then per
-        learning car ``[object_in_camera, *closest_objects]`` (see `objects.objects_seen`).
-        """
-        core, speeds = self.core, self.world.drive_speed.tolist()
-        # a location's fields by position (x, y, yaw, s, lateral: 0-4), cheaper than by name
-        rows = core.obstacle_rows + [(j, loc[0], loc[1], loc[4] > 0, speeds[j], math.degrees(loc[2]), abs(loc[4]),
-                                      loc[3])
-                                     for j, loc in enumerate(core.geometry) if loc is not None]
-        owners, xs, ys, left, speed, heading, from_centre, along = map(list, zip(*rows)) if rows else ([],) * 8
-        seen = objects_seen(core.obstacle_points, core.points, core.located, self.world.poses[:self.num_cars],
-                            self.track.length, self._tan_half_fov, CAMERA_RANGE)
-        columns = (list(zip(xs, ys)), left, speed, heading, from_centre, along)
-        return {car: k for k, car in enumerate(owners) if car >= 0}, columns, seen.tolist()
+        """Every object a car can see this step (boxes, then cars on track) as the params' columns (locations
+        (x, y), left_of_centre, speed, heading_deg, distance_from_centre, s), then per learning car
+        ``[object_in_camera, *closest_objects, its own place in the columns or -1]`` (`objects.object_table`)."""
+        core, world = self.core, self.world
+        values, left, seen = object_table(core.obstacle_points, core.points, core.located, world.drive_speed,
+                                          world.poses, self.num_cars, self.track.length, self._tan_half_fov,
+                                          CAMERA_RANGE)
+        xs, ys, speed, heading, from_centre, along = values.tolist()
+        return (list(zip(xs, ys)), left.tolist(), speed, heading, from_centre, along), seen.tolist()
 
     def ranks(self) -> list[int]:
         """Current position (1 = leading) of every car, learning cars then bots."""

@@ -1,8 +1,9 @@
-"""Which objects each car sees: DeepRacer's `object_in_camera` and `closest_objects`, compiled.
+"""The objects on the track as the reward params list them, and which of them each car sees, compiled.
 
 The reward params list every object on the track (boxes and the other cars)
-for every car; the per-car scan for the one in camera view and the nearest
-ones behind and ahead is done for all cars in one numba call.
+for every car: `object_table` builds the list's columns and, for every
+learning car, DeepRacer's `object_in_camera` and `closest_objects`
+(`objects_seen`) in one numba call.
 """
 from __future__ import annotations
 
@@ -13,12 +14,48 @@ import numpy as np
 
 
 @numba.njit(cache=True)
+def object_table(boxes, points, located, speeds, car_poses, learners, track_length, tan_half_fov, camera_range):
+    """The object list of the reward params: the boxes, then the cars `located` (N,) this step, in order.
+
+    boxes (B, 5) and points (N, 5) are rows of (x, y, arc length on the centre line, lateral offset left of it,
+    yaw): each box's, and each car's reported point where it was last located; speeds (N,) the cars' drive
+    speeds (a box's is 0), car_poses (N, 3) their (x, y, yaw). Returns the list's columns (6, M): x, y, speed,
+    heading in degrees, distance from the centre line, arc length; whether each is left of the centre line (M,);
+    and per learning car (the first `learners`) `objects_seen`'s three values and its own place in the list
+    (-1: not in it), (learners, 4).
+    """
+    num_boxes = boxes.shape[0]
+    count = num_boxes + np.count_nonzero(located)
+    columns = np.empty((6, count))
+    left = np.empty(count, np.bool_)
+    seen = np.full((learners, 4), -1, np.int64)
+    seen[:, :3] = objects_seen(boxes, points, located, car_poses[:learners], track_length, tan_half_fov,
+                               camera_range)
+    k = 0
+    for j in range(num_boxes + points.shape[0]):
+        if j < num_boxes:
+            row, speed = boxes[j], 0.0
+        else:
+            car = j - num_boxes
+            if not located[car]:
+                continue
+            row, speed = points[car], speeds[car]
+            if car < learners:
+                seen[car, 3] = k
+        columns[0, k], columns[1, k], columns[2, k] = row[0], row[1], speed
+        columns[3, k], columns[4, k], columns[5, k] = math.degrees(row[4]), abs(row[3]), row[2]
+        left[k] = row[3] > 0
+        k += 1
+    return columns, left, seen
+
+
+@numba.njit(cache=True)
 def objects_seen(boxes, points, located, car_poses, track_length, tan_half_fov, camera_range):
     """For each of the first n cars (n = len(car_poses)): whether any other object is in its camera view, and the
     closest ones.
 
-    The objects are the boxes, boxes (B, 3) of (x, y, arc length on the centre line), then the cars `located`
-    (N,) this step, at their points (N, 3) of the same (the reported point where each was last located: a
+    The objects are the boxes, boxes (B, 3+) of (x, y, arc length on the centre line, ...), then the cars `located`
+    (N,) this step, at their points (N, 3+) of the same (the reported point where each was last located: a
     parked car's last place); car_poses (n, 3) of (x, y, yaw). Returns (n, 3): per car i, 1 if an object is
     in camera view (else 0), then the indices of the nearest object behind and ahead along the track, counted
     in the object list without car i itself (as DeepRacer's params give them).

@@ -359,8 +359,9 @@ class Track:
         poses (n, 3) of (x, y, yaw) at the body centre; the reported point is
         `offset` metres ahead of it; hints (n,) segment hints (-1 for none);
         wheels (4, 2) the (forward, left) wheel contact points from the centre. Each hint is set to the
-        segment its car is found on (the next step's hint), and each row of points (n, 3) to its car's
-        reported point and arc length (x, y, s), the location's fields in an array.
+        segment its car is found on (the next step's hint), and each row of points (n, 5) to its car's
+        reported point, arc length, lateral offset and yaw (x, y, s, lateral, yaw), the location's fields in an
+        array.
         """
         rows = _locate_cars(poses, hints, offset, wheels, self._segments, points)
         return [tuple.__new__(CarLocation, row) for row in rows]  # named tuples of full rows: no Python __new__ call
@@ -458,7 +459,7 @@ def _foot(x, y, seg):
 @numba.njit(cache=True)
 def _locate_cars(poses, hints, offset, wheels, segments, points):
     """`Track.locate_cars`: a list of `CarLocation` rows (plain tuples, boxed by numba far cheaper than an array
-    turned into one); sets each hint to its car's segment and each row of points to its (x, y, s)."""
+    turned into one); sets each hint to its car's segment and each row of points to its (x, y, s, lateral, yaw)."""
     out = []
     for c in range(poses.shape[0]):
         x, y, yaw = poses[c, 0], poses[c, 1], poses[c, 2]
@@ -474,6 +475,6 @@ def _locate_cars(poses, hints, offset, wheels, segments, points):
             if -right <= lateral + wx * nx + wy * ny <= left:
                 wheels_on += 1
         hints[c] = segment
-        points[c, 0], points[c, 1], points[c, 2] = px, py, s
+        points[c, 0], points[c, 1], points[c, 2], points[c, 3], points[c, 4] = px, py, s, lateral, yaw
         out.append((px, py, yaw, s, lateral, segment, heading, left, right, left + right, wheels_on))
     return out
