@@ -142,3 +142,13 @@ def test_a_discrete_action_is_an_index_given_as_an_int_a_numpy_integer_or_a_one_
     for bad in (-1, 10, np.int64(10)):
         with pytest.raises(ValueError, match="out of range"):
             space.command(bad)
+
+
+def test_a_driver_command_is_taken_as_given_inside_the_range_and_refused_if_not_finite():
+    from multirace.environment.actions import DRIVER_COMMANDS, Command
+
+    assert DRIVER_COMMANDS.command(Command((12.5, 2.0))) == (12.5, 2.0)
+    assert DRIVER_COMMANDS.command(Command((45.0, 9.0))) == (30.0, 4.0)  # outside the range: clipped
+    for bad in ((float("nan"), 1.0), (1.0, float("inf")), (-float("inf"), 1.0)):
+        with pytest.raises(ValueError, match="finite"):
+            DRIVER_COMMANDS.command(Command(bad))

@@ -215,7 +215,8 @@ class CommandSpace(ActionSpace):
         """The command itself for a driver's command; a continuous space's reading of anything else."""
         if type(action) in (tuple, Command) and len(action) == 2:
             steer, speed = action
-            if type(steer) is float and type(speed) is float and math.isfinite(steer) and math.isfinite(speed) \
+            # (inside the finite range: a NaN or an infinity fails the comparisons)
+            if type(steer) is float and type(speed) is float \
                     and self.low[0] <= steer <= self.high[0] and self.low[1] <= speed <= self.high[1]:
                 return action
         return super().command(action)

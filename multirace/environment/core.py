@@ -290,8 +290,9 @@ class RaceCore:
             cars.append(tuple.__new__(CarState, (  # a named tuple of its full row: no Python __new__ call
                 i, name, x, y, yaw, speed, command, located, px, py, s, lateral, width, segment, wheels_on, rank,
                 tuple(sorted(near)) if near else (), tuple(car_events), race, heading, left, right)))
-        self.state = RaceState(self.steps, self.sim_time, self.dt, self.track, self.rules, tuple(cars),
-                               self.world.obstacle_poses, self.num_learners)
+        self.state = tuple.__new__(RaceState, (  # its full row, as the cars'
+            self.steps, self.sim_time, self.dt, self.track, self.rules, tuple(cars), self.world.obstacle_poses,
+            self.num_learners, self.car_spec))
         return self.state
 
 
