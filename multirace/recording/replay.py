@@ -42,7 +42,6 @@ from __future__ import annotations
 import json
 import math
 import os
-from array import array
 from pathlib import Path
 
 import numpy as np
@@ -129,7 +128,7 @@ class ReplayRecorder:
 
     def step(self, env, observations, rewards, infos) -> None:
         self._record_step(env, observations, rewards, infos)
-        if self._row_count >= SHIP_EVERY:
+        if len(self._rows) >= SHIP_EVERY:
             self._ship()
 
     def finish(self, env, result) -> None:
@@ -175,15 +174,14 @@ class ReplayRecorder:
     def _block_reset(self) -> None:
         """A block of up to `SHIP_EVERY` rows, one per step (`_record_step` lays a row out), and the images and
         log entries of those steps."""
-        self._rows = array("d")  # the rows one after the other: no float objects to make, convert and free
-        self._row_count = 0
+        self._rows: list[list[float]] = []
         self._images, self._pictures, self._events, self._echoes = [], [], [], []
 
     def _ship(self) -> None:
         """Hand the block to the writer as arrays (each step's step and time, which cars are recorded, their
         poses and SCALARS, NaN where a car has none) and start a new one."""
-        rows, n = self._row_count, self.n
-        table = np.frombuffer(self._rows, np.float64).reshape(rows, 2 + 9 * n)  # (the shape also of an empty block)
+        rows, n = len(self._rows), self.n
+        table = np.array(self._rows, np.float64).reshape(rows, 2 + 9 * n)  # (the shape also of an empty block)
         cars = table[:, 2 + n:2 + 5 * n].reshape(rows, n, 4)
         agents = table[:, 2 + 5 * n:2 + 8 * n].reshape(rows, n, 3)
         scalars = np.stack([cars[..., 3], agents[..., 0], agents[..., 1], agents[..., 2], table[:, 2 + 8 * n:]],
@@ -198,7 +196,7 @@ class ReplayRecorder:
     def _record_step(self, env, observations, rewards, infos) -> None:
         """Add the step's row to the block: its step and time; whether each car is recorded (while it races,
         on the step its run ends, and on the grid at step 0); each car's x, y, yaw and speed; each agent's
-        progress, reward and rank; each car's standing. Built as a list, then added to the block's array."""
+        progress, reward and rank; each car's standing. A list: cheaper to grow than arrays to fill."""
         state = env.race_state
         step, cars, agents = state.step, state.cars, self._agents
         infos, rewards, nan = infos or {}, rewards or {}, math.nan
@@ -210,8 +208,7 @@ class ReplayRecorder:
             row += (nan, rewards.get(agent, nan), nan) if info is None else (
                 info["progress"], rewards.get(agent, nan), info["rank"])
         row += env.standings()[:self.n]
-        self._rows.extend(row)
-        self._row_count += 1
+        self._rows.append(row)
         take_image = bool(self.image_every) and observations is not None and step % self.image_every == 0
         for i, car in enumerate(cars):
             if self._ended[i]:  # its run ended on an earlier step
@@ -236,7 +233,7 @@ class ReplayRecorder:
         if image.ndim == 3 and image.shape[2] == 2:  # a stereo pair: its left camera
             image = image[..., 0]
         # (carried as a copy: the agent may reuse the array)
-        self._images.append((self._row_count - 1, car.index, self._writer.carry(image)))
+        self._images.append((len(self._rows) - 1, car.index, self._writer.carry(image)))
 
     def _log_events(self, env, car, infos) -> None:
         """Text log entries for what changed in a car's race record this step."""
