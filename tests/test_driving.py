@@ -111,6 +111,13 @@ def test_object_params_list_boxes_and_cars_on_track_and_point_at_the_nearest():
                                          (second["x"], second["y"])]
     assert first["closest_objects"] == [1, 0]  # behind: car_1; ahead: the box
     assert first["object_in_camera"]  # the box, 3 m ahead
+    # the box on the centre line, at rest along the track; car_1 as its own params and the world have it
+    box_heading = math.degrees(env.track.point_at(3.0)[2])
+    assert first["objects_heading"] == [pytest.approx(box_heading), pytest.approx(second["heading"])]
+    assert first["objects_speed"] == [0.0, pytest.approx(float(env.world.drive_speed[1]))]
+    assert first["objects_distance_from_center"] == [pytest.approx(0.0, abs=1e-9),
+                                                     pytest.approx(second["distance_from_center"])]
+    assert first["objects_left_of_center"] == [False, second["is_left_of_center"]]
     # car_1 has car_0 just ahead, and the box farther ahead is the nearest behind going round the lap
     assert second["objects_distance"] == [3.0, pytest.approx(first["projection_distance"])]
     assert second["closest_objects"] == [0, 1]
