@@ -140,6 +140,7 @@ class RaceEnv(ParallelEnv):
             raise ValueError(f"camera: size {height}x{width} out of range 16x16 .. 1080x1920")
         self.camera = CameraSpec(height=height, width=width, grayscale=bool(grayscale))
         self._tan_half_fov = math.tan(self.camera.hfov / 2)  # the object table's `object_in_camera` cone
+        self._object_arrays = (np.empty((6, 0)), np.empty(0, np.bool_), np.empty((0, 4), np.int64))  # its outputs
         if renderer not in ("fast", "pybullet"):
             raise ValueError(f"renderer: unknown renderer {renderer!r}; choose 'fast' or 'pybullet'")
         self.renderer_name = renderer
@@ -461,11 +462,14 @@ class RaceEnv(ParallelEnv):
         (x, y), left_of_centre, speed, heading_deg, distance_from_centre, s), then per learning car
         ``[object_in_camera, *closest_objects, its own place in the columns or -1]`` (`objects.object_table`)."""
         core, world = self.core, self.world
-        values, left, seen = object_table(core.obstacle_points, core.points, core.located, world.drive_speed,
-                                          world.poses, self.num_cars, self.track.length, self._tan_half_fov,
-                                          CAMERA_RANGE)
-        xs, ys, speed, heading, from_centre, along = values.tolist()
-        return (list(zip(xs, ys)), left.tolist(), speed, heading, from_centre, along), seen.tolist()
+        size = len(core.obstacle_points) + self.total_cars
+        if self._object_arrays[1].shape[0] != size:  # (the boxes of this episode)
+            self._object_arrays = np.empty((6, size)), np.empty(size, np.bool_), np.empty((self.num_cars, 4), np.int64)
+        values, left, seen = self._object_arrays
+        count = object_table(core.obstacle_points, core.points, core.located, world.drive_speed, world.poses,
+                             self.num_cars, self.track.length, self._tan_half_fov, CAMERA_RANGE, values, left, seen)
+        xs, ys, speed, heading, from_centre, along = values[:, :count].tolist()
+        return (list(zip(xs, ys)), left[:count].tolist(), speed, heading, from_centre, along), seen.tolist()
 
     def ranks(self) -> list[int]:
         """Current position (1 = leading) of every car, learning cars then bots."""

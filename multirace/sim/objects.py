@@ -14,21 +14,20 @@ import numpy as np
 
 
 @numba.njit(cache=True)
-def object_table(boxes, points, located, speeds, car_poses, learners, track_length, tan_half_fov, camera_range):
-    """The object list of the reward params: the boxes, then the cars `located` (N,) this step, in order.
+def object_table(boxes, points, located, speeds, car_poses, learners, track_length, tan_half_fov, camera_range,
+                 columns, left, seen):
+    """The object list of the reward params: the boxes, then the cars `located` (N,) this step, in order, written
+    into `columns`, `left` and `seen` (arrays the caller keeps: none is made per call); returns its length M.
 
     boxes (B, 5) and points (N, 5) are rows of (x, y, arc length on the centre line, lateral offset left of it,
     yaw): each box's, and each car's reported point where it was last located; speeds (N,) the cars' drive
-    speeds (a box's is 0), car_poses (N, 3) their (x, y, yaw). Returns the list's columns (6, M): x, y, speed,
-    heading in degrees, distance from the centre line, arc length; whether each is left of the centre line (M,);
-    and per learning car (the first `learners`) `objects_seen`'s three values and its own place in the list
-    (-1: not in it), (learners, 4).
+    speeds (a box's is 0), car_poses (N, 3) their (x, y, yaw). Fills the list's columns (6, B + N; the first M
+    columns): x, y, speed, heading in degrees, distance from the centre line, arc length; whether each is left
+    of the centre line (B + N,; the first M); and per learning car (the first `learners`) `objects_seen`'s three
+    values and its own place in the list (-1: not in it), (learners, 4).
     """
     num_boxes = boxes.shape[0]
-    count = num_boxes + np.count_nonzero(located)
-    columns = np.empty((6, count))
-    left = np.empty(count, np.bool_)
-    seen = np.full((learners, 4), -1, np.int64)
+    seen[:, 3] = -1
     seen[:, :3] = objects_seen(boxes, points, located, car_poses[:learners], track_length, tan_half_fov,
                                camera_range)
     k = 0
@@ -46,7 +45,7 @@ def object_table(boxes, points, located, speeds, car_poses, learners, track_leng
         columns[3, k], columns[4, k], columns[5, k] = math.degrees(row[4]), abs(row[3]), row[2]
         left[k] = row[3] > 0
         k += 1
-    return columns, left, seen
+    return k
 
 
 @numba.njit(cache=True)

@@ -28,6 +28,7 @@ and can be sent to worker processes before use.
 """
 from __future__ import annotations
 
+import itertools
 import math
 import os
 from typing import NamedTuple
@@ -257,7 +258,10 @@ class World:
         """
         self.action_steps += 1
         pushes = self._pushes()
-        commands = np.asarray(commands, np.float64)
+        if isinstance(commands, np.ndarray):
+            commands = np.asarray(commands, np.float64)
+        else:  # (steer, speed) pairs: read as one flat run (asarray takes twice the time to find their shape)
+            commands = np.fromiter(itertools.chain.from_iterable(commands), np.float64, 2 * len(commands)).reshape(-1, 2)
         if self.dynamics == "dynamic":
             moved = self._command_dynamic(commands, pushes)
         else:
