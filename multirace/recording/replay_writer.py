@@ -8,9 +8,11 @@ and LIDAR echoes at their step, builds the per-step columns of every `flush_ever
 and writes the recording to the file it was given; it answers ``("done", cpu seconds spent on it)`` once
 the file is complete, or ``("error", reason)``.
 
-rerun's file sink (`save`) encodes and writes the recording as it comes, with one manifest at the end,
-into a pipe whose bytes a thread here writes to the file (`_FileCopy`): a write that fails (a full disk)
-is this process's error, not a log line of rerun's writer thread, and rerun never waits on a failed file.
+rerun's file sink (`save`) encodes and writes the recording as it comes (flushed after each block of
+columns), with one manifest at the end, into a pipe whose bytes a thread here writes to the file and syncs
+to disk every `SYNC_BYTES` (`_FileCopy`): a write that fails (a full disk) is this process's error, not a
+log line of rerun's writer thread, and rerun never waits on a failed file; the race's end waits only for
+the last block's columns, the manifest and the last bytes' sync.
 (Not rerun's binary stream: each read of it is a complete RRD with its own manifest, and a file of two
 is refused by rerun's reader, "CRC check failed"; read once at the end, it costs the race's end time in
 proportion to the whole recording.)
@@ -35,6 +37,7 @@ from .arena import ArenaImage, ImageArena
 from .replay_process import answer, next_file, receive
 
 BLOB_TYPE = pa.list_(pa.field("item", pa.uint8(), nullable=False))  # rerun's `Blob` component
+SYNC_BYTES = 1 << 20  # bytes written to the file between two syncs to disk
 TRACK_LINES = (("center", (235, 190, 40), 0.01), ("inner", (240, 240, 240), 0.025),
                ("outer", (240, 240, 240), 0.025))  # name, colour, radius
 
@@ -149,6 +152,7 @@ class ReplayWriter:
             start += take
             if self._rows == self.flush_every:
                 self._flush()
+                self.rec.flush()  # encoded and in the file now, while the race goes on: less for its end to wait for
 
     def finish(self, result: str | None) -> None:
         """Send the last rows and the result, end the recording and write it to the file in one piece."""
@@ -253,10 +257,16 @@ class _FileCopy:
             raise OSError(f"rerun wrote nothing to {self.path}")
 
     def _copy(self) -> None:
+        unsynced = 0
         while chunk := os.read(self._read, 1 << 20):
             if self.error is None:
                 try:
                     self.file.write(chunk)
                     self.size += len(chunk)
+                    unsynced += len(chunk)
+                    if unsynced >= SYNC_BYTES:  # on disk as it comes: the race's commit (fsync) waits only for the rest
+                        self.file.flush()
+                        os.fdatasync(self.file.fileno())
+                        unsynced = 0
                 except (OSError, ValueError) as exc:  # ValueError: the file was closed (a replay given up)
                     self.error = exc
