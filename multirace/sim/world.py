@@ -261,7 +261,8 @@ class World:
         if isinstance(commands, np.ndarray):
             commands = np.asarray(commands, np.float64)
         else:  # (steer, speed) pairs: read as one flat run (asarray takes twice the time to find their shape)
-            commands = np.fromiter(itertools.chain.from_iterable(commands), np.float64, 2 * len(commands)).reshape(-1, 2)
+            pairs = itertools.chain.from_iterable(commands)
+            commands = np.fromiter(pairs, np.float64, 2 * len(commands)).reshape(-1, 2)
         if self.dynamics == "dynamic":
             moved = self._command_dynamic(commands, pushes)
         else:
