@@ -109,15 +109,16 @@ def test_a_long_replay_holds_every_step_and_every_camera_frame(tmp_path):
 
 
 def test_frames_the_shared_arena_has_no_room_for_reach_the_file_through_the_socket(tmp_path, monkeypatch):
-    # an arena of three grey frames (a fresh writer: the waiting one has the full-size arena): in a 4-car race
-    # most frames find it full and go in the messages themselves; every frame still reaches the file, at its step
-    monkeypatch.setattr(replay_process, "ARENA_BYTES", 3 * 120 * 160)
+    # an arena of six grey frames (a fresh writer: the waiting one has the full-size arena): in a 4-car race
+    # most steps' four frames find it full and go in the messages themselves; every frame still reaches the
+    # file, at its step
+    monkeypatch.setattr(replay_process, "ARENA_BYTES", 6 * 120 * 160)
     monkeypatch.setattr(replay_process, "_idle", [])
     carried = []
     carry = replay_process.WriterProcess.carry
 
-    def counted(self, image):
-        carried.append(carry(self, image))
+    def counted(self, images):
+        carried.append(carry(self, images))
         return carried[-1]
 
     monkeypatch.setattr(replay_process.WriterProcess, "carry", counted)
@@ -125,7 +126,7 @@ def test_frames_the_shared_arena_has_no_room_for_reach_the_file_through_the_sock
     run_race([make_controller(b) for b in BOTS], RaceConfig(race="reset_rule", laps=1000, max_steps=240),
              recorders=[frames, ReplayRecorder(path, image_every=3)])
     in_arena = sum(isinstance(where, tuple) for where in carried)  # an `ArenaImage`'s fields
-    assert 0 < in_arena < len(carried) == 4 * 80
+    assert 0 < in_arena < len(carried) == 80  # one carry a step, of the four cars' frames
     assert recorded_images(path) == frames.jpegs
 
 

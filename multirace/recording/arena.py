@@ -2,12 +2,13 @@
 
 A replay's camera images are most of what a race hands its writer (`replay_process`): sent through the
 socket, each is copied into the kernel and out again. An `ImageArena` is a ring of memory that both processes
-map (an anonymous file, its descriptor passed to the writer at its start): the race copies an image into it
-once (`put`) and sends only where it lies (an `ArenaImage`); the writer reads it from there (`image`), encodes
-it and gives the space back (`release`). The first 8 bytes hold how many bytes of the ring the writer has
-given back in all; positions count bytes written since the arena was made, so they only grow, and a stale
-reading of the count by the race only makes it see less free space. An image that does not fit in the free
-space is not waited for: `put` returns None and the race sends that image through the socket as before.
+map (an anonymous file, its descriptor passed to the writer at its start): the race copies a step's images
+into it once (`put`, the cars' images one after another) and sends only where they lie (an `ArenaImage`); the
+writer reads them from there (`image`), encodes them and gives the space back (`release`). The first 8 bytes
+hold how many bytes of the ring the writer has given back in all; positions count bytes written since the
+arena was made, so they only grow, and a stale reading of the count by the race only makes it see less free
+space. Images that do not fit in the free space are not waited for: `put` returns None and the race sends
+them through the socket as before.
 """
 from __future__ import annotations
 
@@ -25,8 +26,9 @@ ALIGN = 64  # each image starts on a cache line (a power of 2)
 
 
 class ArenaImage(NamedTuple):
-    """Where an image lies in the arena: its position (bytes written since the arena was made, before it),
-    shape and dtype, and the position after it (what the writer releases once it has read it)."""
+    """Where images lie in the arena: their position (bytes written since the arena was made, before them),
+    shape (how many, then one image's) and dtype, and the position after them (what the writer releases once
+    it has read them)."""
 
     start: int
     shape: tuple
@@ -54,10 +56,12 @@ class ImageArena:
         os.ftruncate(fd, HEADER_BYTES + size)
         return cls(fd, size)
 
-    def put(self, image: np.ndarray) -> ArenaImage | None:
-        """Copy `image` (C-contiguous) into the ring; where it lies, or None where the free space cannot take it
-        now."""
-        nbytes, size = image.nbytes, self.size
+    def put(self, images: list[np.ndarray]) -> ArenaImage | None:
+        """Copy `images` (C-contiguous arrays of one shape and dtype, e.g. the cars' camera images of a step) one
+        after another into the ring; where they lie (as one array of shape (len(images), *shape)), or None where
+        the free space cannot take them now."""
+        first, size = images[0], self.size
+        nbytes = first.nbytes * len(images)
         start = (self._written + ALIGN - 1) & -ALIGN
         offset = start % size
         if offset + nbytes > size:  # not in one piece before the ring's end: start at its beginning
@@ -66,12 +70,16 @@ class ImageArena:
         end = start + nbytes
         if end - RELEASED.unpack_from(self._map)[0] > size:
             return None
-        self._map[HEADER_BYTES + offset:HEADER_BYTES + offset + nbytes] = image  # (a slice of the map: fastest)
+        at = HEADER_BYTES + offset
+        for image in images:
+            self._map[at:at + first.nbytes] = image  # (a slice of the map: fastest)
+            at += first.nbytes
         self._written = end
-        return ArenaImage(start, image.shape, image.dtype.str, end)
+        return ArenaImage(start, (len(images), *first.shape), first.dtype.str, end)
 
     def image(self, where: ArenaImage) -> np.ndarray:
-        """The writer's side: the image at `where`, a view of the ring (valid until it is released)."""
+        """The writer's side: the images at `where` as one array, a view of the ring (valid until it is
+        released)."""
         dtype = np.dtype(where.dtype)
         count = (where.end - where.start) // dtype.itemsize
         return np.frombuffer(self._map, dtype, count, HEADER_BYTES + where.start % self.size).reshape(where.shape)

@@ -210,19 +210,23 @@ class ReplayRecorder:
         row += env.standings()[:self.n]
         self._rows.append(row)
         take_image = bool(self.image_every) and observations is not None and step % self.image_every == 0
+        imaged, images = [], []  # the cars whose camera images this step records, and those images
         for i, car in enumerate(cars):
             if self._ended[i]:  # its run ended on an earlier step
                 continue
             agent = agents[i]
             if take_image and agent in observations:
-                self._take_image(env, car, observations[agent])
+                imaged.append(car.index)
+                images.append(self._camera_image(env, car, observations[agent]))
             if infos and (self._race_state(car.race) != self._prev[i] or agent in infos and infos[agent]["events"]):
                 self._log_events(env, car, infos)
             if not car.race.racing:
                 self._ended[i], self._recorded[i] = True, False
+        if images:  # (carried as a copy: the agents may reuse their arrays)
+            self._images.append((len(self._rows) - 1, imaged, self._writer.carry(images)))
 
-    def _take_image(self, env, car, observation) -> None:
-        """Keep a car's camera image (and LIDAR echoes) of this step for the writer."""
+    def _camera_image(self, env, car, observation) -> np.ndarray:
+        """A car's camera image in its observation of this step (its LIDAR echoes are kept for the writer)."""
         state = env.race_state
         if isinstance(observation, dict):  # a LIDAR env: {"camera", "lidar"}
             if env.sensors.lidar == "lidar":  # (SECTOR_LIDAR's 8 sectors have no echo points)
@@ -232,8 +236,7 @@ class ReplayRecorder:
         image = np.asarray(observation)
         if image.ndim == 3 and image.shape[2] == 2:  # a stereo pair: its left camera
             image = image[..., 0]
-        # (carried as a copy: the agent may reuse the array)
-        self._images.append((len(self._rows) - 1, car.index, self._writer.carry(image)))
+        return image
 
     def _log_events(self, env, car, infos) -> None:
         """Text log entries for what changed in a car's race record this step."""

@@ -7,8 +7,8 @@ pickle, and the bytes of the numpy arrays in it beside it, out of band, so that 
 once, by the kernel):
 
 - the camera images go through shared memory (`arena.ImageArena`, made with the writer and mapped by it):
-  `carry(image)` copies an image there and gives the small record of where it lies, which the message
-  carries instead of the image (an image the arena has no room for yet goes in the message itself);
+  `carry(images)` copies a step's images there and gives the small record of where they lie, which the
+  message carries instead of them (images the arena has no room for yet go in the message themselves);
 - `send(message)` does not wait for the writer: what the socket cannot take yet waits in memory and goes
   out with the next message (the race waits only when more than BACKLOG_BYTES wait), so the race keeps its
   core while the writer encodes images and builds columns on another;
@@ -144,12 +144,13 @@ class WriterProcess:
         """Whether this writer belongs to this process and runs (a fork's copy does not)."""
         return self._pid == os.getpid() and self._stop.alive and self.process.poll() is None
 
-    def carry(self, image: np.ndarray) -> tuple | np.ndarray:
-        """`image` as a message takes it to the writer: where it lies in the shared arena, after a copy there (an
-        `ArenaImage` as a plain tuple: a block's dozens of them pickle several times faster so), or (no room
-        there now) a copy of its own, sent through the socket."""
-        where = self.arena.put(np.ascontiguousarray(image))
-        return tuple(where) if where is not None else np.array(image)
+    def carry(self, images: list[np.ndarray]) -> tuple | np.ndarray:
+        """`images` (of one shape and dtype) as a message takes them to the writer: where they lie in the shared
+        arena, after a copy there (an `ArenaImage` as a plain tuple: a block's dozens of them pickle several
+        times faster so), or (no room there now) a copy of their own, sent through the socket."""
+        images = [np.ascontiguousarray(image) for image in images]
+        where = self.arena.put(images)
+        return tuple(where) if where is not None else np.stack(images)
 
     def send(self, message) -> None:
         """Hand `message` to the writer (its arrays must not change afterwards: they are sent as they are,

@@ -121,13 +121,14 @@ class ReplayWriter:
     def add(self, batch: dict) -> None:
         """Take the rows of consecutive steps (and their images and log entries) from the race."""
         received, released = self._first + self._rows, None
-        for row, car, image in batch["images"]:
-            if isinstance(image, tuple):  # where it lies in the arena (`WriterProcess.carry`)
-                where = ArenaImage._make(image)
-                image, released = self.arena.image(where), where.end
-            jpeg = self._encode(image)
-            if jpeg is not None:
-                self._frames[car].append((received + row, jpeg))
+        for row, cars, images in batch["images"]:  # a step's images of `cars`
+            if isinstance(images, tuple):  # where they lie in the arena (`WriterProcess.carry`)
+                where = ArenaImage._make(images)
+                images, released = self.arena.image(where), where.end
+            for car, image in zip(cars, images):
+                jpeg = self._encode(image)
+                if jpeg is not None:
+                    self._frames[car].append((received + row, jpeg))
         if released is not None:
             self.arena.release(released)
         for step, race_time, entity, image in batch["pictures"]:

@@ -93,17 +93,22 @@ def _per_step(totals: dict, steps: int) -> dict:
     return {part: round(1e6 * seconds / steps, 1) for part, seconds in totals.items()}
 
 
-def renderer_frames_per_s(env, frames: int = 2000) -> float:
-    """Frames per second of the fast renderer alone: one 120x160 grey camera on `env`'s track and world."""
+def renderer_frames_per_s(env, frames: int = 400, windows: int = 5) -> float:
+    """Frames per second of the fast renderer alone: one 120x160 grey camera on `env`'s track and world, the
+    best of `windows` timings of `frames` frames (as the bench's other figures, the one least slowed by the
+    rest of the machine)."""
     spec = CameraSpec(height=120, width=160, grayscale=True)
     renderer = FastRenderer(spec, env.texture)
     eyes, rotations = camera_poses(spec, env.world.poses[:1])
     cars = np.zeros(1, np.int64)
     renderer.render_many(env.world, cars, eyes, rotations)  # compile / warm up
-    start = time.perf_counter()
-    for _ in range(frames):
-        renderer.render_many(env.world, cars, eyes, rotations)
-    return frames / (time.perf_counter() - start)
+    best = 0.0
+    for _ in range(windows):
+        start = time.perf_counter()
+        for _ in range(frames):
+            renderer.render_many(env.world, cars, eyes, rotations)
+        best = max(best, frames / (time.perf_counter() - start))
+    return best
 
 
 def format_profile(profile: dict) -> list[tuple[str, str]]:
