@@ -11,7 +11,7 @@ physics steps alone, replayed, plus one bare texture warp per camera); the
 same two for 4 cars driven as a head-to-head race (`racing`: no boxes, bots
 that keep their gaps, where the random drivers push each other in a bunch
 round the boxes); the share of steps that stepped PyBullet; the fast
-renderer alone; the speed-up of two worker processes over one; memory; and
+renderer alone (one camera, frames per second in the same interleaved windows); the speed-up of two worker processes over one; memory; and
 the cost of recording a replay. `run_profile` is `multirace bench --profile`: where a step's time
 goes, and its floor's (`profile.py`).
 """
@@ -28,7 +28,7 @@ from ..environment.actions import Command
 from ..environment.bots import parse_bot
 from ..environment.race_env import RaceEnv
 from ..sensors.camera import camera_pose
-from .profile import profile_floor, profile_step, renderer_frames_per_s
+from .profile import profile_floor, profile_step, renderer_frames_per_s, renderer_step
 
 CAR_COUNTS = (1, 2, 4, 8)
 WINDOWS = 15  # each figure is the best of this many equal time windows, taken in turns
@@ -228,6 +228,7 @@ def run_bench(seconds: float = 3.0, replay_seconds: float = 240.0, progress=prin
     steppers[("racing", 4)] = _env_stepper(4, "fast", racing=True)
     steppers[("floor_racing", 4)] = _floor_stepper(4, racing=True)
     steppers.update({("workers", n): _workers_stepper(n, CARS_PER_WORKER) for n in (1, 2)})
+    steppers[("renderer", 1)] = (renderer_step(steppers[("fast", 4)][0].env), lambda: None)  # frames, not agents
     try:
         workloads = {key: (step, key[1] * CARS_PER_WORKER if key[0] == "workers" else key[1])
                      for key, (step, _) in steppers.items()}
@@ -237,7 +238,6 @@ def run_bench(seconds: float = 3.0, replay_seconds: float = 240.0, progress=prin
         rates = _interleaved_rates(workloads, seconds)
         pybullet_share = {kind: (world.bullet_steps - before[kind][0]) / max(world.action_steps - before[kind][1], 1)
                           for kind, world in worlds.items()}
-        renderer_fps = renderer_frames_per_s(steppers[("fast", 4)][0].env)
     finally:
         for _, close in steppers.values():
             close()
@@ -259,6 +259,7 @@ def run_bench(seconds: float = 3.0, replay_seconds: float = 240.0, progress=prin
         figures["racing_over_floor_4" + suffix] = round(rates_of["racing"]["4"] / rates_of["floor_racing"]["4"], 3)
     figures["pybullet_step_share_4"] = round(pybullet_share["fast"], 3)
     figures["pybullet_step_share_racing_4"] = round(pybullet_share["racing"], 3)
+    renderer_fps = rates[("renderer", 1)][0]
     figures["renderer_frames_per_s"] = round(renderer_fps, 1)
     progress(f"PyBullet stepped in {100 * pybullet_share['fast']:.0f} % of the 4-car env's steps (random drivers), "
              f"{100 * pybullet_share['racing']:.0f} % when they race; renderer alone: {renderer_fps:.0f} frames/s")
