@@ -31,7 +31,7 @@ from ..sensors.camera import camera_pose
 from .profile import profile_floor, profile_step, renderer_frames_per_s, renderer_step
 
 CAR_COUNTS = (1, 2, 4, 8)
-WINDOWS = 15  # each figure is the best of this many equal time windows, taken in turns
+WINDOWS = 30  # each figure is the best of this many equal time windows, taken in turns
 WARM_UP = 0.1  # untimed lead-in of each window, as a share of the window
 OBSTACLES = 3
 RACING_BOTS = ("follow@2.2", "follow@1.8", "follow@1.4", "follow@1.0")  # `racing`'s drivers, fastest first
