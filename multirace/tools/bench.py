@@ -11,9 +11,10 @@ physics steps alone, replayed, plus one bare texture warp per camera); the
 same two for 4 cars driven as a head-to-head race (`racing`: no boxes, bots
 that keep their gaps, where the random drivers push each other in a bunch
 round the boxes); the share of steps that stepped PyBullet; the fast
-renderer alone (one camera, frames per second in the same interleaved windows); the speed-up of two worker processes over one; memory; and
-the cost of recording a replay. `run_profile` is `multirace bench --profile`: where a step's time
-goes, and its floor's (`profile.py`).
+renderer alone (one camera, frames per second in the same interleaved
+windows); the speed-up of two worker processes over one; memory; and the
+cost of recording a replay. `run_profile` is `multirace bench --profile`:
+where a step's time goes, and its floor's (`profile.py`).
 """
 from __future__ import annotations
 
