@@ -60,3 +60,23 @@ def test_the_racing_workload_laps_without_contact_so_pybullet_is_seldom_stepped(
         assert env.race_state.step == 1 and all(car.race.laps == 0 for car in env.race_state.cars)
     finally:
         env.close()
+
+
+def test_the_replay_cost_runs_the_same_race_with_and_without_a_replay_in_turns(tmp_path):
+    from multirace.racing.runner import RaceConfig, make_controller, run_race
+    from multirace.recording.replay import ReplayRecorder
+    from multirace.recording.replay_reader import replay_summary
+    from multirace.tools.replay_cost import BOTS, _race_pair, replay_cost
+
+    config = RaceConfig(track="reinvent_base", race="reset_rule", laps=1000, seed=0, max_steps=40)
+    plain, recorded = _race_pair(config, tmp_path / "pair.rrd", 5, turn_steps=7, first=1)
+    assert plain.result == recorded.result == run_race([make_controller(b) for b in BOTS], config)
+    assert plain.seconds > 0 and recorded.seconds > 0 and recorded.inner.seconds > 0
+    assert replay_summary(tmp_path / "pair.rrd")["steps"] == 40  # every step, in turns
+
+    cost = replay_cost(seconds=3, path=tmp_path / "cost.rrd", repeats=2, turn_steps=9)
+    assert cost["steps"] == 45 and len(cost["pairs"]) == 2 and cost["replay_mb"] > 0
+    assert cost["race_wall_s"] > 0 and cost["recorder_s"] > 0
+    # the writer stopped during the plain race's turns was left running: the next replay is written
+    run_race([make_controller(b) for b in BOTS], config, recorders=[ReplayRecorder(tmp_path / "next.rrd")])
+    assert replay_summary(tmp_path / "next.rrd")["steps"] == 40

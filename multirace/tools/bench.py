@@ -274,7 +274,7 @@ def run_bench(seconds: float = 3.0, replay_seconds: float = 240.0, progress=prin
     if replay_seconds:
         from .replay_cost import replay_cost
 
-        cost = replay_cost(seconds=replay_seconds, repeats=5)  # best of 5: one race takes about 1.5 s
+        cost = replay_cost(seconds=replay_seconds, repeats=5)  # the median of 5 pairs of races in turns
         figures["replay"] = cost
         progress(f"replay of a 4-car {replay_seconds:g} s race: {cost['replay_mb']} MB, "
                  f"race speed -{cost['speed_loss_percent']}%")
