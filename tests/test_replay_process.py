@@ -108,6 +108,39 @@ def test_a_long_replay_holds_every_step_and_every_camera_frame(tmp_path):
     assert len(frames.jpegs) == 4 * 100 and images == frames.jpegs  # the right frame at the right step
 
 
+class StoppedWriter:
+    """A recorder that stops the replay writer's process (SIGSTOP) from step `stop` to step `go`, so that the
+    race's messages queue up for it."""
+
+    def __init__(self, replay: ReplayRecorder, stop: int, go: int):
+        self.replay, self.stop, self.go = replay, stop, go
+
+    def start(self, env):
+        pass
+
+    def step(self, env, observations, rewards, infos):
+        step = env.race_state.step
+        if step in (self.stop, self.go):
+            os.kill(self.replay._writer.process.pid, signal.SIGSTOP if step == self.stop else signal.SIGCONT)
+
+    def finish(self, env, result):
+        pass
+
+
+def test_a_writer_behind_the_race_holds_blocks_back_and_still_writes_every_step(tmp_path):
+    # the writer stopped for 500 steps finds six messages waiting: it holds full blocks of 100 rows back until
+    # the queue is empty (or a block would pass 200 rows), and every pose and frame still reaches the file
+    path, frames = tmp_path / "behind.rrd", Frames(every=7)
+    replay = ReplayRecorder(path, image_every=7, flush_every=100)
+    run_race([make_controller(b) for b in BOTS], RaceConfig(race="reset_rule", laps=1000, max_steps=700),
+             recorders=[frames, replay, StoppedWriter(replay, stop=50, go=550)])
+    summary = replay_summary(path)
+    for i in range(len(BOTS)):
+        poses = summary["poses"][f"car_{i}"]
+        assert [int(s) for s in poses[:, 0]] == list(range(701)), f"car_{i}: a step is missing"
+    assert recorded_images(path) == frames.jpegs
+
+
 def test_frames_the_shared_arena_has_no_room_for_reach_the_file_through_the_socket(tmp_path, monkeypatch):
     # an arena of six grey frames (a fresh writer: the waiting one has the full-size arena): in a 4-car race
     # most steps' four frames find it full and go in the messages themselves; every frame still reaches the

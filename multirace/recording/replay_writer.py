@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 import os
+import select
 import socket
 import sys
 import threading
@@ -71,7 +72,7 @@ def _record(sock: socket.socket, file_fd: int, arena: ImageArena) -> str | tuple
                 if kind == "start":
                     writer = ReplayWriter(file, arena, **content)
                 elif kind == "rows":
-                    writer.add(content)
+                    writer.add(content, more_waiting=bool(select.select([sock], [], [], 0)[0]))
                 else:
                     writer.finish(content)
                     return "done"
@@ -118,8 +119,11 @@ class ReplayWriter:
         self._frames = [[] for _ in self.ids]  # per car: (row in the race, JPEG) not yet sent
         self._block_reset()
 
-    def add(self, batch: dict) -> None:
-        """Take the rows of consecutive steps (and their images and log entries) from the race."""
+    def add(self, batch: dict, more_waiting: bool = False) -> None:
+        """Take the rows of consecutive steps (and their images and log entries) from the race; columns go out
+        once the block holds `flush_every` rows, unless `more_waiting` (the race has sent more already: at
+        its end, the last rows and the result follow at once), so that the block's columns and the last
+        rows' go out together rather than one after the other, up to twice `flush_every` rows."""
         received, released = self._first + self._rows, None
         for row, cars, images in batch["images"]:  # a step's images of `cars`
             if isinstance(images, tuple):  # where they lie in the arena (`WriterProcess.carry`)
@@ -142,18 +146,18 @@ class ReplayWriter:
             for kind, level, text, clock in entries:
                 self._log(step, race_time, f"events/{self.ids[car]}", rr.TextLog(text, level=level),
                           rr.AnyValues(kind=kind, car=self.ids[car], clock=float(clock)))
-        start, total = 0, len(batch["steps"])
-        while start < total:
-            take = min(total - start, self.flush_every - self._rows)
-            block, rows = slice(self._rows, self._rows + take), slice(start, start + take)
-            self._steps[block], self._times[block] = batch["steps"][rows], batch["times"][rows]
-            self._active[block], self._pose[block] = batch["active"][rows], batch["pose"][rows]
-            self._scalars[block] = batch["scalars"][rows]
-            self._rows += take
-            start += take
-            if self._rows == self.flush_every:
-                self._flush()
-                self.rec.flush()  # encoded and in the file now, while the race goes on: less for its end to wait for
+        rows = len(batch["steps"])
+        if self._rows + rows > len(self._steps):  # (a block held back, below, that these rows would overflow)
+            self._flush()
+        if rows > len(self._steps):
+            self._block_reset(rows)
+        block = slice(self._rows, self._rows + rows)
+        self._steps[block], self._times[block] = batch["steps"], batch["times"]
+        self._active[block], self._pose[block], self._scalars[block] = batch["active"], batch["pose"], batch["scalars"]
+        self._rows += rows
+        if self._rows >= self.flush_every and not more_waiting:
+            self._flush()
+            self.rec.flush()  # encoded and in the file now, while the race goes on: less for its end to wait for
 
     def finish(self, result: str | None) -> None:
         """Send the last rows and the result, end the recording and write it to the file in one piece."""
@@ -177,10 +181,10 @@ class ReplayWriter:
         ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
         return jpeg.tobytes() if ok else None
 
-    def _block_reset(self) -> None:
-        """A block of `flush_every` rows, one per step: its step and time, which cars are recorded, their poses
-        and scalars (NaN: none)."""
-        rows, n = self.flush_every, len(self.ids)
+    def _block_reset(self, least: int = 0) -> None:
+        """A block of up to twice `flush_every` rows (at least `least`), one per step: its step and time, which
+        cars are recorded, their poses and scalars (NaN: none)."""
+        rows, n = max(2 * self.flush_every, least), len(self.ids)
         self._rows = 0
         self._steps, self._times = np.empty(rows, np.int64), np.empty(rows, np.float64)
         self._active, self._pose = np.empty((rows, n), bool), np.empty((rows, n, 3), np.float64)
