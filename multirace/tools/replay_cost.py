@@ -2,14 +2,14 @@
 
 The two races run side by side, each in a thread of its own, taking turns of `TURN_STEPS` steps (one runs
 while the other waits; which one starts alternates from pair to pair), and each turn's wall time is charged
-to the race that ran it. Both threads are bound to one core, so that neither races on a core the other
-does not get. A slow patch of the machine (another process, a busy host) then hits both races alike, as
-`bench`'s interleaved windows do for its env figures: timing the two races one after the other, the same
-code measured anywhere from -1 % to -23 % on one noisy machine within minutes, and two plain races in
-turns on cores of their own differed by up to 15 % (by up to 8 %, most within 3 %, on one core). The replay writer's process is stopped (SIGSTOP) while the plain
-race takes its turn and goes on (SIGCONT) with the recorded race's: it works, as in any recorded race, only
-while that race runs, so that its work slows that race (where the two share a core, or its caches), not
-the plain one.
+to the race that ran it. Both threads are bound to one core (where the system can bind threads), so that
+neither races on a core the other does not get. A slow patch of the machine (another process, a busy host)
+then hits both races alike, as `bench`'s interleaved windows do for its env figures: timing the two races
+one after the other, the same code measured anywhere from -1 % to -23 % on one noisy machine within
+minutes, and two plain races in turns on cores of their own differed by up to 15 % (by up to 9 %, most
+within 3 %, on one core). The replay writer's process is stopped (SIGSTOP) while the plain race takes its
+turn and goes on (SIGCONT) with the recorded race's: it works, as in any recorded race, only while that
+race runs, so that its work slows that race (where the two share a core, or its caches), not the plain one.
 """
 from __future__ import annotations
 
@@ -68,7 +68,8 @@ def replay_cost(seconds: float = 240.0, image_every: int | None = DEFAULT_IMAGE_
 def _race_pair(config: RaceConfig, out: Path, image_every: int | None, turn_steps: int, first: int) -> tuple:
     """The race without and with a replay of `out`, run in turns (`first`: 0 the plain race's turn comes
     first, 1 the recorded one's), both on one core; their `_Turns` (time, CPU time, results)."""
-    baton, core = _Baton(), min(os.sched_getaffinity(0))
+    baton = _Baton()
+    core = min(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
     plain = _Turns(baton, first, turn_steps)
     recorded = _Turns(baton, 1 - first, turn_steps, _TimedRecorder(out, image_every))
     threads = [threading.Thread(target=turns.run, args=(config, core), name=f"race {turns.me}")
@@ -114,11 +115,12 @@ class _Turns:
         self.result, self.error = None, None
         self._steps = 0
 
-    def run(self, config: RaceConfig, core: int) -> None:
-        """The race, in turns, on `core` (its thread's target); an error is kept for the caller and ends its
-        turns."""
+    def run(self, config: RaceConfig, core: int | None) -> None:
+        """The race, in turns, on `core` (None: any) (its thread's target); an error is kept for the caller and
+        ends its turns."""
         try:
-            os.sched_setaffinity(0, {core})  # (this thread only)
+            if core is not None:
+                os.sched_setaffinity(0, {core})  # (this thread only)
             self.result = run_race([make_controller(b) for b in BOTS], config, recorders=[self])
         except BaseException as exc:  # noqa: BLE001 - raised again by the caller, in its thread
             self.error = exc
