@@ -80,3 +80,23 @@ def test_the_replay_cost_runs_the_same_race_with_and_without_a_replay_in_turns(t
     # the writer stopped during the plain race's turns was left running: the next replay is written
     run_race([make_controller(b) for b in BOTS], config, recorders=[ReplayRecorder(tmp_path / "next.rrd")])
     assert replay_summary(tmp_path / "next.rrd")["steps"] == 40
+
+
+def test_a_replay_cost_pair_whose_races_cannot_start_raises_their_error_rather_than_waiting(tmp_path):
+    from multirace.racing.runner import RaceConfig
+    from multirace.tools.replay_cost import _race_pair
+
+    with pytest.raises(ValueError, match="no_such_track"):
+        _race_pair(RaceConfig(track="no_such_track", race="reset_rule", max_steps=40), tmp_path / "x.rrd", 5,
+                   turn_steps=7, first=0)
+
+
+def test_a_replay_cost_pair_whose_recording_fails_names_the_file_and_the_plain_race_still_ends(tmp_path):
+    from multirace.atomic import OutputError
+    from multirace.racing.runner import RaceConfig
+    from multirace.tools.replay_cost import _race_pair
+
+    (tmp_path / "a_file").write_text("not a folder")
+    with pytest.raises(OutputError, match="a_file"):
+        _race_pair(RaceConfig(track="reinvent_base", race="reset_rule", max_steps=40),
+                   tmp_path / "a_file" / "x.rrd", 5, turn_steps=7, first=1)

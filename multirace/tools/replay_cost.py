@@ -91,6 +91,16 @@ class _Baton:
         self._condition = threading.Condition()
         self._owner = 0
         self._ended = [False, False]
+        self._set_up = threading.Barrier(2)  # both races' envs built before the first turn
+
+    def first_take(self, me: int) -> None:
+        """`take`, once both races are set up (or the other has ended before it was): no turn is timed while
+        the other race's thread builds its env."""
+        try:
+            self._set_up.wait()
+        except threading.BrokenBarrierError:  # the other race failed before its start
+            pass
+        self.take(me)
 
     def take(self, me: int) -> None:
         """Wait until it is race `me`'s turn (or the other race has ended)."""
@@ -99,6 +109,8 @@ class _Baton:
 
     def give(self, me: int, ended: bool = False) -> None:
         """Race `me` hands the turn to the other (`ended`: and takes no more turns)."""
+        if ended:
+            self._set_up.abort()  # (a race that never reached its start releases the other)
         with self._condition:
             self._owner = 1 - me
             self._ended[me] = self._ended[me] or ended
@@ -128,7 +140,7 @@ class _Turns:
             self.baton.give(self.me, ended=True)
 
     def start(self, env) -> None:
-        self.baton.take(self.me)
+        self.baton.first_take(self.me)
         self._begin_turn()
         if self.inner is not None:
             self.inner.start(env)
