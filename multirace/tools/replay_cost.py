@@ -164,8 +164,7 @@ class _Turns:
 
     def discard(self) -> None:
         if self.inner is not None:
-            self.inner.writer_signal(signal.SIGCONT)
-            self.inner.discard()
+            self.inner.discard()  # (ends the writer, stopped or not)
 
     def _begin_turn(self) -> None:
         if self.inner is not None:
