@@ -35,6 +35,7 @@ class Capture:
         self.events = []  # (step, car index, kind)
         self.collisions = [0] * len(env.races)
         self.image_steps = {i: [] for i in range(len(env.races))}
+        self.frames = {i: [] for i in range(len(env.races))}  # the camera observations of those steps
 
     def step(self, env, observations, rewards, infos):
         for i, race in enumerate(env.races):
@@ -43,6 +44,7 @@ class Capture:
             self.poses[i][env.steps] = tuple(env.world.poses[i])
             if env.steps % 2 == 0:
                 self.image_steps[i].append(env.steps)
+                self.frames[i].append(np.array(observations[env.possible_agents[i]]))
             info = infos[env.possible_agents[i]]
             for event in info["events"]:
                 self.events.append((env.steps, i, event))
@@ -108,6 +110,70 @@ def test_replay_images_are_jpeg_camera_frames(recorded):
     image = cv2.imdecode(np.frombuffer(bytes(blob), np.uint8), cv2.IMREAD_UNCHANGED)
     assert image.shape[:2] == (120, 160)
     assert image.std() > 5  # a real camera view, not a blank frame
+
+
+def replay_frames(path, car: int) -> list[np.ndarray]:
+    """Every camera frame of car `car` in the replay at `path`, decoded, in step order."""
+    frames = []
+    for batch in read_chunks(path)[f"cameras/car_{car}"]:
+        blobs = batch.column(batch.schema.get_field_index("EncodedImage:blob")).to_pylist()
+        frames += [cv2.imdecode(np.frombuffer(bytes(blob[0]), np.uint8), cv2.IMREAD_UNCHANGED) for blob in blobs]
+    return frames
+
+
+def as_jpeg(image: np.ndarray) -> np.ndarray:
+    """`image` through the replay's JPEG encoding (quality 75) and back."""
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    return cv2.imdecode(cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 75])[1], cv2.IMREAD_UNCHANGED)
+
+
+def test_replay_frames_are_the_cameras_the_agents_saw(recorded):
+    """The writer draws the frames again from the recorded poses (`scene_cameras`): through a collision, resets
+    and a finished car parked off the scene, every frame is the agent's own observation, JPEG-encoded."""
+    path, capture, result = recorded
+    assert any(car["status"] == "finished" for car in result["cars"])
+    for i in range(2):
+        frames = replay_frames(path, i)
+        assert len(frames) == len(capture.frames[i])
+        for step, frame, observation in zip(capture.image_steps[i], frames, capture.frames[i]):
+            assert np.array_equal(frame, as_jpeg(observation)), f"car_{i}, step {step}: frame differs"
+
+
+@pytest.mark.parametrize("config", [dict(randomize="strong", grayscale=False), dict(grayscale=False)],
+                         ids=["randomised, carried", "colour, drawn"])
+def test_replay_frames_carried_or_drawn_match_the_observations(tmp_path, config):
+    """Randomised images (not a function of the poses) are carried to the writer as they are; colour cameras
+    are drawn by it: either way each frame is the observation."""
+    path, capture = tmp_path / "race.rrd", Capture()
+    run_race([BotController("bot:follow@1.5"), BotController("bot:follow@1.0")],
+             RaceConfig(laps=1, seed=2, max_steps=40, **config), recorders=[ReplayRecorder(path, image_every=2), capture])
+    for i in range(2):
+        frames = replay_frames(path, i)
+        assert len(frames) == len(capture.frames[i]) == 20
+        for step, frame, observation in zip(capture.image_steps[i], frames, capture.frames[i]):
+            assert observation.shape == (120, 160, 3)
+            assert np.array_equal(frame, as_jpeg(observation)), f"car_{i}, step {step}: frame differs"
+
+
+def test_scene_of_draws_only_pure_renders():
+    """The writer draws the cameras only where an observation is the fast renderer's image of the poses."""
+    from multirace.environment.race_env import RaceEnv
+    from multirace.recording.scene_cameras import scene_of
+
+    def scene(**config):
+        env = RaceEnv(num_cars=2, **config)
+        env.reset(seed=0)
+        try:
+            return scene_of(env)
+        finally:
+            env.close()
+
+    assert scene() is not None and scene(lidar=True) is not None
+    assert scene(sensor=["FRONT_FACING_CAMERA_TWO_FRAMES"]) is not None
+    for config in (dict(randomize="strong"), dict(renderer="pybullet"), dict(sensor=["STEREO_CAMERAS"]),
+                   dict(observation="state")):
+        assert scene(**config) is None, config
 
 
 def test_replay_events_have_the_right_race_times(recorded):

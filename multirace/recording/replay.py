@@ -30,9 +30,10 @@ images, the plots and the event log is sent with the recording, so
 ``rerun race.rrd`` opens on a useful screen.
 
 The race's process only gathers what each step shows into blocks of `SHIP_EVERY` rows (steps, times,
-poses, scalars, camera images (copied into memory the writer shares), event texts, LIDAR echoes) and hands
-each block to the replay writer (`replay_writer`), a process of its own (`replay_process`): there the
-images are JPEG-encoded, the per-step data are sent in columns (`send_columns`) every `flush_every` steps
+poses, scalars, camera images, event texts, LIDAR echoes) and hands each block to the replay writer
+(`replay_writer`), a process of its own (`replay_process`). The camera images are copied into memory the
+writer shares, or, where they are the fast renderer's pure images of the recorded poses, drawn again by
+the writer (`scene_cameras`: the race sends only which cars are parked). There the images are JPEG-encoded, the per-step data are sent in columns (`send_columns`) every `flush_every` steps
 and rerun's binary stream is written to a file beside the target, which becomes the target only when the
 race ends well and the writer has written it completely (`multirace.atomic`); a writer that fails is an
 `OutputError` naming the target.
@@ -49,6 +50,7 @@ import numpy as np
 from ..atomic import AtomicOutput
 from ..sim.world import CAR_COLOURS, OBSTACLE_SIZE
 from .replay_process import WriterProcess, prepare
+from .scene_cameras import scene_of
 
 APPLICATION_ID = "multirace"
 SHIP_EVERY = 90  # steps whose data go to the writer in one message (fewer, larger messages wake it less)
@@ -110,6 +112,7 @@ class ReplayRecorder:
         self._ended = [not car.racing for car in state.cars]
         self._recorded = [not ended for ended in self._ended]  # whether a car's pose goes in the next row
         self._everyone = [True] * n
+        self._scene = scene_of(env) if self.image_every else None  # the writer draws the cameras itself, if set
         self._block_reset()
         cars = [{"id": self.ids[i], "name": car.name, "colour": list(CAR_COLOURS[i % len(CAR_COLOURS)])}
                 for i, car in enumerate(state.cars)]
@@ -122,7 +125,7 @@ class ReplayRecorder:
             "half_size": (spec.length / 2, spec.width / 2, spec.height / 2),
             "track": {"center": track.center, "inner": track.inner, "outer": track.outer},
             "obstacles": np.asarray(state.obstacles), "obstacle_size": OBSTACLE_SIZE,
-            "layout": self.layout, "cameras": bool(self.image_every)}))
+            "layout": self.layout, "cameras": bool(self.image_every), "scene": self._scene}))
         # the grid at step 0
         self._record_step(env, None, {}, None)
 
@@ -175,7 +178,7 @@ class ReplayRecorder:
         """A block of up to `SHIP_EVERY` rows, one per step (`_record_step` lays a row out), and the images and
         log entries of those steps."""
         self._rows: list[list[float]] = []
-        self._images, self._pictures, self._events, self._echoes = [], [], [], []
+        self._images, self._drawn, self._pictures, self._events, self._echoes = [], [], [], [], []
 
     def _ship(self) -> None:
         """Hand the block to the writer as arrays (each step's step and time, which cars are recorded, their
@@ -189,7 +192,8 @@ class ReplayRecorder:
         self._writer.send(("rows", {
             "steps": table[:, 0].astype(np.int64), "times": table[:, 1].copy(),
             "active": table[:, 2:2 + n].astype(bool), "pose": np.ascontiguousarray(cars[..., :3]),
-            "scalars": scalars, "images": self._images, "pictures": self._pictures, "events": self._events,
+            "scalars": scalars, "images": self._images, "drawn": self._drawn, "pictures": self._pictures,
+            "events": self._events,
             "echoes": self._echoes}))
         self._block_reset()
 
@@ -217,13 +221,17 @@ class ReplayRecorder:
             agent = agents[i]
             if take_image and agent in observations:
                 imaged.append(car.index)
-                images.append(self._camera_image(env, car, observations[agent]))
+                image = self._camera_image(env, car, observations[agent])
+                if self._scene is None:
+                    images.append(image)
             if infos and (self._race_state(car.race) != self._prev[i] or agent in infos and infos[agent]["events"]):
                 self._log_events(env, car, infos)
             if not car.race.racing:
                 self._ended[i], self._recorded[i] = True, False
         if images:  # (carried as a copy: the agents may reuse their arrays)
             self._images.append((len(self._rows) - 1, imaged, self._writer.carry(images)))
+        elif imaged:  # the writer draws them from the row's poses (`scene_cameras`): which cars are off the scene
+            self._drawn.append((len(self._rows) - 1, imaged, env.world.parked.tolist()))
 
     def _camera_image(self, env, car, observation) -> np.ndarray:
         """A car's camera image in its observation of this step (its LIDAR echoes are kept for the writer)."""

@@ -6,7 +6,8 @@ that carries the file's descriptor (SCM_RIGHTS); then messages go as frames on a
 pickle, and the bytes of the numpy arrays in it beside it, out of band, so that they are copied only
 once, by the kernel):
 
-- the camera images go through shared memory (`arena.ImageArena`, made with the writer and mapped by it):
+- the camera images the writer does not draw itself (`scene_cameras`) go through shared memory
+  (`arena.ImageArena`, made with the writer and mapped by it):
   `carry(images)` copies a step's images there and gives the small record of where they lie, which the
   message carries instead of them (images the arena has no room for yet go in the message themselves);
 - `send(message)` does not wait for the writer: what the socket cannot take yet waits in memory and goes

@@ -3,7 +3,8 @@
 It runs in a process of its own (`replay_process`), fed by `replay.ReplayRecorder` (which describes the
 layout) with, for each replay: the file to write (its descriptor), ``("start", description)``,
 ``("rows", batch)`` as the race goes and ``("finish", result text or None)``. It JPEG-encodes the camera
-images as they come (read from the shared `arena.ImageArena`, whose space it then gives back), logs events
+images as they come (read from the shared `arena.ImageArena`, whose space it then gives back, or drawn
+here from the recorded poses, `scene_cameras`), logs events
 and LIDAR echoes at their step, builds the per-step columns of every `flush_every` rows (`send_columns`)
 and writes the recording to the file it was given; it answers ``("done", cpu seconds spent on it)`` once
 the file is complete, or ``("error", reason)``.
@@ -36,6 +37,7 @@ import rerun as rr
 from . import blueprints
 from .arena import ArenaImage, ImageArena
 from .replay_process import answer, next_file, receive
+from .scene_cameras import SceneCameras
 
 BLOB_TYPE = pa.list_(pa.field("item", pa.uint8(), nullable=False))  # rerun's `Blob` component
 SYNC_BYTES = 1 << 20  # bytes written to the file between two syncs to disk
@@ -89,11 +91,12 @@ class ReplayWriter:
 
     def __init__(self, file, arena: ImageArena, application_id: str, jpeg_quality: int, flush_every: int,
                  scalars: tuple, info: str, cars: list, half_size: tuple, track: dict, obstacles,
-                 obstacle_size: tuple, layout: str, cameras: bool):
+                 obstacle_size: tuple, layout: str, cameras: bool, scene: dict | None = None):
         self.jpeg_quality, self.flush_every, self.scalars = jpeg_quality, flush_every, scalars
         self.ids, self.colours = [c["id"] for c in cars], [tuple(c["colour"]) for c in cars]
         self.z = half_size[2]
         self.arena = arena
+        self.cameras = SceneCameras(**scene) if scene is not None else None  # draws the "drawn" images
         self.rec = rec = rr.RecordingStream(application_id, make_default=False, make_thread_default=False)
         self._copy = _FileCopy(file)
         rec.save(self._copy.path)
@@ -129,12 +132,11 @@ class ReplayWriter:
             if isinstance(images, tuple):  # where they lie in the arena (`WriterProcess.carry`)
                 where = ArenaImage._make(images)
                 images, released = self.arena.image(where), where.end
-            for car, image in zip(cars, images):
-                jpeg = self._encode(image)
-                if jpeg is not None:
-                    self._frames[car].append((received + row, jpeg))
+            self._keep_frames(received + row, cars, images)
         if released is not None:
             self.arena.release(released)
+        for row, cars, parked in batch["drawn"]:  # a step's images of `cars`, drawn here (`scene_cameras`)
+            self._keep_frames(received + row, cars, self.cameras.draw(cars, batch["pose"][row], parked))
         for step, race_time, entity, image in batch["pictures"]:
             jpeg = self._encode(image)
             if jpeg is not None:
@@ -173,6 +175,13 @@ class ReplayWriter:
         self.rec.set_time("step", sequence=step)
         self.rec.set_time("race_time", duration=time)
         self.rec.log(entity, *archetypes)
+
+    def _keep_frames(self, row: int, cars, images) -> None:
+        """The cars' camera images of the race's row `row`, JPEG-encoded until their block's columns go out."""
+        for car, image in zip(cars, images):
+            jpeg = self._encode(image)
+            if jpeg is not None:
+                self._frames[car].append((row, jpeg))
 
     def _encode(self, image: np.ndarray) -> bytes | None:
         """A camera image (grey, or RGB) as JPEG bytes (None where it cannot be encoded)."""
