@@ -66,6 +66,19 @@ END_TEXT = {
 }
 
 
+def block_columns(table: np.ndarray, n: int) -> dict:
+    """The columns of a block of `n` cars' rows (`ReplayRecorder._record_step`'s layout, one row per step):
+    "steps", "times", "active" (which cars are recorded), "pose" (rows, n, 3: x, y, yaw) and "scalars" (rows,
+    SCALARS, n; NaN where a car has none)."""
+    rows = len(table)
+    cars = table[:, 2 + n:2 + 5 * n].reshape(rows, n, 4)
+    agents = table[:, 2 + 5 * n:2 + 8 * n].reshape(rows, n, 3)
+    return {"steps": table[:, 0].astype(np.int64), "times": table[:, 1], "active": table[:, 2:2 + n] != 0,
+            "pose": cars[..., :3],
+            "scalars": np.stack([cars[..., 3], agents[..., 0], agents[..., 1], agents[..., 2], table[:, 2 + 8 * n:]],
+                                axis=1)}  # SCALARS' order
+
+
 def car_id(i: int) -> str:
     """Entity name of car slot i (car names like `bot:follow@1.5` are not path-safe)."""
     return f"car_{i}"
@@ -112,6 +125,7 @@ class ReplayRecorder:
         self._ended = [not car.racing for car in state.cars]
         self._recorded = [not ended for ended in self._ended]  # whether a car's pose goes in the next row
         self._everyone = [True] * n
+        self._ranked = not state.rules.projects_standings  # the standings are the published ranks
         self._scene = scene_of(env) if self.image_every else None  # the writer draws the cameras itself, if set
         self._block_reset()
         cars = [{"id": self.ids[i], "name": car.name, "colour": list(CAR_COLOURS[i % len(CAR_COLOURS)])}
@@ -181,20 +195,12 @@ class ReplayRecorder:
         self._images, self._drawn, self._pictures, self._events, self._echoes = [], [], [], [], []
 
     def _ship(self) -> None:
-        """Hand the block to the writer as arrays (each step's step and time, which cars are recorded, their
-        poses and SCALARS, NaN where a car has none) and start a new one."""
-        rows, n = len(self._rows), self.n
-        table = np.array(self._rows, np.float64).reshape(rows, 2 + 9 * n)  # (the shape also of an empty block)
-        cars = table[:, 2 + n:2 + 5 * n].reshape(rows, n, 4)
-        agents = table[:, 2 + 5 * n:2 + 8 * n].reshape(rows, n, 3)
-        scalars = np.stack([cars[..., 3], agents[..., 0], agents[..., 1], agents[..., 2], table[:, 2 + 8 * n:]],
-                           axis=1)  # SCALARS' order
+        """Hand the block to the writer (its rows as one array, `block_columns` splits it there) and start a new
+        one."""
+        table = np.array(self._rows, np.float64).reshape(len(self._rows), 2 + 9 * self.n)  # (an empty block too)
         self._writer.send(("rows", {
-            "steps": table[:, 0].astype(np.int64), "times": table[:, 1].copy(),
-            "active": table[:, 2:2 + n].astype(bool), "pose": np.ascontiguousarray(cars[..., :3]),
-            "scalars": scalars, "images": self._images, "drawn": self._drawn, "pictures": self._pictures,
-            "events": self._events,
-            "echoes": self._echoes}))
+            "table": table, "images": self._images, "drawn": self._drawn, "pictures": self._pictures,
+            "events": self._events, "echoes": self._echoes}))
         self._block_reset()
 
     def _record_step(self, env, observations, rewards, infos) -> None:
@@ -211,7 +217,7 @@ class ReplayRecorder:
             info = infos.get(agent)
             row += (nan, rewards.get(agent, nan), nan) if info is None else (
                 info["progress"], rewards.get(agent, nan), info["rank"])
-        row += env.standings()[:self.n]
+        row += [car.rank for car in cars] if self._ranked else env.standings()[:self.n]
         self._rows.append(row)
         take_image = bool(self.image_every) and observations is not None and step % self.image_every == 0
         imaged, images = [], []  # the cars whose camera images this step records, and those images
@@ -224,9 +230,10 @@ class ReplayRecorder:
                 image = self._camera_image(env, car, observations[agent])
                 if self._scene is None:
                     images.append(image)
-            if infos and (self._race_state(car.race) != self._prev[i] or agent in infos and infos[agent]["events"]):
+            race = car.race  # (its events this step are its agent's info["events"])
+            if infos and (car.events or self._race_state(race) != self._prev[i]):
                 self._log_events(env, car, infos)
-            if not car.race.racing:
+            if not race.racing:
                 self._ended[i], self._recorded[i] = True, False
         if images:  # (carried as a copy: the agents may reuse their arrays)
             self._images.append((len(self._rows) - 1, imaged, self._writer.carry(images)))

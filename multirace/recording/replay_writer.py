@@ -31,15 +31,15 @@ import traceback
 
 import cv2
 import numpy as np
-import pyarrow as pa
 import rerun as rr
 
 from . import blueprints
 from .arena import ArenaImage, ImageArena
+from .columns import image_columns, scalar_columns, time_index, transform_columns
+from .replay import block_columns
 from .replay_process import answer, next_file, receive
 from .scene_cameras import SceneCameras
 
-BLOB_TYPE = pa.list_(pa.field("item", pa.uint8(), nullable=False))  # rerun's `Blob` component
 SYNC_BYTES = 1 << 20  # bytes written to the file between two syncs to disk
 TRACK_LINES = (("center", (235, 190, 40), 0.01), ("inner", (240, 240, 240), 0.025),
                ("outer", (240, 240, 240), 0.025))  # name, colour, radius
@@ -128,6 +128,7 @@ class ReplayWriter:
         its end, the last rows and the result follow at once), so that the block's columns and the last
         rows' go out together rather than one after the other, up to twice `flush_every` rows."""
         received, released = self._first + self._rows, None
+        columns = block_columns(batch["table"], len(self.ids))
         for row, cars, images in batch["images"]:  # a step's images of `cars`
             if isinstance(images, tuple):  # where they lie in the arena (`WriterProcess.carry`)
                 where = ArenaImage._make(images)
@@ -136,7 +137,7 @@ class ReplayWriter:
         if released is not None:
             self.arena.release(released)
         for row, cars, parked in batch["drawn"]:  # a step's images of `cars`, drawn here (`scene_cameras`)
-            self._keep_frames(received + row, cars, self.cameras.draw(cars, batch["pose"][row], parked))
+            self._keep_frames(received + row, cars, self.cameras.draw(cars, columns["pose"][row], parked))
         for step, race_time, entity, image in batch["pictures"]:
             jpeg = self._encode(image)
             if jpeg is not None:
@@ -148,14 +149,15 @@ class ReplayWriter:
             for kind, level, text, clock in entries:
                 self._log(step, race_time, f"events/{self.ids[car]}", rr.TextLog(text, level=level),
                           rr.AnyValues(kind=kind, car=self.ids[car], clock=float(clock)))
-        rows = len(batch["steps"])
+        rows = len(columns["steps"])
         if self._rows + rows > len(self._steps):  # (a block held back, below, that these rows would overflow)
             self._flush()
         if rows > len(self._steps):
             self._block_reset(rows)
         block = slice(self._rows, self._rows + rows)
-        self._steps[block], self._times[block] = batch["steps"], batch["times"]
-        self._active[block], self._pose[block], self._scalars[block] = batch["active"], batch["pose"], batch["scalars"]
+        self._steps[block], self._times[block] = columns["steps"], columns["times"]
+        self._active[block], self._pose[block], self._scalars[block] = (columns["active"], columns["pose"],
+                                                                         columns["scalars"])
         self._rows += rows
         if self._rows >= self.flush_every and not more_waiting:
             self._flush()
@@ -208,8 +210,7 @@ class ReplayWriter:
         steps, times = self._steps[:rows], self._times[:rows]
 
         def index(rows):
-            rows = np.asarray(rows, dtype=np.int64)
-            return [rr.TimeColumn("step", sequence=steps[rows]), rr.TimeColumn("race_time", duration=times[rows])]
+            return time_index(steps[rows], times[rows])
 
         active, poses = self._active[:rows], self._pose[:rows]
         scalars = {name: self._scalars[:rows, k] for k, name in enumerate(self.scalars)}
@@ -221,32 +222,22 @@ class ReplayWriter:
                 x, y, yaw = poses[rows, i].T
                 half = yaw / 2
                 zero = np.zeros_like(half)
-                rec.send_columns(f"world/cars/{cid}", indexes=car_index, columns=rr.Transform3D.columns(
-                    translation=np.column_stack([x, y, np.full(len(rows), self.z)]),
-                    quaternion=np.column_stack([zero, zero, np.sin(half), np.cos(half)])))
+                rec.send_columns(f"world/cars/{cid}", indexes=car_index, columns=transform_columns(
+                    np.column_stack([x, y, np.full(len(rows), self.z)]),
+                    np.column_stack([zero, zero, np.sin(half), np.cos(half)])))
             for name, values in scalars.items():
                 with_value = rows[~np.isnan(values[rows, i])]
                 if len(with_value):
                     rec.send_columns(f"plots/{name}/{cid}",
                                      indexes=car_index if len(with_value) == len(rows) else index(with_value),
-                                     columns=rr.Scalars.columns(scalars=values[with_value, i]))
+                                     columns=scalar_columns(values[with_value, i]))
             images = [(row - self._first, jpeg) for row, jpeg in self._frames[i] if row < end]
             self._frames[i] = [(row, jpeg) for row, jpeg in self._frames[i] if row >= end]
             if images:
-                rec.send_columns(f"cameras/{cid}", indexes=index([r for r, _ in images]),
-                                 columns=rr.EncodedImage.columns(blob=_blob_column([b for _, b in images]),
-                                                                 media_type=["image/jpeg"] * len(images)))
+                rec.send_columns(f"cameras/{cid}", indexes=index(np.array([r for r, _ in images], np.int64)),
+                                 columns=image_columns([b for _, b in images], "image/jpeg"))
         self._first = end
         self._block_reset()
-
-
-def _blob_column(blobs: list[bytes]) -> pa.ListArray:
-    """Byte strings as the Arrow array of rerun's `Blob` component, built in one piece (rerun's own conversion
-    builds an array per blob, most of a flush's time)."""
-    offsets = np.zeros(len(blobs) + 1, np.int32)
-    np.cumsum([len(blob) for blob in blobs], out=offsets[1:])
-    data = pa.array(np.frombuffer(b"".join(blobs), np.uint8))
-    return pa.ListArray.from_arrays(pa.array(offsets), data, type=BLOB_TYPE)
 
 
 class _FileCopy:
