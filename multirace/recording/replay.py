@@ -33,9 +33,10 @@ The race's process only gathers what each step shows into blocks of `SHIP_EVERY`
 poses, scalars, camera images, event texts, LIDAR echoes) and hands each block to the replay writer
 (`replay_writer`), a process of its own (`replay_process`). The camera images are copied into memory the
 writer shares, or, where they are the fast renderer's pure images of the recorded poses, drawn again by
-the writer (`scene_cameras`: the race sends only which cars are parked). There the images are JPEG-encoded, the per-step data are sent in columns (`send_columns`) every `flush_every` steps
-and rerun's binary stream is written to a file beside the target, which becomes the target only when the
-race ends well and the writer has written it completely (`multirace.atomic`); a writer that fails is an
+the writer (`scene_cameras`: the race sends only which cars are parked). There the images are
+JPEG-encoded, the per-step data are sent in columns (`send_columns`) every `flush_every` steps and rerun's
+binary stream is written to a file beside the target, which becomes the target only when the race ends
+well and the writer has written it completely (`multirace.atomic`); a writer that fails is an
 `OutputError` naming the target.
 """
 from __future__ import annotations

@@ -20,9 +20,9 @@ once, by the kernel):
 - `stop()` ends the writer at once (a race that failed or was interrupted).
 
 A writer that completed a file waits for this process's next recording: starting an interpreter and
-importing rerun costs about a second of CPU, paid once per process (`prepare` starts one ahead, while
-a race is set up). A writer that failed or was stopped is not used again. Idle writers end with this
-process: at exit, and by themselves when their socket closes (this process ended any other way).
+importing rerun and the renderer costs a second or two of CPU, paid once per process (`prepare` starts one
+ahead, while a race is set up). A writer that failed or was stopped is not used again. Idle writers end
+with this process: at exit, and by themselves when their socket closes (this process ended any other way).
 
 The writer is a fresh interpreter (`subprocess`, as multiprocessing's 'spawn'), not a fork: the race's
 process has threads (numba, torch, PyBullet, rerun's own) and a fork of a threaded process may hang on a

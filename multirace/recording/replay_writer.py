@@ -4,10 +4,10 @@ It runs in a process of its own (`replay_process`), fed by `replay.ReplayRecorde
 layout) with, for each replay: the file to write (its descriptor), ``("start", description)``,
 ``("rows", batch)`` as the race goes and ``("finish", result text or None)``. It JPEG-encodes the camera
 images as they come (read from the shared `arena.ImageArena`, whose space it then gives back, or drawn
-here from the recorded poses, `scene_cameras`), logs events
-and LIDAR echoes at their step, builds the per-step columns of every `flush_every` rows (`send_columns`)
-and writes the recording to the file it was given; it answers ``("done", cpu seconds spent on it)`` once
-the file is complete, or ``("error", reason)``.
+here from the recorded poses, `scene_cameras`), logs events and LIDAR echoes at their step, builds the
+per-step columns of every `flush_every` rows (`send_columns`, `columns`) and writes the recording to the
+file it was given; it answers ``("done", cpu seconds spent on it)`` once the file is complete, or
+``("error", reason)``.
 
 rerun's file sink (`save`) encodes and writes the recording as it comes (flushed after each block of
 columns), with one manifest at the end, into a pipe whose bytes a thread here writes to the file and syncs
