@@ -1,12 +1,18 @@
 """Shared helpers for the multirace tests (import as `from helpers import ...`)."""
 from __future__ import annotations
 
+import hashlib
+
+import cv2
 import numpy as np
 
 from multirace.environment.bots import PurePursuit
 from multirace.environment.drivers import car_pose
 from multirace.environment.race_env import RaceEnv
 from multirace.racing.entrant import COMMAND_SPACE, BotController
+from multirace.recording.replay_reader import read_chunks
+
+REPLAY_JPEG_QUALITY = 75  # the replay recorder's JPEG quality
 
 
 def drive_expert(env, speed=1.0, steps=None, lateral=0.0):
@@ -122,3 +128,47 @@ class TorchThreadsEnv(RaceEnv):
         for info in infos.values():
             info["torch_threads"] = torch.get_num_threads()
         return (*rest, infos)
+
+
+class Frames:
+    """A recorder that keeps each car's pose every step and the JPEG of its camera frame every `every` steps (up to
+    the step its run ends)."""
+
+    def __init__(self, every: int):
+        self.every, self.poses, self.jpegs = every, {}, {}
+        self.shapes = set()  # the shapes of the frames it kept
+
+    def start(self, env):
+        self.done = [False] * len(env.race_state.cars)
+
+    def step(self, env, observations, rewards, infos):
+        state = env.race_state
+        for i, car in enumerate(state.cars):
+            self.poses[(i, state.step)] = (car.x, car.y)
+            if state.step % self.every == 0 and not self.done[i]:
+                image = observations[env.possible_agents[i]]
+                self.shapes.add(image.shape)
+                if image.ndim == 3:  # colour, RGB: encoded as the writer encodes it
+                    image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+                jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, REPLAY_JPEG_QUALITY])[1]
+                self.jpegs[(i, state.step)] = hashlib.sha256(jpeg.tobytes()).hexdigest()
+            self.done[i] = not car.racing
+
+    def finish(self, env, result):
+        pass
+
+
+def recorded_images(path) -> dict:
+    """{(car index, step): sha256 of the JPEG} of every camera image in a replay."""
+    found = {}
+    for entity, batches in read_chunks(path).items():
+        if not entity.startswith("cameras/car_"):
+            continue
+        car = int(entity.rsplit("_", 1)[1])
+        for batch in batches:
+            steps = batch.column(batch.schema.get_field_index("step")).to_pylist()
+            blobs = batch.column(batch.schema.get_field_index("EncodedImage:blob")).to_pylist()
+            for step, blob in zip(steps, blobs):
+                assert (car, step) not in found, f"two images of car_{car} at step {step}"
+                found[(car, step)] = hashlib.sha256(bytes(blob[0])).hexdigest()
+    return found

@@ -10,8 +10,9 @@ import pytest
 from multirace.cli import main
 from multirace.racing.entrant import BotController
 from multirace.racing.runner import RaceConfig, run_race
-from helpers import Wild
+from helpers import Frames, Wild, recorded_images
 from multirace.recording.replay import ReplayRecorder
+from multirace.recording.replay_process import WriterProcess
 from multirace.recording.replay_reader import read_chunks, replay_summary
 
 DT = 1.0 / 15
@@ -35,7 +36,6 @@ class Capture:
         self.events = []  # (step, car index, kind)
         self.collisions = [0] * len(env.races)
         self.image_steps = {i: [] for i in range(len(env.races))}
-        self.frames = {i: [] for i in range(len(env.races))}  # the camera observations of those steps
 
     def step(self, env, observations, rewards, infos):
         for i, race in enumerate(env.races):
@@ -44,7 +44,6 @@ class Capture:
             self.poses[i][env.steps] = tuple(env.world.poses[i])
             if env.steps % 2 == 0:
                 self.image_steps[i].append(env.steps)
-                self.frames[i].append(np.array(observations[env.possible_agents[i]]))
             info = infos[env.possible_agents[i]]
             for event in info["events"]:
                 self.events.append((env.steps, i, event))
@@ -64,10 +63,11 @@ class Capture:
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory):
     path = tmp_path_factory.mktemp("replay") / "race.rrd"
-    capture = Capture()
+    capture, frames = Capture(), Frames(every=2)
     controllers = [Wild("bot:follow@0.6", (200, 225), steer=-30.0), Blind("bot:follow@2.0")]  # 4 off-tracks, then on
     result = run_race(controllers, RaceConfig(laps=1, race="head_to_head", seed=1),
-                      recorders=[ReplayRecorder(path, image_every=2), capture])
+                      recorders=[ReplayRecorder(path, image_every=2), capture, frames])
+    capture.jpegs = frames.jpegs  # the JPEG of each camera frame, encoded as the writer encodes it
     return path, capture, result
 
 
@@ -112,48 +112,32 @@ def test_replay_images_are_jpeg_camera_frames(recorded):
     assert image.std() > 5  # a real camera view, not a blank frame
 
 
-def replay_frames(path, car: int) -> list[np.ndarray]:
-    """Every camera frame of car `car` in the replay at `path`, decoded, in step order."""
-    frames = []
-    for batch in read_chunks(path)[f"cameras/car_{car}"]:
-        blobs = batch.column(batch.schema.get_field_index("EncodedImage:blob")).to_pylist()
-        frames += [cv2.imdecode(np.frombuffer(bytes(blob[0]), np.uint8), cv2.IMREAD_UNCHANGED) for blob in blobs]
-    return frames
-
-
-def as_jpeg(image: np.ndarray) -> np.ndarray:
-    """`image` through the replay's JPEG encoding (quality 75) and back."""
-    if image.ndim == 3:
-        image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
-    return cv2.imdecode(cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 75])[1], cv2.IMREAD_UNCHANGED)
-
-
 def test_replay_frames_are_the_cameras_the_agents_saw(recorded):
     """The writer draws the frames again from the recorded poses (`scene_cameras`): through a collision, resets
     and a finished car parked off the scene, every frame is the agent's own observation, JPEG-encoded."""
     path, capture, result = recorded
     assert any(car["status"] == "finished" for car in result["cars"])
-    for i in range(2):
-        frames = replay_frames(path, i)
-        assert len(frames) == len(capture.frames[i])
-        for step, frame, observation in zip(capture.image_steps[i], frames, capture.frames[i]):
-            assert np.array_equal(frame, as_jpeg(observation)), f"car_{i}, step {step}: frame differs"
+    assert recorded_images(path) == capture.jpegs
 
 
 @pytest.mark.parametrize("config", [dict(randomize="strong", grayscale=False), dict(grayscale=False)],
                          ids=["randomised, carried", "colour, drawn"])
-def test_replay_frames_carried_or_drawn_match_the_observations(tmp_path, config):
+def test_replay_frames_carried_or_drawn_match_the_observations(tmp_path, monkeypatch, config):
     """Randomised images (not a function of the poses) are carried to the writer as they are; colour cameras
     are drawn by it: either way each frame is the observation."""
-    path, capture = tmp_path / "race.rrd", Capture()
+    carried, carry = [], WriterProcess.carry
+
+    def counted(writer, images):
+        carried.append(len(images))
+        return carry(writer, images)
+
+    monkeypatch.setattr(WriterProcess, "carry", counted)
+    path, frames = tmp_path / "race.rrd", Frames(every=2)
     run_race([BotController("bot:follow@1.5"), BotController("bot:follow@1.0")],
-             RaceConfig(laps=1, seed=2, max_steps=40, **config), recorders=[ReplayRecorder(path, image_every=2), capture])
-    for i in range(2):
-        frames = replay_frames(path, i)
-        assert len(frames) == len(capture.frames[i]) == 20
-        for step, frame, observation in zip(capture.image_steps[i], frames, capture.frames[i]):
-            assert observation.shape == (120, 160, 3)
-            assert np.array_equal(frame, as_jpeg(observation)), f"car_{i}, step {step}: frame differs"
+             RaceConfig(laps=1, seed=2, max_steps=40, **config), recorders=[ReplayRecorder(path, image_every=2), frames])
+    assert frames.shapes == {(120, 160, 3)}  # colour observations
+    assert len(frames.jpegs) == 2 * 20 and recorded_images(path) == frames.jpegs
+    assert carried == ([2] * 20 if config.get("randomize") else [])  # a step's frames carried, or none
 
 
 def test_scene_of_draws_only_pure_renders():

@@ -2,7 +2,6 @@
 error naming the file, and no writer outlives the race's process or a failed race (real races, real processes)."""
 from __future__ import annotations
 
-import hashlib
 import os
 import signal
 import subprocess
@@ -18,36 +17,10 @@ from multirace.racing.entrant import BotController
 from multirace.racing.runner import RaceConfig, make_controller, run_race
 from multirace.recording import replay_process
 from multirace.recording.replay import ReplayRecorder
-from multirace.recording.replay_reader import read_chunks, replay_summary, view_origins
+from helpers import Frames, recorded_images
+from multirace.recording.replay_reader import replay_summary, view_origins
 
 BOTS = ("bot:follow@1.5", "bot:lanes@1.0", "bot:follow@1.0", "bot:lanes@1.5")
-QUALITY = 75  # the recorder's JPEG quality
-
-
-class Frames:
-    """A recorder that keeps each car's pose every step and the JPEG of its camera frame every `every` steps (up to
-    the step its run ends)."""
-
-    def __init__(self, every: int):
-        self.every, self.poses, self.jpegs = every, {}, {}
-
-    def start(self, env):
-        self.done = [False] * len(env.race_state.cars)
-
-    def step(self, env, observations, rewards, infos):
-        state = env.race_state
-        for i, car in enumerate(state.cars):
-            self.poses[(i, state.step)] = (car.x, car.y)
-            if state.step % self.every == 0 and not self.done[i]:
-                image = observations[env.possible_agents[i]]
-                jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, QUALITY])[1]
-                self.jpegs[(i, state.step)] = hashlib.sha256(jpeg.tobytes()).hexdigest()
-            self.done[i] = not car.racing
-
-    def finish(self, env, result):
-        pass
-
-
 class Act(BotController):
     """A bot that does `what(self)` once, at step `at`."""
 
@@ -59,22 +32,6 @@ class Act(BotController):
         if self.env.steps == self.at:
             self.what(self)
         return super().act(observation, info)
-
-
-def recorded_images(path) -> dict:
-    """{(car index, step): sha256 of the JPEG} of every camera image in a replay."""
-    found = {}
-    for entity, batches in read_chunks(path).items():
-        if not entity.startswith("cameras/car_"):
-            continue
-        car = int(entity.rsplit("_", 1)[1])
-        for batch in batches:
-            steps = batch.column(batch.schema.get_field_index("step")).to_pylist()
-            blobs = batch.column(batch.schema.get_field_index("EncodedImage:blob")).to_pylist()
-            for step, blob in zip(steps, blobs):
-                assert (car, step) not in found, f"two images of car_{car} at step {step}"
-                found[(car, step)] = hashlib.sha256(bytes(blob[0])).hexdigest()
-    return found
 
 
 def leftovers(folder) -> list[str]:
