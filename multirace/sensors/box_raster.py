@@ -42,8 +42,6 @@ def draw_boxes(images, eyes, rotations, camera_cars, car_poses, parked, car_size
     spread = math.sqrt(1 + limit * limit)
     num_cars = car_poses.shape[0]
     num_boxes = num_cars + obstacle_poses.shape[0]
-    poses = np.empty((num_boxes, 3))
-    poses[:num_cars], poses[num_cars:] = car_poses, obstacle_poses
     car_radius = 0.5 * math.sqrt(car_size[0] ** 2 + car_size[1] ** 2 + car_size[2] ** 2)
     obstacle_radius = 0.5 * math.sqrt(obstacle_size[0] ** 2 + obstacle_size[1] ** 2 + obstacle_size[2] ** 2)
     visible = np.empty(num_boxes, np.int64)
@@ -51,6 +49,7 @@ def draw_boxes(images, eyes, rotations, camera_cars, car_poses, parked, car_size
     corners = np.empty((8, 3))
     outline = np.empty((20, 2))
     hull = np.empty((21, 2))
+    spans = np.empty((2, images.shape[1]))  # each image row's (left, right) ends of the polygon being filled
     for c in range(images.shape[0]):
         rotation, eye = rotations[c], eyes[c]
         count = 0
@@ -58,22 +57,28 @@ def draw_boxes(images, eyes, rotations, camera_cars, car_poses, parked, car_size
             is_car = b < num_cars
             if is_car and (parked[b] or b == camera_cars[c]):
                 continue
+            pose = car_poses[b] if is_car else obstacle_poses[b - num_cars]
             radius, half_height = (car_radius, car_size[2] / 2) if is_car else (obstacle_radius, obstacle_size[2] / 2)
-            dx, dy, dz = poses[b, 0] - eye[0], poses[b, 1] - eye[1], half_height - eye[2]
+            dx, dy, dz = pose[0] - eye[0], pose[1] - eye[1], half_height - eye[2]
             depth = rotation[2, 0] * dx + rotation[2, 1] * dy + rotation[2, 2] * dz
             across = rotation[0, 0] * dx + rotation[0, 1] * dy + rotation[0, 2] * dz
             # bounding-sphere culling: in front of the near plane and inside the horizontal view
             if depth + radius > near and abs(across) - radius * spread < max(depth, 0.0) * limit:
-                visible[count], depths[count] = b, depth
+                k = count  # insert it far to near (the sort stable, as numpy's for so few)
+                while k > 0 and depths[k - 1] < depth:
+                    visible[k], depths[k] = visible[k - 1], depths[k - 1]
+                    k -= 1
+                visible[k], depths[k] = b, depth
                 count += 1
-        for k in np.argsort(-depths[:count]):  # far to near
+        for k in range(count):
             b = visible[k]
             is_car = b < num_cars
-            _box_corners(poses[b], car_size if is_car else obstacle_size, rotation, eye, corners)
+            pose = car_poses[b] if is_car else obstacle_poses[b - num_cars]
+            _box_corners(pose, car_size if is_car else obstacle_size, rotation, eye, corners)
             points = _clipped_outline(corners, near, focal, cx, cy, outline)
             if points >= 3:
                 colour = car_colours[b % car_colours.shape[0]] if is_car else obstacle_colour
-                _fill_convex(images[c], hull, _convex_hull(outline, points, hull), colour)
+                _fill_convex(images[c], hull, _convex_hull(outline, points, hull), colour, spans)
 
 
 @numba.njit(cache=True)
@@ -144,25 +149,37 @@ def _convex_hull(points, count, hull):
 
 
 @numba.njit(cache=True)
-def _fill_convex(image, polygon, count, colour):
-    """Fill the pixels whose centres lie inside a convex polygon (vertices polygon[:count])."""
+def _fill_convex(image, polygon, count, colour, spans):
+    """Fill the pixels whose centres lie inside a convex polygon (vertices polygon[:count]).
+
+    Each row's span runs from the least to the greatest x at which the polygon's edges cross it, found edge by
+    edge over the rows each edge spans (its ends included) rather than row by row over every edge: the same
+    crossings, from the same expression. spans (2, H) is scratch."""
     if count < 3:
         return
     height, width, gray = image.shape[0], image.shape[1], image.shape[2] == 1
     top, bottom = polygon[0, 1], polygon[0, 1]
     for i in range(1, count):
         top, bottom = min(top, polygon[i, 1]), max(bottom, polygon[i, 1])
-    for row in range(max(int(math.ceil(top)), 0), min(int(math.floor(bottom)), height - 1) + 1):
-        left, right = math.inf, -math.inf
-        for i in range(count):
-            j = i + 1 if i + 1 < count else 0  # not (i + 1) % count: an integer division per edge and row
-            x0, y0 = polygon[i, 0], polygon[i, 1]
-            x1, y1 = polygon[j, 0], polygon[j, 1]
-            if (y0 <= row <= y1 or y1 <= row <= y0) and y0 != y1:
-                x = x0 + (row - y0) * (x1 - x0) / (y1 - y0)
-                left, right = min(left, x), max(right, x)
-            elif y0 == y1 == row:
-                left, right = min(left, x0, x1), max(right, x0, x1)
+    first_row, last_row = max(int(math.ceil(top)), 0), min(int(math.floor(bottom)), height - 1)
+    if first_row > last_row:
+        return
+    spans[0, first_row:last_row + 1] = math.inf
+    spans[1, first_row:last_row + 1] = -math.inf
+    for i in range(count):
+        j = i + 1 if i + 1 < count else 0  # not (i + 1) % count: an integer division per edge
+        x0, y0 = polygon[i, 0], polygon[i, 1]
+        x1, y1 = polygon[j, 0], polygon[j, 1]
+        low, high = max(int(math.ceil(min(y0, y1))), first_row), min(int(math.floor(max(y0, y1))), last_row)
+        if y0 != y1:
+            run, rise = x1 - x0, y1 - y0
+            for row in range(low, high + 1):
+                x = x0 + (row - y0) * run / rise
+                spans[0, row], spans[1, row] = min(spans[0, row], x), max(spans[1, row], x)
+        elif low <= high:  # a level edge lying on a row
+            spans[0, low], spans[1, low] = min(spans[0, low], x0, x1), max(spans[1, low], x0, x1)
+    for row in range(first_row, last_row + 1):
+        left, right = spans[0, row], spans[1, row]
         if left > right or right < 0 or left > width - 1:
             continue
         first, last = max(int(math.ceil(left)), 0), min(int(math.floor(right)), width - 1)
