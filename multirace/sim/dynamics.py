@@ -46,9 +46,11 @@ import numpy as np
 
 from .car import GRAVITY
 
-# numpy's error model: a float division does not check for zero (a check would keep LLVM from vectorising);
-# "contract" lets LLVM fuse a multiply and an add (FMA), which only changes the rounding.
-_KERNEL = dict(cache=True, error_model="numpy", fastmath={"contract"})
+# numpy's error model: a float division does not check for zero (a check would keep LLVM from vectorising).
+# No fastmath, not even "contract" (fused multiply-adds): which products LLVM fuses depends on what it inlines,
+# and a caller compiled in the same process inlines these kernels where one loaded from numba's cache cannot,
+# so with it the first race after an install rounded differently from every later one (same seeds, another race).
+_KERNEL = dict(cache=True, error_model="numpy")
 # inlined into the kernels (cached with them) and never dispatched in a race: not cached themselves, or their cache
 # index would never appear and the first-compile notice (environment/kernels.py) would show on every run
 _INLINE = dict(_KERNEL, cache=False, inline="always")
