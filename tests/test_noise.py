@@ -7,7 +7,7 @@ from multirace.environment.noise import BLOCK_STEPS, NoiseBlocks
 def test_blocks_give_the_draws_of_one_call_per_step_across_block_ends():
     one_by_one, blocks = np.random.default_rng(11), NoiseBlocks(np.random.default_rng(11), (3, 2))
     for _ in range(BLOCK_STEPS + 5):
-        assert blocks.next() == one_by_one.standard_normal((3, 2)).tolist()
+        assert blocks.next() == one_by_one.standard_normal((3, 2)).ravel().tolist()
 
 
 def test_settle_leaves_the_generator_where_step_by_step_draws_would():
@@ -19,4 +19,4 @@ def test_settle_leaves_the_generator_where_step_by_step_draws_would():
             blocks.next()
         blocks.settle()
         assert rng.uniform(size=6).tolist() == one_by_one.uniform(size=6).tolist()  # the boxes' draws after a reset
-        assert blocks.next() == one_by_one.standard_normal((4, 2)).tolist()  # and the next episode's noise
+        assert blocks.next() == one_by_one.standard_normal((4, 2)).ravel().tolist()  # and the next episode's noise

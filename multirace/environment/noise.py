@@ -5,7 +5,11 @@ env's steering and speed noise (a standard normal pair per car per step) is
 drawn for many steps at once. A block of k draws of one shape is exactly the
 k draws made one at a time (the generator fills arrays value by value), so
 the races are the same; `settle` leaves the generator where the draws one at a
-time would have, before anything else draws from it.
+time would have, before anything else draws from it. A block is kept as one
+flat list of floats: a nested list per draw would be thousands of small lists
+living for hundreds of steps, which the garbage collector's generations
+promote until a full collection of the whole process (tens of milliseconds)
+runs every few thousand steps.
 """
 from __future__ import annotations
 
@@ -15,24 +19,25 @@ BLOCK_STEPS = 256  # steps of noise drawn at once
 
 
 class NoiseBlocks:
-    """Standard normal draws of `shape` from `rng`: `next()` gives one draw (nested lists of floats), the same
-    values in the same order as ``rng.standard_normal(shape).tolist()`` per call."""
+    """Standard normal draws of `shape` from `rng`: `next()` gives one draw as a flat list of floats in C order,
+    the values of ``rng.standard_normal(shape).ravel().tolist()`` per call."""
 
     def __init__(self, rng: np.random.Generator, shape: tuple[int, ...]):
         self.rng, self.shape = rng, shape
-        self._block: list = []
-        self._used = 0
+        self._size = int(np.prod(shape))  # values per draw
+        self._block: list = []  # the block's draws, one flat list
+        self._used = 0  # draws given from it
         self._state_before = None  # the generator's state before the block was drawn
 
     def next(self) -> list:
         """The next draw."""
-        if self._used == len(self._block):
+        size, used = self._size, self._used
+        if used * size == len(self._block):
             self._state_before = self.rng.bit_generator.state
-            self._block = self.rng.standard_normal((BLOCK_STEPS, *self.shape)).tolist()
-            self._used = 0
-        draw = self._block[self._used]
-        self._used += 1
-        return draw
+            self._block = self.rng.standard_normal((BLOCK_STEPS, *self.shape)).ravel().tolist()
+            used = 0
+        self._used = used + 1
+        return self._block[used * size:(used + 1) * size]
 
     def settle(self) -> None:
         """Put the generator where drawing one `shape` per `next` call would have left it (the block's unused

@@ -325,7 +325,7 @@ class RaceEnv(ParallelEnv):
         spec, races, draw = self.car_spec, self.core.races, self._draw
         randomised = draw is not None and self.randomization.dynamics_enabled
         commands = list(self.core.commands)
-        noise = self._noise.next()  # DeepRacer's action noise: a (steer, speed) pair per learning car
+        noise = self._noise.next()  # DeepRacer's action noise: steer, speed of the first learning car, of the next...
         steer_noise, speed_noise, clamp = spec.steer_noise, spec.speed_noise, spec.clamp_command
         space = self.actions
         for i, agent in enumerate(self.possible_agents):
@@ -340,9 +340,8 @@ class RaceEnv(ParallelEnv):
                 steer, speed = apply_command(steer, speed, draw, self._randomizer_rng, i, spec)
                 steer = math.radians(steer)
             else:
-                steer_noise_i, speed_noise_i = noise[i]
-                steer = math.radians(steer) + steer_noise * steer_noise_i
-                speed = speed + speed_noise * speed_noise_i
+                steer = math.radians(steer) + steer_noise * noise[2 * i]
+                speed = speed + speed_noise * noise[2 * i + 1]
             commands[i] = clamp(steer, speed)
         for b, bot in enumerate(self.bots):
             i = self.num_cars + b

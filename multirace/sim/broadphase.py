@@ -84,7 +84,8 @@ def drive_cars(poses, motion, velocity, drive_speed, parked, stale, pushes, comm
     marking them `stale`. Returns whether they moved; if not, PyBullet must step them at the velocities set.
 
     numba's cache keys this kernel on this file alone: a change to `dynamics.drive` (compiled into it) needs a
-    change here too, or a cached copy runs the old tyre model."""
+    change here too, or a cached copy runs the old tyre model (last: `dynamics` compiled without FMA
+    contraction)."""
     rows = np.flatnonzero(~parked)
     step_time = dt * substeps
     drive(poses, motion, velocity, rows, pushes, commands, grip, motor, params, step_time)
