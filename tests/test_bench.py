@@ -2,7 +2,8 @@
 racing workload races."""
 import pytest
 
-from multirace.tools.bench import _floor_stepper, _racing, _random_driving, run_profile
+from multirace.tools.bench import (_floor_stepper, _racing, _random_driving, _replayed_random, _same_steps_costs,
+                                   run_profile)
 from multirace.tools.profile import STAGES, format_profile, profile_floor, profile_step
 
 
@@ -100,3 +101,20 @@ def test_a_replay_cost_pair_whose_recording_fails_names_the_file_and_the_plain_r
     with pytest.raises(OutputError, match="a_file"):
         _race_pair(RaceConfig(track="reinvent_base", race="reset_rule", max_steps=40),
                    tmp_path / "a_file" / "x.rrd", 5, turn_steps=7, first=1)
+
+
+def test_the_same_steps_figure_drives_one_recorded_run_the_same_every_time():
+    env, run = _replayed_random(2, steps=120)
+    try:
+        ends = []
+        for _ in range(2):
+            assert run() == 240  # two cars, 120 steps
+            ends.append((env.world.poses.copy(), [race.distance for race in env.races], env.world.bullet_steps))
+        (poses_a, distances_a, bullet_a), (poses_b, distances_b, bullet_b) = ends
+        assert (poses_a == poses_b).all() and distances_a == distances_b  # the same run, bit for bit
+        assert bullet_b > bullet_a  # (the random drivers touch: PyBullet stepped in the second run too)
+    finally:
+        env.close()
+    costs = _same_steps_costs(car_counts=(1, 2), runs=1)
+    assert set(costs) == {1, 2} and all(0 < us < 1e5 for us in costs.values())
+

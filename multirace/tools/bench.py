@@ -12,8 +12,9 @@ same two for 4 cars driven as a head-to-head race (`racing`: no boxes, bots
 that keep their gaps, where the random drivers push each other in a bunch
 round the boxes); the share of steps that stepped PyBullet; the fast
 renderer alone (one camera, frames per second in the same interleaved
-windows); the speed-up of two worker processes over one; memory; and the
-cost of recording a replay. `run_profile` is `multirace bench --profile`:
+windows); the per-agent cost of 8 cars against 1 over the same recorded
+random steps (whole runs, beside the windows' figure); the speed-up of two
+worker processes over one; memory; and the cost of recording a replay. `run_profile` is `multirace bench --profile`:
 where a step's time goes, and its floor's (`profile.py`).
 """
 from __future__ import annotations
@@ -38,6 +39,8 @@ OBSTACLES = 3
 RACING_BOTS = ("follow@2.2", "follow@1.8", "follow@1.4", "follow@1.0")  # `racing`'s drivers, fastest first
 RACING_STEPS = 900  # steps of its recorded race (60 s), replayed in a loop
 CARS_PER_WORKER = 4  # cars in each env of the worker-process figures
+SAME_STEPS = 900  # steps of the recorded random run each car count drives whole for `_same_steps_costs`
+SAME_STEPS_RUNS = 9  # whole runs of it timed per car count, in turns
 
 
 def _interleaved_rates(workloads: dict, seconds: float, windows: int = WINDOWS) -> dict:
@@ -87,6 +90,49 @@ def _random_driving(num_cars: int, renderer: str = "fast", seed: int = 0, lidar:
         env.step({a: int(rng.integers(n_actions)) for a in env.agents})
 
     return env, step
+
+
+def _replayed_random(num_cars: int, seed: int = 0, steps: int = SAME_STEPS):
+    """`_random_driving`'s env and a function that drives the same run every call: from ``reset(seed=seed)``,
+    the first `steps` random actions of that env's run (the steps the floors replay), recorded once. The
+    function returns how many agent-steps it drove."""
+    env = RaceEnv(num_cars=num_cars, obstacles=OBSTACLES, max_steps=2000)
+    rng = np.random.default_rng(seed)
+    env.reset(seed=seed)
+    script = []
+    while env.agents and len(script) < steps:
+        script.append({a: int(rng.integers(env.actions.space.n)) for a in env.agents})
+        env.step(script[-1])
+
+    def run() -> int:
+        env.reset(seed=seed)
+        agent_steps = 0
+        for actions in script:
+            env.step(actions)
+            agent_steps += len(actions)
+        return agent_steps
+
+    return env, run
+
+
+def _same_steps_costs(car_counts=(1, 8), runs: int = SAME_STEPS_RUNS) -> dict:
+    """CPU microseconds per agent-step of the env at each car count over one recorded run
+    (`_replayed_random`), the best of `runs` whole runs each, taken in turns: every timing covers the same
+    steps, so the best is the code's cost, not the luck of a window that caught a cheaper stretch of the
+    run (a lone random car is pinned against a box in most steps, PyBullet stepped, and drives free in
+    others at a quarter of the cost)."""
+    drivers = {n: _replayed_random(n) for n in car_counts}
+    best = dict.fromkeys(car_counts, float("inf"))
+    try:
+        for _ in range(runs):
+            for n, (env, run) in drivers.items():
+                start = time.thread_time()
+                agent_steps = run()
+                best[n] = min(best[n], 1e6 * (time.thread_time() - start) / agent_steps)
+    finally:
+        for env, _ in drivers.values():
+            env.close()
+    return best
 
 
 def _racing(num_cars: int, seed: int = 0, steps: int = RACING_STEPS):
@@ -266,6 +312,11 @@ def run_bench(seconds: float = 3.0, replay_seconds: float = 240.0, progress=prin
              f"{100 * pybullet_share['racing']:.0f} % when they race; renderer alone: {renderer_fps:.0f} frames/s")
     per_agent_us = {n: 1e6 / per_cpu_s["fast"][str(n)] for n in CAR_COUNTS}
     figures["per_agent_cost_growth_1_to_8"] = round(per_agent_us[8] / per_agent_us[1], 3)
+    same_steps = _same_steps_costs()
+    figures["per_agent_us_same_steps"] = {str(n): round(us, 1) for n, us in same_steps.items()}
+    figures["per_agent_cost_growth_1_to_8_same_steps"] = round(same_steps[8] / same_steps[1], 3)
+    progress(f"per-agent CPU cost over the same {SAME_STEPS} random steps: 1 car {same_steps[1]:.1f} us, "
+             f"8 cars {same_steps[8]:.1f} us ({figures['per_agent_cost_growth_1_to_8_same_steps']}x)")
     one, two = rates[("workers", 1)][0], rates[("workers", 2)][0]
     figures["workers_agent_steps_per_s"] = {"1": round(one, 1), "2": round(two, 1)}
     figures["workers_speedup_2"] = round(two / one, 3)
@@ -359,6 +410,9 @@ def format_table(figures: dict) -> list[tuple[str, str]]:
         ("steps that stepped PyBullet, 4 racing cars", f"{100 * figures['pybullet_step_share_racing_4']:.0f} %"),
         ("fast renderer alone, 120x160 grey (frames/s)", f"{figures['renderer_frames_per_s']:,.0f}"),
         ("per-agent CPU cost, 8 cars / 1 car", f"{figures['per_agent_cost_growth_1_to_8']}x"),
+        (f"the same, over the same {SAME_STEPS} random steps (1 car; 8 cars, CPU us per agent-step)",
+         f"{figures['per_agent_cost_growth_1_to_8_same_steps']}x ({figures['per_agent_us_same_steps']['1']}; "
+         f"{figures['per_agent_us_same_steps']['8']})"),
         ("2 workers / 1 worker", f"{figures['workers_speedup_2']}x"),
         ("memory of one 4-car env (MB)", f"{figures['env_memory_mb_4_cars']}"),
         ("peak RSS of the bench process (MB)", f"{figures['peak_rss_mb']}"),
