@@ -325,7 +325,7 @@ class RaceEnv(ParallelEnv):
         spec, races, draw = self.car_spec, self.core.races, self._draw
         randomised = draw is not None and self.randomization.dynamics_enabled
         commands = list(self.core.commands)
-        noise = self._noise.next()  # DeepRacer's action noise: steer, speed of the first learning car, of the next...
+        noise = self._noise.next()  # DeepRacer's action noise: learning car i's steer and speed at 2i and 2i + 1
         steer_noise, speed_noise, clamp = spec.steer_noise, spec.speed_noise, spec.clamp_command
         space = self.actions
         for i, agent in enumerate(self.possible_agents):

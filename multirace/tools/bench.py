@@ -14,8 +14,9 @@ round the boxes); the share of steps that stepped PyBullet; the fast
 renderer alone (one camera, frames per second in the same interleaved
 windows); the per-agent cost of 8 cars against 1 over the same recorded
 random steps (whole runs, beside the windows' figure); the speed-up of two
-worker processes over one; memory; and the cost of recording a replay. `run_profile` is `multirace bench --profile`:
-where a step's time goes, and its floor's (`profile.py`).
+worker processes over one; memory; and the cost of recording a replay.
+`run_profile` is `multirace bench --profile`: where a step's time goes, and
+its floor's (`profile.py`).
 """
 from __future__ import annotations
 
