@@ -2,8 +2,8 @@
 racing workload races."""
 import pytest
 
-from multirace.tools.bench import (_floor_stepper, _racing, _random_driving, _replayed_random, _same_steps_costs,
-                                   run_profile)
+from multirace.tools.bench import (_floor_stepper, _interleaved_rates, _racing, _random_driving, _replayed_random,
+                                   _same_steps_costs, run_profile)
 from multirace.tools.profile import STAGES, format_profile, profile_floor, profile_step
 
 
@@ -118,3 +118,17 @@ def test_the_same_steps_figure_drives_one_recorded_run_the_same_every_time():
     costs = _same_steps_costs(car_counts=(1, 2), runs=1)
     assert set(costs) == {1, 2} and all(0 < us < 1e5 for us in costs.values())
 
+
+
+def test_the_windows_report_the_share_of_pybullet_steps_in_each_workloads_best_window():
+    racing, every_step = _racing(2, steps=90), _random_driving(2, shortcut=False)
+    try:
+        workloads = {"racing": (racing[1], 2), "every_step": (every_step[1], 2)}
+        worlds = {"racing": racing[0].world, "every_step": every_step[0].world}
+        rates, best_share = _interleaved_rates(workloads, seconds=0.3, windows=3, worlds=worlds)
+        assert set(rates) == set(workloads) and all(wall > 0 and cpu > 0 for wall, cpu in rates.values())
+        assert best_share["every_step"] == 1.0  # without the shortcut PyBullet steps every step
+        assert best_share["racing"] < 0.1  # cars that keep their gaps: the shortcut moves them
+    finally:
+        racing[0].close()
+        every_step[0].close()
