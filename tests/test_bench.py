@@ -119,7 +119,6 @@ def test_the_same_steps_figure_drives_one_recorded_run_the_same_every_time():
     assert set(costs) == {1, 2} and all(0 < us < 1e5 for us in costs.values())
 
 
-
 def test_the_windows_report_the_share_of_pybullet_steps_in_each_workloads_best_window():
     racing, every_step = _racing(2, steps=90), _random_driving(2, shortcut=False)
     try:

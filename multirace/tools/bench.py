@@ -70,7 +70,7 @@ def _interleaved_rates(workloads: dict, seconds: float, windows: int = WINDOWS,
             while time.perf_counter() < warm_up:  # untimed: wake the workload's processes, refill its caches
                 step()
             world = worlds.get(name)
-            counts = (world.bullet_steps, world.action_steps) if world else None
+            counts = (world.bullet_steps, world.action_steps) if world is not None else None
             steps, start, start_cpu = 0, time.perf_counter(), time.thread_time()
             while time.perf_counter() - start < seconds / windows:
                 step()
@@ -78,7 +78,7 @@ def _interleaved_rates(workloads: dict, seconds: float, windows: int = WINDOWS,
             wall, cpu = time.perf_counter() - start, time.thread_time() - start_cpu
             best_wall, best_cpu = best[name]
             cpu_rate = agents_per_step * steps / max(cpu, 1e-9)
-            if world and cpu_rate > best_cpu:
+            if world is not None and cpu_rate > best_cpu:
                 best_share[name] = (world.bullet_steps - counts[0]) / max(world.action_steps - counts[1], 1)
             best[name] = (max(best_wall, agents_per_step * steps / wall), max(best_cpu, cpu_rate))
     return best, best_share
